@@ -1,0 +1,205 @@
+"""Validated scene models: what a simulated bench contains.
+
+A scene declares only what it needs; the simulator computes only those terms. Scenes are
+TOML (or JSON) files validated by pydantic; a wrong scene fails with a message naming the
+field (``targets.0.loss_db: Input should be greater than or equal to 0``).
+
+All quantities are SI: Hz, s, m, W, A, V, Ohm, K.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+C = 299_792_458.0
+
+
+class SceneError(ValueError):
+    """A scene file could not be read or failed validation; the message names the field."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Laser(_Model):
+    wavelength_m: float = Field(1.064e-6, gt=0, description="vacuum wavelength")
+    power_w: float = Field(0.05, gt=0, description="laser output power P0")
+    linewidth_hz: float = Field(0.0, ge=0, description="Lorentzian FWHM; 0 = ideal laser")
+
+    @property
+    def coherence_length_m(self) -> float:
+        return math.inf if self.linewidth_hz == 0 else C / (math.pi * self.linewidth_hz)
+
+
+class Tone(_Model):
+    frequency_hz: float = Field(gt=0)
+    modulation_index: float = Field(0.07, gt=0, le=math.pi, description="m_i = pi*V_i/V_pi")
+    phase_rad: float = 0.0
+
+
+class Modulator(_Model):
+    transfer: Literal["exact", "small_signal"] = "exact"
+    tones: list[Tone] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _distinct(self) -> "Modulator":
+        f = [t.frequency_hz for t in self.tones]
+        if len(set(f)) != len(f):
+            raise ValueError("tones: frequencies must be distinct")
+        return self
+
+    @property
+    def tones_hz(self) -> list[float]:
+        return [t.frequency_hz for t in self.tones]
+
+
+class Architecture(_Model):
+    kind: Literal["unmodulated_lo", "modulated_reference"] = "unmodulated_lo"
+    reference_range_m: float = Field(0.065, ge=0, description="reference mirror (modulated_reference)")
+    reference_loss_db: float = Field(20.0, ge=0)
+
+
+class Target(_Model):
+    range_m: float = Field(description="one-way range at t = 0 of the sequence")
+    velocity_mps: float = Field(0.0, description="dL/dt, positive = receding")
+    loss_db: float = Field(20.0, ge=0, description="round-trip power loss")
+
+
+class Paths(_Model):
+    tau0_s: float = Field(0.0, ge=0, description="internal round-trip delay removed by calibration")
+    lo_path_difference_m: float = Field(
+        0.0, description="optical path of the LO minus the echo's internal path (tau_lo = tau0 + d/c)"
+    )
+
+
+class Receiver(_Model):
+    kind: Literal["single", "balanced", "iq"] = "single"
+    responsivity_a_per_w: float = Field(0.9, gt=0)
+    load_ohm: float = Field(50.0, gt=0)
+    gain: float = Field(1.0, gt=0, description="voltage gain after the load")
+    bandwidth_hz: float | None = Field(None, gt=0, description="front-end low-pass (2nd-order Butterworth)")
+    dark_current_a: float = Field(0.0, ge=0)
+
+
+class Noise(_Model):
+    shot: bool = False
+    thermal: bool = False
+    temperature_k: float = Field(300.0, gt=0)
+    noise_figure: float = Field(1.0, ge=1.0, description="linear F_n of the front end")
+    rin_db_per_hz: float | None = Field(None, lt=0)
+    trigger_jitter_s: float = Field(0.0, ge=0, description="rms, per frame")
+    rf_phase_drift_rad: float = Field(0.0, ge=0, description="rms random-walk step per frame per tone")
+
+
+class Digitizer(_Model):
+    sample_rate_hz: float = Field(5e9, gt=0)
+    samples: int = Field(2**16, ge=2**8, le=2**26)
+    adc_bits: int | None = Field(None, ge=4, le=16, description="None = float32 volts")
+    full_scale_v: float | None = Field(None, gt=0, description="+-full scale; None = 1.05*max|v|")
+
+    @property
+    def duration_s(self) -> float:
+        return self.samples / self.sample_rate_hz
+
+
+class Pulsing(_Model):
+    period_s: float = Field(gt=0)
+    duty: float = Field(gt=0, le=1)
+    delay_s: float = 0.0
+    rise_time_s: float = Field(0.0, ge=0)
+    reference_channel: bool = True
+
+
+class Frames(_Model):
+    count: int = Field(1, ge=1)
+    rate_hz: float = Field(10.0, gt=0)
+    start_time_ns: int = Field(1_767_225_600_000_000_000, ge=0, description="trigger time of frame 0")
+
+
+class Scene(_Model):
+    name: str = "scene"
+    description: str = ""
+    seed: int = 0
+    laser: Laser = Laser()
+    lo_fraction: float = Field(0.1, gt=0, lt=1, description="coupler fraction beta to the LO")
+    modulator: Modulator
+    architecture: Architecture = Architecture()
+    targets: list[Target] = Field(min_length=1)
+    paths: Paths = Paths()
+    receiver: Receiver = Receiver()
+    noise: Noise = Noise()
+    digitizer: Digitizer = Digitizer()
+    pulsing: Pulsing | None = None
+    frames: Frames = Frames()
+
+    @model_validator(mode="after")
+    def _check_band(self) -> "Scene":
+        nyq = self.digitizer.sample_rate_hz / 2
+        for i, t in enumerate(self.modulator.tones):
+            if t.frequency_hz >= nyq:
+                raise ValueError(
+                    f"modulator.tones.{i}.frequency_hz: {t.frequency_hz:g} Hz is at or above "
+                    f"Nyquist ({nyq:g} Hz)"
+                )
+        return self
+
+    @property
+    def tones_hz(self) -> list[float]:
+        return self.modulator.tones_hz
+
+    @property
+    def is_static(self) -> bool:
+        return all(t.velocity_mps == 0 for t in self.targets)
+
+
+def _format_validation(err: ValidationError, origin: str) -> str:
+    lines = [f"invalid scene {origin}:"]
+    for e in err.errors():
+        loc = ".".join(str(x) for x in e["loc"]) or "(root)"
+        lines.append(f"  {loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def scene_from_dict(data: dict, origin: str = "<dict>") -> Scene:
+    """Validate a mapping as a :class:`Scene`; raise :class:`SceneError` naming the field."""
+    try:
+        return Scene.model_validate(data)
+    except ValidationError as err:
+        raise SceneError(_format_validation(err, origin)) from None
+
+
+def bundled_scenes() -> dict[str, Path]:
+    """Example scenes shipped with the package, by name (file stem)."""
+    root = resources.files("mtcw_core") / "scenes"
+    return {Path(p.name).stem: Path(str(p)) for p in root.iterdir() if p.name.endswith(".toml")}
+
+
+def resolve_scene_path(name_or_path: str | Path) -> Path:
+    """A scene file path, or the name of a bundled scene (``cw-bench``)."""
+    p = Path(name_or_path)
+    if p.exists():
+        return p
+    scenes = bundled_scenes()
+    stem = p.stem if p.suffix == ".toml" else p.name
+    if stem in scenes:
+        return scenes[stem]
+    raise SceneError(f"scene {str(name_or_path)!r} not found (bundled: {', '.join(sorted(scenes))})")
+
+
+def load_scene(name_or_path: str | Path) -> Scene:
+    """Load and validate a scene from TOML/JSON or a bundled scene name."""
+    path = resolve_scene_path(name_or_path)
+    try:
+        text = path.read_text()
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (OSError, tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise SceneError(f"cannot read scene {path}: {err}") from None
+    return scene_from_dict(data, origin=str(path))

@@ -1,0 +1,46 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mtcw_core.scene import Scene, scene_from_dict
+
+REF_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "testdata" / "reference-frames"
+
+
+def make_scene(**over) -> Scene:
+    """A small noiseless 3-tone scene, overridable by nested dicts (``digitizer={"samples": ...}``)."""
+    base = {
+        "name": "test",
+        "laser": {"wavelength_m": 1.064e-6, "power_w": 0.05, "linewidth_hz": 0.0},
+        "modulator": {"tones": [{"frequency_hz": f} for f in (500e6, 700e6, 950e6)]},
+        "targets": [{"range_m": 1.234, "velocity_mps": 0.0, "loss_db": 20.0}],
+        "digitizer": {"sample_rate_hz": 5e9, "samples": 2**14},
+    }
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            base[k] = {**base[k], **v}
+        else:
+            base[k] = v
+    return scene_from_dict(base)
+
+
+def tones(*f, m=0.07):
+    return {"tones": [{"frequency_hz": x, "modulation_index": m} for x in f]}
+
+
+def spectrum(x: np.ndarray, fs: float, window: bool = True):
+    """One-sided amplitude spectrum (amplitude of each real sinusoid) and its frequencies."""
+    x = np.asarray(x, float) - np.mean(x)
+    w = np.hanning(x.size) if window else np.ones(x.size)
+    X = np.fft.rfft(x * w) * 2 / np.sum(w)
+    return np.fft.rfftfreq(x.size, 1 / fs), X
+
+
+@pytest.fixture
+def ref_dir() -> Path:
+    if not REF_DIR.exists():
+        pytest.skip("shared reference frames not present")
+    return REF_DIR
