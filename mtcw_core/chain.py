@@ -1,0 +1,398 @@
+"""The PB-MTCW chain: stages, profiles and the runner that times them.
+
+One frame in, one :class:`FrameResult` out; nothing escapes as an exception. Stages:
+``validate`` -> ``spectrum`` -> ``doppler`` -> ``extract`` -> ``mix`` -> ``resolve``. Each is a
+plain function of arrays and typed settings; the runner (:func:`process_frame`) times them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import signal as sps
+from scipy.optimize import minimize_scalar
+
+from .dsp.mixing import LineFamily, pair_observations
+from .dsp.spectrum import DopplerEstimate, Spectrum, power_spectrum, search_doppler
+from .dsp.tones import exact_dft, fit_lines
+from .frame import Frame
+from .ranging.triangulation import C, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
+
+if TYPE_CHECKING:
+    from .calibration import Calibration
+
+
+class Rejected(Exception):
+    """A frame that cannot be processed; ``reason`` is a short machine-readable key."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+class ChainSettings(BaseModel):
+    """Choices of every stage. A profile is a named ChainSettings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    profile: str = "custom"
+    # stage 1
+    max_clip_fraction: float = Field(1e-3, ge=0, le=1)
+    expected_tones_hz: tuple[float, ...] | None = None
+    expected_samples: int | None = None
+    # stage 3: spectrum and Doppler
+    doppler_fraction: float = Field(0.25, gt=0, le=1, description="part of the record used for the Doppler FFT")
+    window_beta: float = Field(14.0, ge=0)
+    doppler_min_bins: int = Field(4, ge=1)
+    doppler_threshold: float = Field(8.0, gt=0)
+    fd_max_hz: float | None = Field(None, gt=0, description="default: half the smallest tone spacing")
+    doppler_refine: Literal["parabolic", "exact"] = "parabolic"
+    # stage 4: tone extraction
+    extraction: Literal["ls", "filter"] = "ls"
+    model_products: bool = False
+    segments: int = Field(1, ge=1)
+    min_line_snr_db: float = Field(10.0, description="post-integration SNR for a line to be used")
+    # stage 6: cycle resolution
+    method: Literal["ml", "seed"] = "ml"
+    points_per_cycle: int = Field(16, ge=4)
+    range_min_m: float = -0.05
+    range_max_m: float | None = None
+    # the seed's extraction path
+    seed_points: int = Field(2**23, ge=2**10)
+    seed_bandwidth_hz: float = Field(1e6, gt=0)
+
+
+PROFILES: dict[str, ChainSettings] = {
+    # Doppler from 1/16 of the record, plain LS at known lines, coarse ML grid.
+    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 16, points_per_cycle=8),
+    # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
+    "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0),
+    # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
+    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="exact",
+                              model_products=True, points_per_cycle=32),
+    # The dissertation: resample to 2^23, 1 MHz 2nd-order Butterworth filtfilt per line,
+    # correlation with zero-phase cosines, candidate-matrix triangulation.
+    "seed": ChainSettings(profile="seed", doppler_fraction=1.0, extraction="filter", method="seed"),
+}
+
+
+def get_profile(name: str, **overrides) -> ChainSettings:
+    if name not in PROFILES:
+        raise ValueError(f"profile: unknown {name!r} (one of {', '.join(PROFILES)})")
+    base = PROFILES[name]
+    return base.model_copy(update=overrides) if overrides else base
+
+
+@dataclass
+class TargetPoint:
+    range_m: float
+    range_sigma_m: float
+    velocity_mps: float
+    velocity_sigma_mps: float
+    direction: str  # receding | approaching | unknown | static
+    snr_db: float
+    margin: float
+    residual_rms_rad: float = 0.0
+    near_edge: bool = False
+    tone_snr_db: dict[str, float] = field(default_factory=dict)
+    seed_sigma_k_m: float | None = None
+
+
+@dataclass
+class FrameResult:
+    status: str  # ok | no_target | rejected
+    profile: str
+    seq: int = 0
+    t_ns: int = 0
+    source: str = ""
+    reason: str | None = None
+    targets: list[TargetPoint] = field(default_factory=list)
+    unambiguous_range_m: float | None = None
+    coarse_range_m: float | None = None
+    doppler_hz: float | None = None
+    calibrated: bool = False
+    clip_fraction: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------
+# stage 1
+def _rail_fraction(r: np.ndarray, rail) -> float:
+    """Fraction of samples in runs of >= 3 consecutive samples stuck at ``rail``.
+
+    A signal (even a periodic or coarsely quantised one) touches its extremes in isolated
+    samples at GHz tones; a clipped one dwells on the rail.
+    """
+    at = r == rail
+    if np.count_nonzero(at) < 3:
+        return 0.0
+    run = at[:-2] & at[1:-1] & at[2:]
+    stuck = np.zeros(r.size, bool)
+    stuck[:-2] |= run
+    stuck[1:-1] |= run
+    stuck[2:] |= run
+    return float(np.count_nonzero(stuck)) / r.size
+
+
+def validate(frame: Frame, settings: ChainSettings, calibration: Calibration | None) -> tuple[np.ndarray, float]:
+    """Codes -> volts, and the checks. Returns (signal, clip_fraction) or raises Rejected."""
+    if not (frame.fs_hz > 0 and math.isfinite(frame.fs_hz)):
+        raise Rejected("bad_fs", f"fs_hz={frame.fs_hz!r}")
+    if frame.samples.ndim != 2 or frame.samples.shape[0] != len(frame.channels):
+        raise Rejected("bad_shape", f"samples shape {frame.samples.shape} vs channels {list(frame.channels)}")
+    if frame.n < 256:
+        raise Rejected("too_short", f"{frame.n} samples (need >= 256)")
+    if settings.expected_samples is not None and frame.n != settings.expected_samples:
+        raise Rejected("length_mismatch", f"{frame.n} samples, expected {settings.expected_samples}")
+    tones = frame.tones_hz
+    if len(tones) < 2:
+        raise Rejected("tone_plan", "at least two tones are needed for pair phases")
+    if any(not (0 < f < frame.fs_hz / 2) for f in tones):
+        raise Rejected("tone_plan", f"tones {list(tones)} must lie in (0, fs/2)")
+    if settings.expected_tones_hz is not None and tuple(tones) != tuple(settings.expected_tones_hz):
+        raise Rejected("tone_plan", f"frame tones {list(tones)} != configured {list(settings.expected_tones_hz)}")
+    if calibration is not None and tuple(calibration.tones_hz) != tuple(tones):
+        raise Rejected("calibration_mismatch", f"calibration tones {list(calibration.tones_hz)} != frame {list(tones)}")
+    if frame.receiver == "iq" and not {"i", "q"} <= set(frame.channels):
+        raise Rejected("bad_channels", "iq receiver needs channels 'i' and 'q'")
+    if frame.receiver != "iq" and "pd" not in frame.channels:
+        raise Rejected("bad_channels", "channel 'pd' missing")
+    raw = [frame.samples[frame.channels.index(c)] for c in (("i", "q") if frame.receiver == "iq" else ("pd",))]
+    for r in raw:
+        if r.dtype.kind == "f" and not np.all(np.isfinite(r)):
+            raise Rejected("non_finite", f"{int(np.sum(~np.isfinite(r)))} NaN/inf samples")
+    clip = 0.0
+    for r in raw:
+        hi, lo = r.max(), r.min()
+        if hi == lo:
+            raise Rejected("flat", "all samples equal (no signal)")
+        clip = max(clip, _rail_fraction(r, hi), _rail_fraction(r, lo))
+    if clip > settings.max_clip_fraction:
+        raise Rejected("clipped", f"{clip:.2%} of samples at the rails (max {settings.max_clip_fraction:.2%})")
+    return frame.signal(), clip
+
+
+# ---------------------------------------------------------------------------------------------
+# stages 3-4
+def _fd_max(tones: tuple[float, ...], settings: ChainSettings) -> float:
+    if settings.fd_max_hz is not None:
+        return settings.fd_max_hz
+    t = sorted(tones)
+    return 0.5 * min(b - a for a, b in zip(t, t[1:]))
+
+
+def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSettings) -> DopplerEstimate:
+    est = search_doppler(spec, list(frame.tones_hz), _fd_max(frame.tones_hz, settings),
+                         settings.doppler_min_bins, settings.doppler_threshold)
+    if est.detected and settings.doppler_refine == "exact":
+        iq = np.iscomplexobj(x)
+
+        def neg_power(fd: float) -> float:
+            fr = _line_freqs(frame.tones_hz, fd, iq)
+            return -float(np.sum(np.abs(exact_dft(x, fr, frame.fs_hz)) ** 2))
+
+        half = spec.df_hz
+        r = minimize_scalar(neg_power, bounds=(est.fd_hz - half, est.fd_hz + half), method="bounded",
+                            options={"xatol": 1e-4 * frame.fs_hz / frame.n})
+        est = DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz)
+    return est
+
+
+def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
+    t = np.asarray(tones, float)
+    if iq:
+        return np.concatenate([fd + t, fd - t])
+    return np.concatenate([t + fd, np.abs(t - fd)])
+
+
+def _plan_lines(frame: Frame, fd: float, detected: bool, iq: bool, settings: ChainSettings):
+    """Frequencies to fit and the families built from them."""
+    t = np.asarray(frame.tones_hz, float)
+    fams: list[tuple[str, np.ndarray, np.ndarray]] = []  # (name, line freqs, conj mask)
+    if iq:
+        up, lo = fd + t, fd - t
+        fams.append(("U", up, np.zeros(t.size, bool)))
+        fams.append(("L", lo, np.ones(t.size, bool)))
+    else:
+        fams.append(("S", t.copy(), np.zeros(t.size, bool)))
+        if detected:
+            fams.append(("U", t + fd, np.zeros(t.size, bool)))
+            lo = t - fd
+            fams.append(("L", np.abs(lo), lo < 0))
+    used = np.concatenate([f for _, f, _ in fams])
+    extra: list[float] = []
+    if detected and abs(fd) > 0:
+        extra.append(abs(fd) if not iq else fd)
+    if settings.model_products and not iq:
+        prods = [2 * a for a in t] + [a + b for i, a in enumerate(t) for b in t[i + 1:]] + \
+                [abs(a - b) for i, a in enumerate(t) for b in t[i + 1:]]
+        extra += [p for p in prods if p < frame.fs_hz / 2]
+    # a line closer than 3 record-bins to another cannot be told apart: keep the used ones
+    res = 3 * frame.fs_hz / frame.n
+    keep = []
+    for f in extra:
+        if np.all(np.abs(used - f) > res) and all(abs(f - k) > res for k in keep) and f > res:
+            keep.append(f)
+    return fams, np.concatenate([used, np.asarray(keep, float)])
+
+
+def extract_stage(x: np.ndarray, frame: Frame, dop: DopplerEstimate, spec: Spectrum,
+                  settings: ChainSettings) -> list[LineFamily]:
+    """Complex amplitude of every used line, per segment, with its phase variance."""
+    iq = np.iscomplexobj(x)
+    fams, all_f = _plan_lines(frame, dop.fd_hz, dop.detected, iq, settings)
+    n = x.size
+    fs = frame.fs_hz
+    # unique frequencies (S and U/L never coincide when detected; guard anyway)
+    uniq, inv = np.unique(np.round(all_f, 6), return_inverse=True)
+    nseg = settings.segments
+    if settings.extraction == "filter":
+        z_all, centre = _seed_extract(x, fs, uniq, settings)
+        z_all, centres = z_all[None, :], np.array([centre])
+    else:
+        bounds = np.linspace(0, n, nseg + 1).astype(int)
+        rows, centres = [], []
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            rows.append(fit_lines(x[a:b], uniq, fs))
+            centres.append((a + b - 1) / (2 * fs))
+        z_all = np.stack(rows)
+        centres = np.asarray(centres)
+    kappa = 0.5 if iq else 2.0
+    out = []
+    pos = 0
+    for name, freqs, conj in fams:
+        idx = inv[pos:pos + freqs.size]
+        pos += freqs.size
+        z = z_all[:, idx].copy()
+        z[:, conj] = np.conj(z[:, conj])
+        amp2 = np.mean(np.abs(z) ** 2, axis=0)
+        s2 = np.array([spec.noise_variance(f, list(uniq)) for f in freqs])
+        var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
+        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var))
+    return out
+
+
+def _seed_extract(x: np.ndarray, fs: float, freqs: np.ndarray, settings: ChainSettings) -> tuple[np.ndarray, float]:
+    """The dissertation's path: resample, 1 MHz band-pass filtfilt, correlate with cosines."""
+    if np.iscomplexobj(x):
+        raise Rejected("unsupported", "the seed profile handles single/balanced receivers only")
+    npts = settings.seed_points
+    y = sps.resample(x - x.mean(), npts)
+    fs2 = fs * npts / x.size
+    out = np.empty(freqs.size, complex)
+    bw = settings.seed_bandwidth_hz
+    for i, f in enumerate(freqs):
+        lo, hi = max(f - bw / 2, 1.0), min(f + bw / 2, fs2 / 2 * 0.999)
+        sos = sps.butter(2, [lo, hi], btype="bandpass", fs=fs2, output="sos")
+        # forward-backward (zero-phase) filtering; sosfiltfilt's initial-state solve is singular
+        # for a 1 MHz band at hundreds of GSa/s, so start both passes from rest instead
+        yf = sps.sosfilt(sos, sps.sosfilt(sos, y)[::-1])[::-1]
+        out[i] = exact_dft(yf, [f], fs2)[0] * 2 / npts
+    # amplitudes refer to the centre of the resampled grid, (npts-1)/(2*fs2) after the start
+    return out, (npts - 1) / (2 * fs2)
+
+
+# ---------------------------------------------------------------------------------------------
+def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool) -> tuple[float, float, str]:
+    lam = frame.wavelength_m
+    n, fs = frame.n, frame.fs_hz
+    if not dop.detected:
+        return 0.0, dop.min_detectable_hz * lam / 2, "static"
+    inv_var = 0.0
+    for fam in families:
+        if fam.name == "S":
+            continue
+        # CRB of a sinusoid's frequency: var_f = 3*s2*fs^2/(pi^2*A^2*N^3) (real), 1.5 (complex)
+        # expressed with the phase variance 2*s2/(N*A^2) (real) or s2/(2*N*A^2) (complex)
+        c = 1.5 if not iq else 3.0
+        var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
+        inv_var += float(np.sum(1 / var_f))
+    sig_f = max(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, 0.01 * fs / n)
+    if iq:
+        v = -dop.fd_hz * lam / 2
+        return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"
+    return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown"
+
+
+def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
+                  calibration: Calibration | None = None) -> FrameResult:
+    """Run the chain on one frame. Never raises: a bad frame comes back ``rejected`` with a reason."""
+    if isinstance(settings, str):
+        settings = get_profile(settings)
+    res = FrameResult(status="rejected", profile=settings.profile, seq=frame.seq, t_ns=frame.t_ns,
+                      source=frame.source, calibrated=calibration is not None)
+    st = res.stage_seconds
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        st[name] = now - t
+        t = now
+
+    try:
+        x, res.clip_fraction = validate(frame, settings, calibration)
+        lap("validate")
+        iq = np.iscomplexobj(x)
+        nspec = max(256, int(frame.n * settings.doppler_fraction))
+        spec = power_spectrum(x, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
+        lap("spectrum")
+        dop = doppler_stage(x, frame, spec, settings)
+        res.doppler_hz = dop.fd_hz
+        lap("doppler")
+        fams = extract_stage(x, frame, dop, spec, settings)
+        lap("extract")
+        if calibration is not None:
+            phases, tau0 = dict(zip(calibration.tones_hz, calibration.tone_phases_rad)), calibration.tau0_s
+        else:
+            tp = frame.tone_phases_rad or (0.0,) * len(frame.tones_hz)
+            phases, tau0 = dict(zip(frame.tones_hz, tp)), 0.0
+        obs = pair_observations(fams, phases, settings.min_line_snr_db)
+        lap("mix")
+        best_snr = max(float(np.max(f.snr_db)) for f in fams)
+        if obs.df_hz.size == 0:
+            res.status, res.reason = "no_target", f"fewer than two lines above {settings.min_line_snr_db} dB"
+            return res
+        l_unamb = unambiguous_range(obs.df_hz)
+        res.unambiguous_range_m = l_unamb
+        lo = settings.range_min_m
+        hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
+        if settings.method == "seed":
+            sol = resolve_seed(obs, tau0, hi, lo)
+        else:
+            sol = resolve_ml(obs, tau0, (lo, hi), settings.points_per_cycle)
+        lap("resolve")
+        used = [f for f in fams if np.sum(f.snr_db >= settings.min_line_snr_db) >= 2]
+        sigma = fisher_sigma([f.tone_hz[f.snr_db >= settings.min_line_snr_db] for f in used],
+                             [f.phase_var[f.snr_db >= settings.min_line_snr_db] for f in used])
+        v, vs, direction = _velocity(dop, frame, fams, iq)
+        tone_snr = {}
+        for f in fams:
+            for tone, s in zip(f.tone_hz, f.snr_db):
+                key = f"{tone:.0f}"
+                tone_snr[key] = max(tone_snr.get(key, -np.inf), float(s))
+        res.targets.append(TargetPoint(
+            range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs,
+            direction=direction, snr_db=best_snr, margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
+            near_edge=sol.near_edge, tone_snr_db=tone_snr, seed_sigma_k_m=sol.seed_sigma_k_m,
+        ))
+        res.status = "ok"
+        lap("report")
+    except Rejected as rej:
+        res.status, res.reason = "rejected", str(rej)
+    except Exception as err:  # the chain never lets an exception escape
+        res.status, res.reason = "rejected", f"internal_error: {type(err).__name__}: {err}"
+    return res
+
+
+__all__ = ["ChainSettings", "PROFILES", "get_profile", "process_frame", "FrameResult", "TargetPoint",
+           "Rejected", "validate", "doppler_stage", "extract_stage", "C"]

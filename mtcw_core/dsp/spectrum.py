@@ -1,0 +1,213 @@
+"""Windowed power spectrum, local noise floor and the Doppler search."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft
+from scipy.signal import get_window
+
+LN2 = float(np.log(2.0))
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """Windowed periodogram of (part of) a record.
+
+    Attributes
+    ----------
+    power : ndarray, shape (B,)
+        ``|X|^2`` of the windowed record (rfft for real, fftshifted fft for complex input), V^2.
+    df_hz : float
+        Bin spacing (Hz).
+    f0_hz : float
+        Frequency of bin 0 (0 for real, ``-fs/2`` for complex input).
+    window_power : float
+        ``sum(w^2)``; white noise of per-sample variance s2 has ``E[power] = s2*window_power``
+        (``2*s2*...`` counted over both quadratures for complex noise of total variance s2).
+    n : int
+        Samples transformed.
+    """
+
+    power: np.ndarray
+    df_hz: float
+    f0_hz: float
+    window_power: float
+    n: int
+    complex_input: bool
+
+    def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
+        return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
+
+    def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int = 256, guard: int = 12) -> float:
+        """Per-sample noise variance (V^2) equivalent to the local noise density around f.
+
+        Median of the periodogram over ``+-half_width`` bins, excluding ``+-guard`` bins around
+        every frequency in ``exclude_hz`` (the lines); the median of an exponential variable is
+        ``ln 2`` times its mean.
+        """
+        b = int(self.bin_of(f_hz))
+        lo, hi = max(b - half_width, 0), min(b + half_width + 1, self.power.size)
+        idx = np.arange(lo, hi)
+        mask = np.ones(idx.size, bool)
+        ex = self.bin_of(np.asarray(exclude_hz, dtype=float)) if len(exclude_hz) else np.empty(0, np.int64)
+        for e in ex[(ex > lo - guard) & (ex < hi + guard)]:
+            mask &= np.abs(idx - e) > guard
+        vals = self.power[idx[mask]] if mask.any() else self.power[idx]
+        if vals.size == 0:
+            return float("nan")
+        return float(np.median(vals) / LN2 / self.window_power)
+
+
+def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None) -> Spectrum:
+    """Periodogram of the first ``n`` samples (all by default), mean removed.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V
+    window : scipy.signal window spec; the default Kaiser(14) has side lobes near -100 dB so a
+        strong static line does not masquerade as a Doppler line a few bins away.
+    """
+    seg = x if n is None or n >= x.size else x[:n]
+    m = seg.size
+    w = get_window(window, m, fftbins=False)
+    y = (seg - seg.mean()) * w
+    if np.iscomplexobj(y):
+        X = scipy.fft.fftshift(scipy.fft.fft(y))
+        f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)
+        p = (X.real**2 + X.imag**2)
+        # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
+        wp = float(np.sum(w**2))
+        return Spectrum(p, fs_hz / m, f0, wp, m, True)
+    X = scipy.fft.rfft(y)
+    p = X.real**2 + X.imag**2
+    # real noise of variance s2: E|X|^2 = s2 * sum(w^2)
+    return Spectrum(p, fs_hz / m, 0.0, float(np.sum(w**2)), m, False)
+
+
+@dataclass(frozen=True)
+class DopplerEstimate:
+    """Result of the Doppler search.
+
+    ``fd_hz`` is signed for complex (IQ) input and >= 0 for real input; 0 when no Doppler line
+    was detected (``detected`` False). ``score`` is the summed line-to-noise ratio at the peak.
+    """
+
+    fd_hz: float
+    detected: bool
+    score: float
+    threshold: float
+    min_detectable_hz: float
+
+
+@lru_cache(maxsize=64)
+def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: int | None = None) -> np.ndarray:
+    """|sum_i n_i*f_i| for integer n with sum|n_i| <= order (5 for up to 4 tones, else 4), below f_max.
+
+    These static lines (MZM harmonics and intermodulation) sit at fixed frequencies; a Doppler
+    candidate whose baseband line falls on one of them is a blind speed of the tone plan.
+    """
+    t = np.asarray(tones_hz, float)
+    if order is None:
+        order = 5 if t.size <= 4 else 4
+    out = set()
+    for n in itertools.product(range(-order, order + 1), repeat=t.size):
+        if 0 < sum(map(abs, n)) <= order:
+            f = abs(float(np.dot(n, t)))
+            if 0 < f <= f_max_hz:
+                out.add(f)
+    return np.array(sorted(out))
+
+
+def _line_power(spec: Spectrum, f_hz: np.ndarray) -> np.ndarray:
+    idx = spec.bin_of(f_hz)
+    ok = (idx >= 0) & (idx < spec.power.size)
+    out = np.zeros(idx.size)
+    out[ok] = spec.power[idx[ok]]
+    return out
+
+
+def search_doppler(
+    spec: Spectrum,
+    tones_hz: list[float],
+    fd_max_hz: float,
+    min_bins: int = 4,
+    threshold_factor: float = 8.0,
+    use_baseband: bool = True,
+) -> DopplerEstimate:
+    """Find the Doppler shift from the baseband line and the symmetric lines ``f_i +- f_d``.
+
+    Every candidate shift ``b`` (in bins) is scored by the sum over lines of power over the local
+    noise floor: baseband ``|f_d|``, ``f_i + f_d`` and ``|f_i - f_d|`` (folding through 0 Hz for a
+    real detector). The peak is accepted when it is a local maximum above ``threshold_factor``
+    times the score expected from noise alone; its position is refined below one bin by a
+    parabola through the logarithm of the three scores around it (the Kaiser window's main lobe is
+    close to Gaussian). Zero Doppler is a valid answer.
+    """
+    df = spec.df_hz
+    nb = spec.power.size
+    bmax = int(min(np.floor(fd_max_hz / df), nb // 2 - 1))
+    tones = np.asarray(tones_hz, dtype=float)
+    if bmax <= min_bins + 1:
+        return DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)
+    # local noise floor: median per block of 128 bins (robust to the lines, follows coloured
+    # floors such as the phase-noise pedestal around each line)
+    blk = 128
+    nblk = max(nb // blk, 1)
+    block_floor = np.median(spec.power[: nblk * blk].reshape(nblk, -1), axis=1) / LN2
+    block_floor = np.maximum(block_floor, np.max(block_floor) * 1e-30 + 1e-300)
+
+    def snr(f_hz: np.ndarray) -> np.ndarray:
+        idx = np.clip(spec.bin_of(f_hz) // blk, 0, nblk - 1)
+        return _line_power(spec, f_hz) / block_floor[idx]
+    signs = (1, -1) if spec.complex_input else (1,)
+    best = (0.0, 0, 1)
+    n_lines = 2 * tones.size + (1 if use_baseband else 0)
+    results = {}
+    for s in signs:
+        b = np.arange(0, bmax + 1)
+        fd = s * b * df
+        score = np.zeros(b.size)
+        base = snr(fd if spec.complex_input else np.abs(fd))
+        if use_baseband:
+            score += base
+        strongest_pair = np.zeros(b.size)
+        for f in tones:
+            up = snr(fd + f)
+            # the lower line: signed for IQ, folded through 0 Hz for a real detector
+            down = snr(fd - f if spec.complex_input else np.abs(f - fd))
+            # a Doppler pair is symmetric; a spur (IMD product) usually sits on one side only
+            pair = np.minimum(up, down)
+            score += 2 * pair
+            strongest_pair = np.maximum(strongest_pair, pair)
+        valid = np.ones(b.size, bool)
+        valid[:min_bins] = False
+        if use_baseband:
+            # the LO x echo-carrier beat is the strongest line of a moving target: require it,
+            # and ignore candidates sitting on a static intermodulation product
+            valid &= (base > threshold_factor) & (base > strongest_pair)
+            spurs = intermod_frequencies(tuple(float(f) for f in tones), (bmax + min_bins) * df)
+            if spurs.size:
+                near = np.abs(np.abs(fd)[:, None] - spurs[None, :]).min(axis=1) < min_bins * df
+                valid &= ~near
+        if not valid.any():
+            results[s] = (score, 0)
+            continue
+        k = int(np.flatnonzero(valid)[np.argmax(score[valid])])
+        results[s] = (score, k)
+        if score[k] > best[0]:
+            best = (float(score[k]), k, s)
+    peak, k, s = best
+    threshold = threshold_factor * n_lines
+    score = results[s][0]
+    is_local = 0 < k < score.size - 1 and score[k] >= score[k - 1] and score[k] >= score[k + 1]
+    if peak < threshold or not is_local:
+        return DopplerEstimate(0.0, False, peak, threshold, min_bins * df)
+    y0, y1, y2 = np.log(np.maximum(score[k - 1 : k + 2], 1e-300))
+    den = y0 - 2 * y1 + y2
+    delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+    delta = float(np.clip(delta, -0.5, 0.5))
+    return DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df)

@@ -1,0 +1,163 @@
+"""Cycle resolution ("triangulation"): range from wrapped pair phases.
+
+An observation is a pair phase ``dphi`` at frequency difference ``df > 0`` whose model is
+``dphi = -2*pi*df*tau(L) (mod 2*pi)``, ``tau(L) = tau0 + 2*L/c``. Two methods:
+
+- ``ml``: maximise ``J(L) = sum_l w_l*cos(dphi_l + 2*pi*df_l*tau(L))`` on a grid fine enough
+  not to miss the peak (a fixed fraction of the finest synthetic wavelength), then refine with
+  a bounded scalar optimiser to full precision.
+- ``seed``: the dissertation's candidate matrix (sections 4.2.2 and 5.2.4, Fig. 18) with the
+  plain row standard deviation, reproduced as published.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import reduce
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+C = 299_792_458.0
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Pair observations of one target.
+
+    Attributes
+    ----------
+    df_hz : ndarray, shape (P,)
+        Frequency differences (Hz), > 0.
+    phase_rad : ndarray, shape (P,)
+        Calibrated wrapped phases (rad), model ``-2*pi*df*tau(L)``.
+    weight : ndarray, shape (P,)
+        Non-negative weights (``1/(var_i*var_j)`` for a pair of lines).
+    """
+
+    df_hz: np.ndarray
+    phase_rad: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def synthetic_wavelengths_m(self) -> np.ndarray:
+        return C / (2 * self.df_hz)
+
+
+def unambiguous_range(df_hz, resolution_hz: float = 1.0) -> float:
+    """``c / (2*g)`` with g the gcd of the frequency differences, on a ``resolution_hz`` grid."""
+    ints = [int(round(d / resolution_hz)) for d in np.atleast_1d(df_hz)]
+    g = reduce(math.gcd, ints) * resolution_hz
+    return C / (2 * g)
+
+
+@dataclass(frozen=True)
+class RangeSolution:
+    range_m: float
+    margin: float  # 1 - J(second peak)/J(best), in [0, 1]
+    residual_rms_rad: float
+    near_edge: bool
+    seed_sigma_k_m: float | None = None  # the dissertation's row standard deviation (seed only)
+
+
+def _cost(obs: Observations, tau0_s: float):
+    k = 2 * np.pi * obs.df_hz
+    wsum = float(np.sum(obs.weight))
+
+    def j(l_m):
+        l_m = np.atleast_1d(l_m)
+        arg = obs.phase_rad[None, :] + k[None, :] * (tau0_s + 2 * l_m[:, None] / C)
+        return (np.cos(arg) @ obs.weight) / wsum
+
+    return j
+
+
+def _residual(obs: Observations, tau0_s: float, l_m: float) -> float:
+    r = np.angle(np.exp(1j * (obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C))))
+    return float(np.sqrt(np.sum(obs.weight * r**2) / np.sum(obs.weight)))
+
+
+def resolve_ml(
+    obs: Observations, tau0_s: float, interval_m: tuple[float, float], points_per_cycle: int = 16
+) -> RangeSolution:
+    """Maximum of the weighted cost J(L) over ``interval_m``.
+
+    The grid step is ``Lambda_min/points_per_cycle`` (Lambda_min the finest synthetic
+    wavelength): with 16 points J is sampled within 2 % of its peak value, so the coarse
+    maximum cannot miss the true cycle at useful SNR.
+    """
+    lo, hi = interval_m
+    step = float(np.min(obs.synthetic_wavelengths_m)) / points_per_cycle
+    grid = np.arange(lo, hi + step, step)
+    j = _cost(obs, tau0_s)
+    # evaluate in blocks to bound memory for long intervals
+    vals = np.concatenate([j(grid[i : i + 65536]) for i in range(0, grid.size, 65536)])
+    ib = int(np.argmax(vals))
+    res = minimize_scalar(lambda l: -j(l)[0], bounds=(grid[ib] - step, grid[ib] + step), method="bounded",
+                          options={"xatol": 1e-9})
+    best = float(res.x)
+    # J is periodic in the unambiguous range: a peak refined across an end of the interval is
+    # the same solution, reported inside it (never a jump of one synthetic wavelength)
+    period = unambiguous_range(obs.df_hz)
+    if best < lo and best + period < hi + step:
+        best += period
+    elif best >= hi and best - period >= lo - step:
+        best -= period
+    jbest = -float(res.fun)
+    # second-best local maximum at least half the finest synthetic wavelength away
+    half = 0.5 * float(np.min(obs.synthetic_wavelengths_m))
+    is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
+    far = np.abs(grid - best) > half
+    cand = vals[is_max & far]
+    j2 = float(cand.max()) if cand.size else -1.0
+    margin = float(np.clip(1 - max(j2, 0.0) / jbest, 0, 1)) if jbest > 0 else 0.0
+    edge = min(best - lo, hi - best) < half
+    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge))
+
+
+def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0) -> RangeSolution:
+    """The dissertation's candidate-matrix triangulation.
+
+    For every observation l with synthetic wavelength ``Lambda_l`` the residual ``r_l`` is the
+    range its wrapped phase gives in the first cycle. Column 1 holds the finest observation's
+    candidates ``r_1 + n*Lambda_1`` for ``n = 0..n_max`` (``n_max`` from the largest expected
+    range); every other column holds, per row, its own candidate nearest to column 1. The row
+    of least plain standard deviation gives the range as its column-1 value.
+    """
+    lam = obs.synthetic_wavelengths_m
+    # residual range in the first cycle, after removing the internal delay tau0
+    r = lam * np.mod(-obs.phase_rad / (2 * np.pi) - obs.df_hz * tau0_s, 1.0)
+    order = np.argsort(lam)  # finest (largest df) first
+    lam, r = lam[order], r[order]
+    n0 = math.floor((min_range_m - r[0]) / lam[0])
+    n_max = math.ceil((max_range_m - r[0]) / lam[0])
+    col1 = r[0] + np.arange(n0, n_max + 1) * lam[0]
+    m = np.empty((col1.size, lam.size))
+    m[:, 0] = col1
+    for i in range(1, lam.size):
+        m[:, i] = r[i] + np.rint((col1 - r[i]) / lam[i]) * lam[i]
+    sigma_k = np.std(m, axis=1)  # plain, unweighted, ddof = 0 as published
+    k = int(np.argmin(sigma_k))
+    s_sorted = np.sort(sigma_k)
+    margin = float(1 - s_sorted[0] / s_sorted[1]) if s_sorted.size > 1 and s_sorted[1] > 0 else 1.0
+    best = float(col1[k])
+    half = 0.5 * lam[0]
+    edge = min(best - min_range_m, max_range_m - best) < half
+    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), float(sigma_k[k]))
+
+
+def fisher_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray]) -> float:
+    """Range sigma (m) from per-line phase variances, a common unknown phase per family.
+
+    ``I = sum_F [sum_i k_i^2/v_i - (sum_i k_i/v_i)^2 / sum_i 1/v_i]``, ``k_i = 4*pi*f_i/c``;
+    the Cramér–Rao bound when the variances are the true ones.
+    """
+    info = 0.0
+    for f, v in zip(freqs_by_family, var_by_family):
+        if f.size < 2:
+            continue
+        k = 4 * np.pi * f / C
+        w = 1 / v
+        info += float(np.sum(w * k**2) - np.sum(w * k) ** 2 / np.sum(w))
+    return 1 / math.sqrt(info) if info > 0 else math.inf
