@@ -234,4 +234,4 @@ def test_ml_resolves_cycles_under_small_phase_noise(frac, noise, seed):
     sol = resolve_ml(noisy, 0.0, (0.0, l_unamb))
     # a phase error e on the finest pair moves L by e*Lambda/(2*pi), never by a whole cycle
     lam_min = C / (2 * 450e6)
-    assert abs(wrapped_error(sol.range_m, L, l_unamb)) < 4 * noise * lam_min / (2 * math.pi) + 1e-9
+    assert abs(wrapped_error(sol.range_m, L, l_unamb)) < 4 * noise * lam_min / (2 * math.pi) + 1e-8  # optimiser tolerance
