@@ -17,8 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import ChainSettings, extract_stage, get_profile, validate, doppler_stage
-from .dsp.spectrum import power_spectrum
+from .chain import ChainSettings, get_profile, measure_lines, validate
 from .frame import Frame
 from .ranging.triangulation import C
 
@@ -77,10 +76,7 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
     n_frames = 0
     for fr in frames:
         x, _ = validate(fr, settings, None)
-        spec = power_spectrum(x, fr.fs_hz, ("kaiser", settings.window_beta),
-                              max(256, int(fr.n * settings.doppler_fraction)))
-        dop = doppler_stage(x, fr, spec, settings)
-        fams = extract_stage(x, fr, dop, spec, settings)
+        _, fams = measure_lines(x, fr, settings)
         t = np.asarray(fr.tones_hz, float)
         if tones is None:
             tones = t

@@ -301,6 +301,23 @@ def _seed_extract(x: np.ndarray, fs: float, freqs: np.ndarray, settings: ChainSe
     return out, (npts - 1) / (2 * fs2)
 
 
+def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings,
+                  lap=None) -> tuple[DopplerEstimate, list[LineFamily]]:
+    """Stages 3-4: spectrum, Doppler search and line extraction of a validated signal.
+
+    ``lap(stage_name)``, when given, is called after each stage (the runner's timer).
+    """
+    tick = lap or (lambda _name: None)
+    nspec = max(256, int(frame.n * settings.doppler_fraction))
+    spec = power_spectrum(x, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
+    tick("spectrum")
+    dop = doppler_stage(x, frame, spec, settings)
+    tick("doppler")
+    fams = extract_stage(x, frame, dop, spec, settings)
+    tick("extract")
+    return dop, fams
+
+
 # ---------------------------------------------------------------------------------------------
 def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool) -> tuple[float, float, str]:
     lam = frame.wavelength_m
@@ -343,14 +360,8 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         x, res.clip_fraction = validate(frame, settings, calibration)
         lap("validate")
         iq = np.iscomplexobj(x)
-        nspec = max(256, int(frame.n * settings.doppler_fraction))
-        spec = power_spectrum(x, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
-        lap("spectrum")
-        dop = doppler_stage(x, frame, spec, settings)
+        dop, fams = measure_lines(x, frame, settings, lap)
         res.doppler_hz = dop.fd_hz
-        lap("doppler")
-        fams = extract_stage(x, frame, dop, spec, settings)
-        lap("extract")
         if calibration is not None:
             phases, tau0 = dict(zip(calibration.tones_hz, calibration.tone_phases_rad)), calibration.tau0_s
         else:
@@ -395,4 +406,4 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
 
 
 __all__ = ["ChainSettings", "PROFILES", "get_profile", "process_frame", "FrameResult", "TargetPoint",
-           "Rejected", "validate", "doppler_stage", "extract_stage", "C"]
+           "Rejected", "validate", "doppler_stage", "extract_stage", "measure_lines", "C"]
