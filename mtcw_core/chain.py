@@ -69,8 +69,8 @@ class ChainSettings(BaseModel):
 
 
 PROFILES: dict[str, ChainSettings] = {
-    # Doppler from 1/16 of the record, plain LS at known lines, coarse ML grid.
-    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 16, points_per_cycle=8),
+    # Doppler from 1/8 of the record, plain LS at known lines, coarse ML grid.
+    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 8, points_per_cycle=8),
     # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
     "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0),
     # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
@@ -203,7 +203,7 @@ def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSe
         half = spec.df_hz
         r = minimize_scalar(neg_power, bounds=(est.fd_hz - half, est.fd_hz + half), method="bounded",
                             options={"xatol": 1e-4 * frame.fs_hz / frame.n})
-        est = DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz)
+        est = DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz, 0.0)
     return est
 
 
@@ -333,7 +333,8 @@ def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq
         c = 1.5 if not iq else 3.0
         var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
         inv_var += float(np.sum(1 / var_f))
-    sig_f = max(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, 0.01 * fs / n)
+    sig_f = 1 / math.sqrt(inv_var) if inv_var > 0 else math.inf
+    sig_f = max(math.hypot(sig_f, dop.refine_error_hz), 0.01 * fs / n)
     if iq:
         v = -dop.fd_hz * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"
