@@ -183,41 +183,155 @@ def calibrate(
                            "phase_std_rad": cal.phase_std_rad, "frames": cal.frames_used}, indent=2))
 
 
+def _stop_on_signals():
+    """A threading.Event set by SIGINT/SIGTERM (a service's clean stop)."""
+    import signal
+    import threading
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _logging(verbose: bool = False) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+def _service_settings(cls, **flags):
+    from services.settings import load
+
+    try:
+        return load(cls, **flags)
+    except ValueError as err:
+        _fail(f"settings: {err}")
+
+
+@app.command()
+def acquire(
+    source: Optional[str] = typer.Option(None, help="sim | replay | module:Class  [env MTCW_SOURCE; default sim]"),
+    scene: Optional[str] = typer.Option(None, help="scene for the simulator [MTCW_SCENE; default cw-bench]"),
+    recording: Optional[Path] = typer.Option(None, help="SigMF recording to replay [MTCW_RECORDING]"),
+    rate: Optional[float] = typer.Option(None, "--rate", help="frames/s, 0 = as fast as possible [MTCW_RATE_HZ]"),
+    frames: Optional[int] = typer.Option(None, help="stop after N frames, 0 = never [MTCW_FRAMES]"),
+    loop: Optional[bool] = typer.Option(None, "--loop/--no-loop", help="replay: loop [MTCW_LOOP; default loop]"),
+    source_name: Optional[str] = typer.Option(None, help="source name in every frame [MTCW_SOURCE_NAME]"),
+    seed: Optional[int] = typer.Option(None, help="simulator seed"),
+) -> None:
+    """Acquisition node: publish frames (PUSH to workers, PUB to monitors)."""
+    from services.acquisition import run_acquisition
+    from services.settings import AcquisitionSettings
+
+    _logging()
+    st = _service_settings(AcquisitionSettings, source=source, scene=scene, recording=recording, rate_hz=rate,
+                           frames=frames, loop=loop, source_name=source_name, seed=seed)
+    stop = _stop_on_signals()
+    try:
+        run_acquisition(st, stop)
+    except (SceneError, RecordingError, ValueError) as err:
+        _fail(str(err))
+
+
+@app.command()
+def worker(
+    profile: Optional[str] = typer.Option(None, help="chain profile [MTCW_PROFILE; default balanced]"),
+    calibration: Optional[Path] = typer.Option(None, help="calibration file [MTCW_CALIBRATION]"),
+    name: Optional[str] = typer.Option(None, help="worker name in logs [MTCW_NAME]"),
+) -> None:
+    """Worker: frames in, PB-MTCW chain, points out."""
+    from mtcw_core.calibration import CalibrationError
+    from services.settings import WorkerSettings
+    from services.worker import Worker
+
+    _logging()
+    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name)
+    try:
+        w = Worker(st)
+    except CalibrationError as err:
+        _fail(str(err))
+    w.run(_stop_on_signals())
+
+
+@app.command()
+def api(
+    host: Optional[str] = typer.Option(None, help="HTTP bind address [MTCW_HOST; default 127.0.0.1]"),
+    port: Optional[int] = typer.Option(None, help="HTTP port [MTCW_PORT; default 8000]"),
+) -> None:
+    """API: latest points, history, health and Prometheus metrics over HTTP."""
+    from services.api import serve
+    from services.settings import ApiSettings
+
+    _logging()
+    serve(_service_settings(ApiSettings, host=host, port=port))
+
+
+@app.command()
+def record(
+    output: Path = typer.Option(..., "-o", "--output", help="recording prefix"),
+    frames: int = typer.Option(10, "-n", "--frames", help="frames to record (0 = until Ctrl-C)"),
+) -> None:
+    """Subscribe to the monitor stream and write the frames to a SigMF recording."""
+    from services.monitor import record as do_record
+    from services.settings import TransportSettings
+
+    _logging()
+    st = _service_settings(TransportSettings)
+    stop = _stop_on_signals()
+    bar = tqdm(total=frames or None, unit="frame", desc="record", file=sys.stderr)
+    try:
+        sub = do_record(st, output, frames, stop, progress=lambda n: bar.update(1))
+    except RecordingError as err:
+        _fail(str(err))
+    bar.close()
+    typer.echo(json.dumps({"written": str(output), "frames": sub.gaps.received, "dropped": sub.gaps.dropped,
+                           "malformed": sub.malformed}))
+
+
 @app.command()
 def run(
     scene: str = typer.Option("cw-bench", help="scene file or bundled scene name"),
-    profile: str = typer.Option("balanced"),
-    frames: int = typer.Option(0, help="stop after this many frames (0 = run until Ctrl-C)"),
+    profile: str = typer.Option("balanced", help="chain profile of the workers"),
+    workers: int = typer.Option(1, min=1, max=64, help="number of worker processes"),
+    rate: float = typer.Option(5.0, help="frames/s from the simulator (0 = as fast as it goes)"),
+    port: int = typer.Option(8000, help="HTTP port of the API (127.0.0.1)"),
+    base_port: int = typer.Option(5555, help="first of three ZeroMQ ports (frames, monitor, points)"),
 ) -> None:
-    """All-in-one on a simulated bench. Interim form: simulate and process in one process and print points.
-
-    The streaming services (acquisition node, workers, HTTP API) are not built yet; see README.
-    """
-    from mtcw_core.chain import process_frame
+    """All-in-one: simulator + worker(s) + API on loopback. Ctrl-C or SIGTERM stops everything."""
+    from services.settings import WorkerSettings
+    from services.supervisor import Supervisor
 
     try:
         sc = load_scene(scene)
     except SceneError as err:
         _fail(str(err))
-    settings = _settings(profile, None)
-    sim = Simulator(sc)
-    typer.echo(f"mtcw run: scene {sc.name} ({sc.description}), profile {settings.profile}; Ctrl-C to stop")
-    i = 0
-    try:
-        while frames == 0 or i < frames:
-            fr = sim.next_frame()
-            res = process_frame(fr, settings)
-            t = fr.truth[0]
-            if res.targets:
-                p = res.targets[0]
-                typer.echo(f"seq {res.seq:5d}  range {p.range_m:10.6f} m +- {p.range_sigma_m:.1e}  "
-                           f"(truth {t.range_m:.6f})  speed {p.velocity_mps:+.4f} m/s {p.direction:8s} "
-                           f"chain {1e3 * sum(res.stage_seconds.values()):6.1f} ms")
-            else:
-                typer.echo(f"seq {res.seq:5d}  {res.status}: {res.reason}")
-            i += 1
-    except KeyboardInterrupt:
-        typer.echo("stopped")
+    _service_settings(WorkerSettings, profile=profile)  # a bad profile fails here, not in a child
+    env = {
+        "MTCW_FRAMES_ENDPOINT": f"tcp://127.0.0.1:{base_port}",
+        "MTCW_MONITOR_ENDPOINT": f"tcp://127.0.0.1:{base_port + 1}",
+        "MTCW_POINTS_ENDPOINT": f"tcp://127.0.0.1:{base_port + 2}",
+    }
+    sup = Supervisor(env=env)
+    sup.add("api", "api", "--host", "127.0.0.1", "--port", str(port))
+    for i in range(workers):
+        sup.add(f"worker-{i}", "worker", "--profile", profile, "--name", f"worker-{i}")
+    sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate))
+    url = f"http://127.0.0.1:{port}"
+    typer.echo(f"mtcw run: scene {sc.name} ({sc.description}); {workers} worker(s), profile {profile}\n"
+               f"  latest point : curl {url}/v1/points/latest\n"
+               f"  history      : curl '{url}/v1/points?limit=10'\n"
+               f"  health       : curl {url}/readyz\n"
+               f"  metrics      : curl {url}/metrics\n"
+               f"  API docs     : {url}/docs\n"
+               f"  raw frames   : mtcw record -o out/capture -n 10   (with MTCW_MONITOR_ENDPOINT={env['MTCW_MONITOR_ENDPOINT']})\n"
+               f"Ctrl-C or SIGTERM stops everything.")
+    codes = sup.run_until_signal()
+    why = codes.pop("_why")
+    typer.echo(f"mtcw run: stopped ({why}); exit codes {codes}")
+    if why and "exited" in str(why):
+        raise typer.Exit(1)
 
 
 def main() -> None:

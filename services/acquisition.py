@@ -1,0 +1,171 @@
+"""The acquisition node: a frame source and a publisher.
+
+Sources yield :class:`~mtcw_core.frame.Frame` objects; the node stamps ``source``, ``seq`` (+1
+per frame) and the trigger time ``t_ns``, then sends each frame on a PUSH socket (workers share
+them) and a PUB socket (recorders and monitors, never slowing the workers). When no worker can
+take a frame the drop policy decides: ``drop`` counts it and goes on (the consumer sees the seq
+gap), ``block`` waits. A real digitizer plugs in as any class with a ``frames()`` iterator,
+named ``module:Class`` in the ``source`` setting.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import secrets
+import threading
+import time
+from typing import Iterator, Protocol
+
+import zmq
+
+from mtcw_core.frame import Frame
+from mtcw_core.recording import read_recording
+from mtcw_core.scene import load_scene
+from mtcw_core.simulate import Simulator
+
+from .settings import AcquisitionSettings, log_settings
+from .wire import encode_frame
+
+log = logging.getLogger("mtcw.acquisition")
+
+
+class FrameSource(Protocol):
+    """What the acquisition node needs from a source (simulator, recording, digitizer)."""
+
+    def frames(self) -> Iterator[Frame]: ...
+
+
+class SimulatorSource:
+    """Frames from the physics simulator for a scene; targets move from frame to frame."""
+
+    def __init__(self, settings: AcquisitionSettings) -> None:
+        self.scene = load_scene(settings.scene)
+        self.sim = Simulator(self.scene, settings.seed)
+
+    def frames(self) -> Iterator[Frame]:
+        while True:
+            yield self.sim.next_frame()
+
+
+class ReplaySource:
+    """Frames of a SigMF recording, in order, optionally looping."""
+
+    def __init__(self, settings: AcquisitionSettings) -> None:
+        assert settings.recording is not None, "replay needs a recording"
+        self.rec = read_recording(settings.recording)
+        self.loop = settings.loop
+        if len(self.rec) == 0:
+            raise ValueError(f"recording: {settings.recording} holds no frames")
+
+    def frames(self) -> Iterator[Frame]:
+        while True:
+            yield from self.rec
+            if not self.loop:
+                return
+
+
+def make_source(settings: AcquisitionSettings) -> FrameSource:
+    if settings.source == "sim":
+        return SimulatorSource(settings)
+    if settings.source == "replay":
+        if settings.recording is None:
+            raise ValueError("recording: source 'replay' needs --recording")
+        return ReplaySource(settings)
+    if ":" in settings.source:
+        mod, _, cls = settings.source.partition(":")
+        try:
+            return getattr(importlib.import_module(mod), cls)(settings)
+        except (ImportError, AttributeError) as err:
+            raise ValueError(f"source: cannot load plug-in {settings.source!r}: {err}") from None
+    raise ValueError(f"source: {settings.source!r} is not sim, replay or module:Class")
+
+
+class Publisher:
+    """Binds the PUSH (workers) and PUB (monitors) sockets and sends frames with the drop policy."""
+
+    def __init__(self, settings: AcquisitionSettings, ctx: zmq.Context | None = None) -> None:
+        self.settings = settings
+        self.ctx = ctx or zmq.Context.instance()
+        self.push = self.ctx.socket(zmq.PUSH)
+        self.pub = self.ctx.socket(zmq.PUB)
+        for s, ep in ((self.push, settings.frames_endpoint), (self.pub, settings.monitor_endpoint)):
+            s.setsockopt(zmq.SNDHWM, settings.hwm)
+            s.setsockopt(zmq.LINGER, settings.linger_ms)
+            s.bind(ep)
+        self.run = secrets.randbits(63)  # tells this run's frames from a previous run's
+        self.seq = 0
+        self.published = 0
+        self.dropped = 0
+
+    def send(self, frame: Frame) -> bool:
+        """Stamp and send one frame; returns False when it was dropped (no worker free)."""
+        frame = frame.with_(seq=self.seq, t_ns=time.time_ns(), source=self.settings.source_name,
+                            extra={**frame.extra, "run": self.run})
+        self.seq += 1
+        parts = encode_frame(frame)
+        # PUB never blocks: a slow subscriber loses frames and sees the seq gap
+        self.pub.send_multipart(parts, copy=False)
+        flags = zmq.NOBLOCK if self.settings.drop_policy == "drop" else 0
+        try:
+            self.push.send_multipart(parts, flags=flags, copy=False)
+        except zmq.Again:
+            self.dropped += 1
+            return False
+        self.published += 1
+        return True
+
+    def close(self) -> None:
+        self.push.close()
+        self.pub.close()
+
+
+def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None = None,
+                    on_frame=None) -> Publisher:
+    """Publish frames until the source ends, ``settings.frames`` are sent, or ``stop`` is set."""
+    stop = stop or threading.Event()
+    log_settings("acquisition", settings)
+    source = make_source(settings)
+    pub = Publisher(settings)
+    metrics = _exporter(settings.metrics_port, settings.metrics_host)
+    period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
+    next_t = time.monotonic()
+    log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
+             settings.frames_endpoint, settings.monitor_endpoint)
+    try:
+        for frame in source.frames():
+            if stop.is_set():
+                break
+            if period:
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0 and stop.wait(delay):
+                    break
+                if delay < -period:  # fell behind: do not burst to catch up
+                    next_t = time.monotonic()
+            ok = pub.send(frame)
+            if metrics:
+                metrics[0].inc()
+                if not ok:
+                    metrics[1].inc()
+            if on_frame:
+                on_frame(pub)
+            if settings.frames and pub.seq >= settings.frames:
+                break
+    finally:
+        log.info("acquisition: stopped after %d frames (%d sent to workers, %d dropped: no worker free)",
+                 pub.seq, pub.published, pub.dropped)
+        pub.close()
+    return pub
+
+
+def _exporter(port: int, host: str):
+    if not port:
+        return None
+    from prometheus_client import CollectorRegistry, Counter, start_http_server
+
+    reg = CollectorRegistry()
+    c_pub = Counter("mtcw_frames_published_total", "frames the acquisition node published", registry=reg)
+    c_drop = Counter("mtcw_acquisition_dropped_total", "frames dropped because no worker was free", registry=reg)
+    start_http_server(port, addr=host, registry=reg)
+    return c_pub, c_drop

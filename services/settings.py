@@ -1,0 +1,104 @@
+"""Service settings: flags override environment (``MTCW_...``), which overrides the defaults.
+
+Every setting is validated (pydantic); an error names the field. Each service logs its
+settings at start-up so that endpoints, high-water marks, LINGER and the drop policy of a
+running daemon are never a guess.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Literal, Optional
+
+from pydantic import Field, ValidationError, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+log = logging.getLogger("mtcw")
+
+
+class TransportSettings(BaseSettings):
+    """ZeroMQ endpoints and queue policy shared by the services.
+
+    The stable ends bind: the acquisition node binds ``frames_endpoint`` (PUSH, to workers) and
+    ``monitor_endpoint`` (PUB, to recorders and monitors); the API binds ``points_endpoint``
+    (PULL). Workers and recorders connect, and reconnect by themselves.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="MTCW_", extra="forbid", validate_default=True)
+
+    frames_endpoint: str = Field("tcp://127.0.0.1:5555", description="acquisition PUSH -> workers")
+    monitor_endpoint: str = Field("tcp://127.0.0.1:5556", description="acquisition PUB -> recorders")
+    points_endpoint: str = Field("tcp://127.0.0.1:5557", description="workers -> API PULL")
+    hwm: int = Field(4, ge=1, le=100_000, description="ZeroMQ high-water mark (messages) of every socket")
+    linger_ms: int = Field(0, ge=-1, description="ZeroMQ LINGER on close (ms; -1 = wait forever)")
+    drop_policy: Literal["drop", "block"] = Field(
+        "drop", description="when no worker can take a frame: drop it (counted) or wait for one")
+    metrics_host: str = Field("127.0.0.1", description="bind address of the Prometheus exporters")
+
+    @field_validator("frames_endpoint", "monitor_endpoint", "points_endpoint")
+    @classmethod
+    def _endpoint(cls, v: str) -> str:
+        if "://" not in v:
+            raise ValueError(f"{v!r} is not a ZeroMQ endpoint (tcp://host:port, ipc://path)")
+        return v
+
+
+class AcquisitionSettings(TransportSettings):
+    source: str = Field("sim", description="sim | replay | module:Class (a FrameSource plug-in)")
+    scene: str = Field("cw-bench", description="scene file or bundled scene name (source sim)")
+    recording: Optional[Path] = Field(None, description="SigMF recording (source replay)")
+    rate_hz: float = Field(0.0, ge=0, description="frames per second; 0 = as fast as the source goes")
+    loop: bool = Field(True, description="replay: start again at the end")
+    frames: int = Field(0, ge=0, description="stop after this many frames (0 = run until stopped)")
+    source_name: str = Field("bench", min_length=1, description="the `source` field of every frame")
+    seed: Optional[int] = None
+    metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
+
+    @field_validator("recording")
+    @classmethod
+    def _exists(cls, v: Optional[Path]) -> Optional[Path]:
+        if v is not None and not (v.exists() or v.with_suffix(".sigmf-meta").exists()
+                                  or Path(str(v) + ".sigmf-meta").exists()):
+            raise ValueError(f"{v} does not exist")
+        return v
+
+
+class WorkerSettings(TransportSettings):
+    profile: str = Field("balanced", description="chain profile: fast | balanced | accurate | seed")
+    calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
+    name: str = Field("worker", description="worker name in logs")
+    metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
+
+    @field_validator("profile")
+    @classmethod
+    def _profile(cls, v: str) -> str:
+        from mtcw_core.chain import PROFILES
+
+        if v not in PROFILES:
+            raise ValueError(f"unknown profile {v!r} (one of {', '.join(PROFILES)})")
+        return v
+
+
+class ApiSettings(TransportSettings):
+    host: str = Field("127.0.0.1", description="HTTP bind address (loopback unless told otherwise)")
+    port: int = Field(8000, ge=0, le=65535)
+    history: int = Field(10_000, ge=1, le=10_000_000, description="points kept for /v1/points")
+    reorder_timeout_s: float = Field(2.0, gt=0, description="wait this long for a missing seq before "
+                                                            "counting it dropped")
+    reorder_max: int = Field(256, ge=1, description="points held for reordering before gaps are declared")
+    stale_after_s: float = Field(5.0, gt=0, description="/readyz fails when the last frame is older")
+    token: Optional[str] = Field(None, description="bearer token for state-changing requests")
+
+
+def load(cls: type[BaseSettings], **flags) -> BaseSettings:
+    """Settings from flags (None = not given), environment and defaults; raises ValueError naming fields."""
+    try:
+        return cls(**{k: v for k, v in flags.items() if v is not None})
+    except ValidationError as err:
+        msgs = [f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in err.errors()]
+        raise ValueError("; ".join(msgs)) from None
+
+
+def log_settings(service: str, settings: BaseSettings) -> None:
+    log.info("%s settings: %s", service, settings.model_dump_json())
