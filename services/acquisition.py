@@ -98,6 +98,21 @@ class Publisher:
         self.published = 0
         self.dropped = 0
 
+    def wait_for_worker(self, timeout_s: float) -> bool:
+        """Wait until a worker has connected to the PUSH socket (True) or the timeout passes."""
+        from zmq.utils.monitor import recv_monitor_message
+
+        mon = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_ACCEPTED)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while (left := deadline - time.monotonic()) > 0:
+                if mon.poll(int(left * 1000)) and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                    return True
+            return False
+        finally:
+            self.push.disable_monitor()
+            mon.close()
+
     def send(self, frame: Frame) -> bool:
         """Stamp and send one frame; returns False when it was dropped (no worker free)."""
         frame = frame.with_(seq=self.seq, t_ns=time.time_ns(), source=self.settings.source_name,
@@ -128,6 +143,9 @@ def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None 
     source = make_source(settings)
     pub = Publisher(settings)
     metrics = _exporter(settings.metrics_port, settings.metrics_host)
+    if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s):
+        log.warning("acquisition: no worker after %.1f s; frames are dropped (and counted) until one connects",
+                    settings.wait_for_worker_s)
     period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
     next_t = time.monotonic()
     log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,

@@ -54,6 +54,7 @@ class AcquisitionSettings(TransportSettings):
     source_name: str = Field("bench", min_length=1, description="the `source` field of every frame")
     seed: Optional[int] = None
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
+    wait_for_worker_s: float = Field(5.0, ge=0, description="before the first frame, wait this long for a worker")
 
     @field_validator("recording")
     @classmethod

@@ -57,6 +57,7 @@ class Worker:
         self.push.setsockopt(zmq.SNDTIMEO, 1000)
         self.push.connect(settings.points_endpoint)
         self.received = self.sent = self.unsent = 0
+        self._metrics = _exporter(settings.metrics_port, settings.metrics_host, settings.name)
 
     def handle(self, parts) -> dict:
         """One message in, one point message out (never raises)."""
@@ -81,11 +82,15 @@ class Worker:
                 parts = self.pull.recv_multipart(copy=False)
                 self.received += 1
                 msg = self.handle(parts)
+                if self._metrics:
+                    self._metrics[0].labels(msg["status"]).inc()
                 try:
                     self.push.send_multipart(encode_points(msg))
                     self.sent += 1
                 except zmq.Again:  # the API is gone: the point is lost, and said so
                     self.unsent += 1
+                    if self._metrics:
+                        self._metrics[1].inc()
                     log.warning("worker %s: API not reachable; point seq %s not delivered", self.settings.name,
                                 msg["seq"])
         finally:
@@ -93,3 +98,17 @@ class Worker:
                      self.received, self.sent, self.unsent)
             self.pull.close()
             self.push.close()
+
+
+def _exporter(port: int, host: str, name: str):
+    """The worker's own counters on ``host:port`` (0 = off), for Prometheus and healthchecks."""
+    if not port:
+        return None
+    from prometheus_client import CollectorRegistry, Counter, start_http_server
+
+    reg = CollectorRegistry()
+    frames = Counter("mtcw_worker_frames_total", "frames this worker handled, by result", ["status"], registry=reg)
+    unsent = Counter("mtcw_worker_points_undelivered_total", "points the API did not take", registry=reg)
+    start_http_server(port, addr=host, registry=reg)
+    log.info("worker %s: metrics on http://%s:%d/metrics", name, host, port)
+    return frames, unsent

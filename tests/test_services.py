@@ -1,0 +1,343 @@
+"""The services end to end over real sockets on loopback, with a simulated publisher.
+
+Each service runs as its own process (``python -m services.cli ...``), as in production;
+frames are small (2^14 samples) so that the tests are quick on two cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import zmq
+
+from services.acquisition import Publisher
+from services.monitor import Subscriber
+from services.settings import AcquisitionSettings, TransportSettings
+
+from .conftest import make_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+RANGE = 1.234
+
+
+def free_ports(n: int) -> list[int]:
+    socks = [socket.socket() for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+class Bench:
+    """Processes of one test's deployment, all on fresh loopback ports."""
+
+    def __init__(self, tmp: Path) -> None:
+        p = free_ports(4)
+        self.http = f"http://127.0.0.1:{p[3]}"
+        self.port = p[3]
+        self.env = {**os.environ, "MTCW_FRAMES_ENDPOINT": f"tcp://127.0.0.1:{p[0]}",
+                    "MTCW_MONITOR_ENDPOINT": f"tcp://127.0.0.1:{p[1]}",
+                    "MTCW_POINTS_ENDPOINT": f"tcp://127.0.0.1:{p[2]}", "MTCW_REORDER_TIMEOUT_S": "1.0",
+                    "PYTHONUNBUFFERED": "1"}
+        self.tmp = tmp
+        self.procs: dict[str, subprocess.Popen] = {}
+        sc = make_scene(digitizer={"samples": 2**14}, noise={"shot": True, "thermal": True},
+                        targets=[{"range_m": RANGE, "loss_db": 20.0}])
+        self.scene = tmp / "scene.json"
+        self.scene.write_text(sc.model_dump_json())
+
+    def start(self, name: str, *args: str, env: dict | None = None) -> subprocess.Popen:
+        log = open(self.tmp / f"{name}.log", "ab")
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=ROOT, env={**self.env, **(env or {})},
+                                stdout=log, stderr=subprocess.STDOUT)
+        self.procs[name] = proc
+        return proc
+
+    def api(self) -> None:
+        self.start("api", "api", "--port", str(self.port))
+        self.wait(lambda: httpx.get(f"{self.http}/healthz", timeout=1).status_code == 200, "API up")
+
+    def acquire(self, frames: int, rate: float, name: str = "acquisition") -> subprocess.Popen:
+        return self.start(name, "acquire", "--scene", str(self.scene), "--frames", str(frames), "--rate", str(rate),
+                          "--seed", "1")
+
+    def stop(self, name: str, sig=signal.SIGTERM, timeout: float = 10) -> int:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+        return proc.wait(timeout)
+
+    def get(self, path: str, **params) -> httpx.Response:
+        return httpx.get(f"{self.http}{path}", params=params, timeout=5)
+
+    def health(self) -> dict:
+        return self.get("/healthz").json()
+
+    @staticmethod
+    def wait(cond, what: str, timeout: float = 60.0) -> None:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            try:
+                if cond():
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def workers_up(self, *names: str) -> None:
+        """Wait until each worker has started its loop (it logs its settings once connected)."""
+        for n in names:
+            self.wait(lambda: "settings:" in self.log(n), f"worker {n}", 60)
+        time.sleep(0.3)
+
+    def close(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+    def log(self, name: str) -> str:
+        return (self.tmp / f"{name}.log").read_text(errors="replace")
+
+    def all_points(self) -> list[dict]:
+        return self.get("/v1/points", limit=10_000).json()["points"]
+
+
+@pytest.fixture
+def bench(tmp_path):
+    b = Bench(tmp_path)
+    yield b
+    b.close()
+
+
+def _wait_total(bench: Bench, n: int, timeout: float = 90) -> dict:
+    bench.wait(lambda: (lambda h: h["processed"] + h["rejected"] + h["dropped"] >= n and h["held_for_reordering"] == 0)(
+        bench.health()), f"{n} frames accounted for", timeout)
+    return bench.health()
+
+
+def test_frames_in_points_out_with_correct_ranges_and_metrics(bench):
+    bench.api()
+    assert bench.get("/readyz").status_code == 503  # no frame yet
+    bench.start("worker", "worker")
+    bench.workers_up("worker")
+    bench.acquire(frames=20, rate=20)
+    h = _wait_total(bench, 20)
+    assert h["received"] == h["processed"] + h["rejected"]
+    assert h["processed"] + h["dropped"] == 20
+    assert h["dropped"] == 0
+    latest = bench.get("/v1/points/latest").json()["points"]["bench"]
+    assert latest["seq"] == 19 and latest["status"] == "ok"
+    t = latest["targets"][0]
+    assert abs(t["range_m"] - RANGE) < 5 * t["range_sigma_m"] + 1e-5
+    assert bench.get("/v1/points/latest", source="bench").json()["seq"] == 19
+    assert bench.get("/readyz").status_code == 200
+    pts = bench.all_points()
+    assert [p["seq"] for p in pts] == list(range(20))
+    assert all(abs(p["targets"][0]["range_m"] - RANGE) < 5 * p["targets"][0]["range_sigma_m"] + 1e-5 for p in pts)
+    assert [p["seq"] for p in bench.get("/v1/points", since_seq=15, limit=2).json()["points"]] == [16, 17]
+    metrics = bench.get("/metrics")
+    assert metrics.headers["content-type"].startswith("text/plain")
+    text = metrics.text
+    for name in ("mtcw_frames_received_total 20.0", "mtcw_frames_processed_total 20.0", "mtcw_frames_dropped_total 0.0",
+                 'mtcw_stage_duration_seconds_count{stage="extract"} 20.0', "mtcw_frame_latency_seconds_count 20.0",
+                 'mtcw_range_meters{source="bench"}', "mtcw_velocity_meters_per_second", 'mtcw_tone_snr_db{tone="500000000"}',
+                 "mtcw_last_frame_age_seconds"):
+        assert name in text, name
+    assert bench.get("/openapi.json").json()["paths"].keys() >= {"/v1/points/latest", "/v1/points", "/metrics"}
+
+
+def test_bad_http_parameters_get_4xx_with_a_message(bench):
+    bench.api()
+    for params in ({"limit": 0}, {"limit": "many"}, {"since_seq": -5}, {"limit": 10**9}):
+        r = bench.get("/v1/points", **params)
+        assert r.status_code == 422 and r.json()["detail"], params
+    r = bench.get("/v1/points/latest", source="nope")
+    assert r.status_code == 404 and "no points" in r.json()["detail"]
+
+
+def test_two_workers_every_point_exactly_once_in_order(bench):
+    bench.api()
+    bench.start("w0", "worker", "--name", "w0")
+    bench.start("w1", "worker", "--name", "w1")
+    bench.workers_up("w0", "w1")
+    bench.acquire(frames=60, rate=200)  # both workers busy, out-of-order finishes
+    h = _wait_total(bench, 60)
+    seqs = [p["seq"] for p in bench.all_points()]
+    assert seqs == sorted(set(seqs))  # in order, no duplicates
+    assert len(seqs) + h["dropped"] == 60 and h["rejected"] == 0
+    # both took part: each worker logs what it received when it stops
+    import re
+
+    got = []
+    for w in ("w0", "w1"):
+        assert bench.stop(w) == 0
+        got.append(int(re.search(r"stopped \(received (\d+)", bench.log(w)).group(1)))
+    assert min(got) > 0 and sum(got) == len(seqs)
+
+
+def test_worker_killed_and_restarted_loses_only_what_is_counted(bench):
+    bench.api()
+    bench.start("w0", "worker", "--name", "w0")
+    bench.start("w1", "worker", "--name", "w1")
+    bench.workers_up("w0", "w1")
+    bench.acquire(frames=60, rate=15)
+    bench.wait(lambda: bench.health()["processed"] >= 15, "first points")
+    bench.stop("w1", signal.SIGKILL)
+    time.sleep(0.5)
+    bench.start("w1b", "worker", "--name", "w1b")
+    h = _wait_total(bench, 60)
+    seqs = [p["seq"] for p in bench.all_points()]
+    assert seqs == sorted(set(seqs)), "a point was duplicated or out of order"
+    assert len(seqs) + h["dropped"] == 60  # every frame: a point, or counted as dropped
+    assert h["received"] == h["processed"] + h["rejected"]
+    stale = h["rejected"]  # points that came after their slot was given up (counted, not shown)
+    assert stale <= 5
+
+
+def test_publisher_restart_workers_reconnect_and_old_frames_are_not_new(bench):
+    bench.api()
+    bench.start("worker", "worker")
+    bench.workers_up("worker")
+    bench.acquire(frames=10, rate=20, name="acq1")
+    assert bench.procs["acq1"].wait(30) == 0
+    _wait_total(bench, 10)
+    first = bench.get("/v1/points/latest").json()["points"]["bench"]
+    bench.acquire(frames=10, rate=20, name="acq2")  # same endpoints, new process: seq starts at 0 again
+    bench.wait(lambda: bench.get("/v1/points/latest").json()["points"]["bench"]["t_ns"] > first["t_ns"]
+               and bench.get("/v1/points/latest").json()["points"]["bench"]["seq"] == 9, "second run's points")
+    pts = bench.all_points()
+    t = [p["t_ns"] for p in pts]
+    assert [p["seq"] for p in pts] == list(range(10)) * 2
+    assert t == sorted(t)  # the new run's points are newer than all of the old run's
+
+
+def test_slow_subscriber_overflow_is_counted_as_dropped():
+    """A monitor that does not keep up loses frames at its high-water mark, and knows how many."""
+    port = free_ports(2)
+    st = AcquisitionSettings(frames_endpoint=f"tcp://127.0.0.1:{port[0]}",
+                             monitor_endpoint=f"tcp://127.0.0.1:{port[1]}", hwm=4)
+    ctx = zmq.Context()
+    pub = Publisher(st, ctx)
+    sub = Subscriber(TransportSettings(monitor_endpoint=st.monitor_endpoint, hwm=2), ctx, rcvhwm=2)
+    from mtcw_core.simulate import simulate_frame
+
+    fr = simulate_frame(make_scene(digitizer={"samples": 2**12}))
+    stop = threading.Event()
+    it = sub.frames(stop, timeout_ms=50)
+    # wait until the subscription is live, then flood without reading
+    got = []
+    for _ in range(100):
+        pub.send(fr)
+        sub_ready = sub.sock.poll(50)
+        if sub_ready:
+            got.append(next(it))
+            break
+    n_pub0 = pub.seq
+    for _ in range(200):
+        pub.send(fr)
+    time.sleep(0.3)
+    pub.send(fr)  # a last frame after the backlog, so the gap before it is visible
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        if not sub.sock.poll(300):
+            break
+        got.append(next(it))
+    stop.set()
+    seqs = [f.seq for f in got]
+    assert seqs[-1] == pub.seq - 1
+    assert sub.gaps.dropped > 100  # the PUB queue overflowed
+    assert sub.gaps.received + sub.gaps.dropped == seqs[-1] - seqs[0] + 1  # nothing lost silently
+    assert pub.dropped == pub.seq  # no worker connected: every frame counted as dropped on the PUSH side
+    assert n_pub0 >= 1
+    sub.close()
+    pub.close()
+    ctx.term()
+
+
+def test_mtcw_record_writes_the_monitor_stream_to_sigmf(bench):
+    from mtcw_core.recording import read_recording
+
+    out = bench.tmp / "cap"
+    rec = bench.start("record", "record", "-o", str(out), "-n", "5")
+    time.sleep(1.0)
+    bench.acquire(frames=200, rate=50)
+    assert rec.wait(60) == 0, bench.log("record")
+    r = read_recording(out)
+    assert len(r) == 5
+    assert r.frame(0).truth[0].range_m == pytest.approx(RANGE)
+    assert json.loads(bench.log("record").strip().splitlines()[-1])["frames"] == 5
+
+
+def test_mtcw_run_serves_points_and_stops_cleanly_on_sigterm(tmp_path):
+    p = free_ports(4)
+    log = open(tmp_path / "run.log", "wb")
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--scene", str(Bench(tmp_path).scene),
+                             "--port", str(p[0]), "--base-port", str(p[1]), "--rate", "10"],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        url = f"http://127.0.0.1:{p[0]}/v1/points/latest"
+        Bench.wait(lambda: httpx.get(url, timeout=1).status_code == 200, "a point from mtcw run", 60)
+        t = httpx.get(url).json()["points"]["bench"]["targets"][0]
+        assert abs(t["range_m"] - RANGE) < 5 * t["range_sigma_m"] + 1e-5
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+        out = (tmp_path / "run.log").read_text()
+        assert "stopped (SIGTERM)" in out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    # no child left behind
+    time.sleep(0.5)
+    ps = subprocess.run(["pgrep", "-f", f"--port {p[0]}"], capture_output=True, text=True).stdout.strip()
+    assert ps == ""
+
+
+def test_bad_settings_name_the_field(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "services.cli", "worker", "--profile", "turbo"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "profile" in r.stderr and "turbo" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "services.cli", "acquire"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=60, env={**os.environ, "MTCW_FRAMES_ENDPOINT": "localhost:5555"})
+    assert r.returncode != 0 and "frames_endpoint" in r.stderr
+
+
+@pytest.mark.skipif(shutil.which("prometheus") is None,
+                    reason="Debian package 'prometheus' not installed (make test installs it where it can)")
+def test_a_real_prometheus_scrapes_metrics(bench):
+    bench.api()
+    prom_port = free_ports(1)[0]
+    cfg = bench.tmp / "prometheus.yml"
+    cfg.write_text(f"""global:\n  scrape_interval: 1s\nscrape_configs:\n  - job_name: mtcw\n    static_configs:\n"""
+                   f"""      - targets: ['127.0.0.1:{bench.port}']\n""")
+    proc = subprocess.Popen(["prometheus", f"--config.file={cfg}", f"--storage.tsdb.path={bench.tmp / 'tsdb'}",
+                             f"--web.listen-address=127.0.0.1:{prom_port}"], stdout=subprocess.DEVNULL,
+                            stderr=open(bench.tmp / "prometheus.log", "wb"))
+    bench.procs["prometheus"] = proc
+    q = f"http://127.0.0.1:{prom_port}/api/v1/query"
+
+    def scraped() -> bool:
+        r = httpx.get(q, params={"query": 'up{job="mtcw"}'}, timeout=2).json()
+        return bool(r["data"]["result"]) and r["data"]["result"][0]["value"][1] == "1"
+
+    bench.wait(scraped, "Prometheus to scrape /metrics", 60)
+    r = httpx.get(q, params={"query": "mtcw_frames_received_total"}, timeout=2).json()
+    assert r["status"] == "success" and r["data"]["result"]
+    targets = httpx.get(f"http://127.0.0.1:{prom_port}/api/v1/targets", timeout=2).json()["data"]["activeTargets"]
+    assert targets[0]["health"] == "up" and targets[0]["lastError"] == ""
+    assert np.isfinite(float(r["data"]["result"][0]["value"][1]))
