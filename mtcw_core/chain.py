@@ -17,9 +17,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import signal as sps
 from scipy.optimize import minimize_scalar
 
+from .dsp.gating import GateEstimate, coarse_gate
 from .dsp.mixing import LineFamily, pair_observations
 from .dsp.spectrum import DopplerEstimate, Spectrum, power_spectrum, search_doppler
-from .dsp.tones import exact_dft, fit_lines
+from .dsp.tones import exact_dft, fit_lines, fit_lines_segments
 from .frame import Frame
 from .ranging.triangulation import C, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
 
@@ -46,6 +47,12 @@ class ChainSettings(BaseModel):
     max_clip_fraction: float = Field(1e-3, ge=0, le=1)
     expected_tones_hz: tuple[float, ...] | None = None
     expected_samples: int | None = None
+    # stage 2: quasi-CW coarse gating (pulsed frames only)
+    gate: Literal["auto", "off"] = "auto"
+    gate_k_sigma: float = Field(4.0, gt=0, description="cycle search spans +-k coarse sigmas")
+    gate_segment_s: float = Field(100e-9, gt=0, description="segment length for IF mixing in the echo windows; "
+                                                          "short enough for the laser to stay coherent")
+    gate_min_snr: float = Field(8.0, gt=0)
     # stage 3: spectrum and Doppler
     doppler_fraction: float = Field(0.25, gt=0, le=1, description="part of the record used for the Doppler FFT")
     window_beta: float = Field(14.0, ge=0)
@@ -100,6 +107,7 @@ class TargetPoint:
     margin: float
     residual_rms_rad: float = 0.0
     near_edge: bool = False
+    cycle_ambiguous: bool = False  # the coarse range could not pick one cycle: range is one of several
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
 
@@ -115,6 +123,7 @@ class FrameResult:
     targets: list[TargetPoint] = field(default_factory=list)
     unambiguous_range_m: float | None = None
     coarse_range_m: float | None = None
+    coarse_sigma_m: float | None = None
     doppler_hz: float | None = None
     calibrated: bool = False
     clip_fraction: float = 0.0
@@ -245,27 +254,45 @@ def _plan_lines(frame: Frame, fd: float, detected: bool, iq: bool, settings: Cha
     return fams, np.concatenate([used, np.asarray(keep, float)])
 
 
+def _segments(n: int, fs: float, settings: ChainSettings,
+              windows: list[tuple[int, int]] | None) -> tuple[np.ndarray, int]:
+    """Segment starts and common length: the whole record in ``settings.segments`` parts, or
+    each echo window cut into pieces of ``gate_segment_s``."""
+    if not windows:
+        length = n // settings.segments
+        return np.arange(settings.segments) * length, length
+    span = sum(b - a for a, b in windows)
+    length = int(min(max(64, round(settings.gate_segment_s * fs)), span))
+    starts = [a + k * length for a, b in windows for k in range((b - a) // length)]
+    if not starts:
+        raise Rejected("gate", f"echo windows ({span} samples) shorter than one segment")
+    return np.asarray(starts, dtype=np.int64), length
+
+
 def extract_stage(x: np.ndarray, frame: Frame, dop: DopplerEstimate, spec: Spectrum,
-                  settings: ChainSettings) -> list[LineFamily]:
-    """Complex amplitude of every used line, per segment, with its phase variance."""
+                  settings: ChainSettings, windows: list[tuple[int, int]] | None = None) -> list[LineFamily]:
+    """Complex amplitude of every used line, per segment, with its phase variance.
+
+    ``windows`` (sample ranges where a quasi-CW echo is on) restricts extraction to them.
+    """
     iq = np.iscomplexobj(x)
     fams, all_f = _plan_lines(frame, dop.fd_hz, dop.detected, iq, settings)
     n = x.size
     fs = frame.fs_hz
     # unique frequencies (S and U/L never coincide when detected; guard anyway)
     uniq, inv = np.unique(np.round(all_f, 6), return_inverse=True)
-    nseg = settings.segments
     if settings.extraction == "filter":
+        if windows:
+            raise Rejected("unsupported", "the seed's filter extraction has no quasi-CW gating")
         z_all, centre = _seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
+    elif not windows and settings.segments == 1:
+        z_all, centres = fit_lines(x, uniq, fs)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
-        bounds = np.linspace(0, n, nseg + 1).astype(int)
-        rows, centres = [], []
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            rows.append(fit_lines(x[a:b], uniq, fs))
-            centres.append((a + b - 1) / (2 * fs))
-        z_all = np.stack(rows)
-        centres = np.asarray(centres)
+        starts, length = _segments(n, fs, settings, windows)
+        z_all = fit_lines_segments(x, starts, length, uniq, fs)
+        centres = (starts + (length - 1) / 2) / fs
+        n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
     out = []
     pos = 0
@@ -301,19 +328,36 @@ def _seed_extract(x: np.ndarray, fs: float, freqs: np.ndarray, settings: ChainSe
     return out, (npts - 1) / (2 * fs2)
 
 
-def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings,
-                  lap=None) -> tuple[DopplerEstimate, list[LineFamily]]:
+def gate_stage(x: np.ndarray, frame: Frame, settings: ChainSettings) -> GateEstimate | None:
+    """Stage 2: coarse gating of a pulsed frame (None for CW frames or with gating off)."""
+    if frame.pulse is None or settings.gate == "off":
+        return None
+    p = frame.pulse
+    ref = frame.volts("pulse_ref") if "pulse_ref" in frame.channels else None
+    return coarse_gate(x, frame.fs_hz, p.period_s, p.duty, p.delay_s, frame.tones_hz, ref,
+                       min_snr=settings.gate_min_snr)
+
+
+def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings, lap=None,
+                  windows: list[tuple[int, int]] | None = None) -> tuple[DopplerEstimate, list[LineFamily]]:
     """Stages 3-4: spectrum, Doppler search and line extraction of a validated signal.
 
-    ``lap(stage_name)``, when given, is called after each stage (the runner's timer).
+    ``lap(stage_name)``, when given, is called after each stage (the runner's timer);
+    ``windows`` restricts extraction to a quasi-CW echo.
     """
     tick = lap or (lambda _name: None)
-    nspec = max(256, int(frame.n * settings.doppler_fraction))
-    spec = power_spectrum(x, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
+    # a gated record's spectrum is the echo-on part alone: the gate's own harmonics around every
+    # line (multiples of 1/period) would otherwise pass for Doppler pairs
+    xs = x
+    if windows:
+        a, b = max(windows, key=lambda w: w[1] - w[0])
+        xs = x[a:b]
+    nspec = max(256, int(xs.size * settings.doppler_fraction))
+    spec = power_spectrum(xs, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
     tick("spectrum")
     dop = doppler_stage(x, frame, spec, settings)
     tick("doppler")
-    fams = extract_stage(x, frame, dop, spec, settings)
+    fams = extract_stage(x, frame, dop, spec, settings, windows)
     tick("extract")
     return dop, fams
 
@@ -361,13 +405,21 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         x, res.clip_fraction = validate(frame, settings, calibration)
         lap("validate")
         iq = np.iscomplexobj(x)
-        dop, fams = measure_lines(x, frame, settings, lap)
-        res.doppler_hz = dop.fd_hz
         if calibration is not None:
             phases, tau0 = dict(zip(calibration.tones_hz, calibration.tone_phases_rad)), calibration.tau0_s
         else:
             tp = frame.tone_phases_rad or (0.0,) * len(frame.tones_hz)
             phases, tau0 = dict(zip(frame.tones_hz, tp)), 0.0
+        gate = gate_stage(x, frame, settings)
+        if gate is not None:
+            lap("gate")
+            res.coarse_range_m = C * (gate.tau_s - tau0) / 2
+            res.coarse_sigma_m = C * gate.sigma_s / 2
+            if not gate.detected:
+                res.status, res.reason = "no_target", f"no echo pulse (gate snr {gate.snr:.1f} < {settings.gate_min_snr})"
+                return res
+        dop, fams = measure_lines(x, frame, settings, lap, gate.windows if gate is not None else None)
+        res.doppler_hz = dop.fd_hz
         obs = pair_observations(fams, phases, settings.min_line_snr_db)
         lap("mix")
         best_snr = max(float(np.max(f.snr_db)) for f in fams)
@@ -378,6 +430,12 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         res.unambiguous_range_m = l_unamb
         lo = settings.range_min_m
         hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
+        ambiguous = False
+        if gate is not None:
+            half = settings.gate_k_sigma * res.coarse_sigma_m
+            ambiguous = 2 * half >= l_unamb
+            half = min(half, 0.5 * l_unamb)  # one cycle at most: the best of them, flagged
+            lo, hi = res.coarse_range_m - half, res.coarse_range_m + half
         if settings.method == "seed":
             sol = resolve_seed(obs, tau0, hi, lo)
         else:
@@ -395,7 +453,8 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         res.targets.append(TargetPoint(
             range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs,
             direction=direction, snr_db=best_snr, margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
-            near_edge=sol.near_edge, tone_snr_db=tone_snr, seed_sigma_k_m=sol.seed_sigma_k_m,
+            near_edge=sol.near_edge, cycle_ambiguous=ambiguous, tone_snr_db=tone_snr,
+            seed_sigma_k_m=sol.seed_sigma_k_m,
         ))
         res.status = "ok"
         lap("report")
@@ -407,4 +466,4 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
 
 
 __all__ = ["ChainSettings", "PROFILES", "get_profile", "process_frame", "FrameResult", "TargetPoint",
-           "Rejected", "validate", "doppler_stage", "extract_stage", "measure_lines", "C"]
+           "Rejected", "validate", "gate_stage", "doppler_stage", "extract_stage", "measure_lines", "C"]

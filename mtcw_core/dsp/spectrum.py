@@ -126,7 +126,7 @@ def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: in
     return np.array(sorted(out))
 
 
-def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48) -> np.ndarray:
+def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: bool = False) -> np.ndarray:
     """Mean noise power around every bin, from the bins ``inner..outer`` away on both sides.
 
     A geometric mean (mean of ``log power``) corrected by Euler's constant, the bias of the mean
@@ -144,9 +144,16 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48) -> np.ndarra
     ndarray, shape (B,), the local mean noise power (V^2)
     """
     lp = np.log(np.maximum(power, 1e-300))
-    c = np.concatenate([[0.0], np.cumsum(lp)])
     nb = lp.size
-    k = np.arange(nb)
+    pad = 0
+    if mirror_dc:
+        # a real signal's spectrum is even about 0 Hz: near DC, the ring continues on the mirror
+        # side (one-sided, it would see only the falling side of a pedestal around 0 Hz)
+        pad = min(outer, nb - 1)
+        lp = np.concatenate([lp[1 : pad + 1][::-1], lp])
+    c = np.concatenate([[0.0], np.cumsum(lp)])
+    k = np.arange(nb) + pad
+    nb = lp.size
 
     def ring(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a, b = np.clip(a, 0, nb), np.clip(b, 0, nb)
@@ -156,6 +163,20 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48) -> np.ndarra
     s2, n2 = ring(k + inner, k + outer + 1)
     n = np.maximum(n1 + n2, 1.0)
     return np.exp((s1 + s2) / n + EULER_GAMMA)
+
+
+def line_half_width(spec: Spectrum, drop_db: float = 30.0) -> int:
+    """Half-width (bins) of the strongest line, down to ``drop_db`` below its peak (DC excluded)."""
+    p = spec.power
+    dc = int(spec.bin_of(0.0))
+    q = p.copy()
+    q[max(dc - 1, 0): dc + 2] = 0
+    k = int(np.argmax(q))
+    level = q[k] * 10 ** (-drop_db / 10)
+    below = q < level
+    right = np.flatnonzero(below[k:])
+    left = np.flatnonzero(below[: k + 1][::-1])
+    return int(max(right[0] if right.size else q.size - k, left[0] if left.size else k + 1))
 
 
 def search_doppler(
@@ -177,11 +198,15 @@ def search_doppler(
     """
     df = spec.df_hz
     nb = spec.power.size
+    # a Doppler line must lie outside the skirt of the strongest line: with a laser incoherent at
+    # the echo's delay every line is a Lorentzian whose wings carry random bumps that would
+    # pass for Doppler pairs (the coherent window main lobe gives ~3 bins here)
+    min_bins = max(min_bins, line_half_width(spec) + 1)
     bmax = int(min(np.floor(fd_max_hz / df), nb // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
     if bmax <= min_bins + 1:
         return DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)
-    floor = local_floor(spec.power)
+    floor = local_floor(spec.power, mirror_dc=not spec.complex_input)
 
     def power(f_hz: np.ndarray) -> np.ndarray:
         idx = spec.bin_of(f_hz)

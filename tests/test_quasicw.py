@@ -1,0 +1,72 @@
+"""Quasi-CW coarse gating: km ranges far beyond the tones' unambiguous range, without cycle slips.
+
+The dissertation's bench (130/510/710/950 MHz, 200 us period, 20 % duty, 1e6 samples) is
+scaled in time to keep the tests quick: 2^18 samples (52 us) with a 50 us period and the same
+duty; the gate's ambiguity is then c*P/2 = 7.5 km. The full-size bench runs in bench/quasicw.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mtcw_core.chain import get_profile, process_frame
+from mtcw_core.dsp.gating import coarse_gate
+from mtcw_core.ranging.triangulation import C, unambiguous_range
+from mtcw_core.simulate import Simulator
+
+from .conftest import make_scene, tones
+
+PLAN = (130e6, 510e6, 710e6, 950e6)
+L_UNAMB = unambiguous_range(np.diff(PLAN))  # 7.5 m from the pair differences
+
+
+def pulsed_scene(range_m: float, loss_db: float = 40.0, ref: bool = True, linewidth: float = 100e3,
+                 frames: int = 4):
+    return make_scene(
+        laser={"linewidth_hz": linewidth}, modulator=tones(*PLAN),
+        targets=[{"range_m": range_m, "loss_db": loss_db}], noise={"shot": True, "thermal": True},
+        digitizer={"samples": 2**18}, frames={"count": frames},
+        pulsing={"period_s": 50e-6, "duty": 0.2, "delay_s": 3e-6, "rise_time_s": 5e-9, "reference_channel": ref},
+    )
+
+
+@pytest.mark.parametrize("range_m", [930.0, 5000.0])
+@pytest.mark.parametrize("ref", [True, False])
+def test_km_ranges_without_cycle_slips(range_m, ref):
+    assert range_m > 100 * L_UNAMB
+    for fr in Simulator(pulsed_scene(range_m, ref=ref), seed=2).frames():
+        res = process_frame(fr, "balanced")
+        assert res.status == "ok", res.reason
+        p = res.targets[0]
+        truth = fr.truth[0].range_m
+        # the coarse range is right within its sigma, and tight enough to pick one cycle
+        assert abs(res.coarse_range_m - truth) < 4 * res.coarse_sigma_m
+        assert not p.cycle_ambiguous
+        # the fine range: no slip of one synthetic wavelength (7.5 m / its finer ones)
+        assert abs(p.range_m - truth) < max(5 * p.range_sigma_m, 1e-3), (p.range_m - truth, p.range_sigma_m)
+
+
+def test_coarse_gate_delay_against_2L_over_c():
+    fr = Simulator(pulsed_scene(2500.0, linewidth=0.0), seed=1).frame(0)
+    g = coarse_gate(fr.volts("pd"), fr.fs_hz, fr.pulse.period_s, fr.pulse.duty, fr.pulse.delay_s, fr.tones_hz,
+                    fr.volts("pulse_ref"))
+    assert g.detected
+    assert abs(g.tau_s - 2 * 2500.0 / C) < 4 * g.sigma_s
+    assert C * g.sigma_s / 2 < 1.5  # below a fifth of the 7.5 m the phases can resolve
+    # the echo windows lie inside the echo gate (delay 3 us + 2L/c, 10 us long)
+    t_on = 3e-6 + 2 * 2500.0 / C
+    for a, b in g.windows:
+        assert t_on < a / fr.fs_hz and b / fr.fs_hz < t_on + 10e-6
+
+
+def test_coarse_sigma_too_large_to_pick_a_cycle_is_said():
+    fr = Simulator(pulsed_scene(930.0), seed=3).frame(0)
+    res = process_frame(fr, get_profile("balanced", gate_k_sigma=20.0))  # a search wider than 7.5 m
+    assert res.status == "ok" and res.targets[0].cycle_ambiguous
+
+
+def test_no_echo_pulse_is_no_target():
+    fr = Simulator(pulsed_scene(930.0, loss_db=140.0), seed=1).frame(0)
+    res = process_frame(fr, "balanced")
+    assert res.status == "no_target" and "echo pulse" in res.reason
