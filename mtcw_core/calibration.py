@@ -84,7 +84,7 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         elif not np.array_equal(t, tones):
             raise CalibrationError(f"frame seq {fr.seq}: tone plan differs from the first frame")
         frame_sum = np.zeros(t.size, complex)
-        for fam in fams:
+        for fam in (f for f in fams if f.target == 0):  # the static reflector's lines
             d = t - t[0]
             tau = 2 * known_range_m / C
             prod = fam.z * np.conj(fam.z[:, :1]) * np.exp(-2j * np.pi * np.outer(fam.seg_centre_s, d))

@@ -16,9 +16,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import signal as sps
 from scipy.optimize import minimize_scalar
+from scipy.stats import chi2 as chi2_dist
 
 from .dsp.gating import GateEstimate, coarse_gate
-from .dsp.mixing import LineFamily, pair_observations
+from .dsp.mixing import LineFamily, consistency, pair_observations
 from .dsp.spectrum import DopplerEstimate, Spectrum, power_spectrum, search_doppler
 from .dsp.tones import exact_dft, fit_lines, fit_lines_segments
 from .frame import Frame
@@ -60,6 +61,11 @@ class ChainSettings(BaseModel):
     doppler_threshold: float = Field(8.0, gt=0)
     fd_max_hz: float | None = Field(None, gt=0, description="default: half the smallest tone spacing")
     doppler_refine: Literal["parabolic", "exact"] = "parabolic"
+    max_targets: int = Field(3, ge=1, le=8, description="Doppler lines (moving targets) looked for")
+    self_beat_margin_db: float = Field(15.0, ge=0, description="a static candidate this far below the movers' "
+                                                               "lines is taken for their self-beat")
+    blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
+                                                        "cannot explain them: flagged blended")
     # stage 4: tone extraction
     extraction: Literal["ls", "filter"] = "ls"
     model_products: bool = False
@@ -108,6 +114,8 @@ class TargetPoint:
     residual_rms_rad: float = 0.0
     near_edge: bool = False
     cycle_ambiguous: bool = False  # the coarse range could not pick one cycle: range is one of several
+    blended: bool = False  # the line phases are not those of one target (e.g. two static targets)
+    chi2_per_dof: float = 1.0  # line-phase consistency; the sigma is scaled by its root when significant
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
 
@@ -199,12 +207,15 @@ def _fd_max(tones: tuple[float, ...], settings: ChainSettings) -> float:
     return 0.5 * min(b - a for a, b in zip(t, t[1:]))
 
 
-def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSettings) -> DopplerEstimate:
-    est = search_doppler(spec, list(frame.tones_hz), _fd_max(frame.tones_hz, settings),
-                         settings.doppler_min_bins, settings.doppler_threshold)
-    if est.detected and settings.doppler_refine == "exact":
-        iq = np.iscomplexobj(x)
-
+def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSettings) -> list[DopplerEstimate]:
+    """Doppler lines, strongest first (``[not detected]`` when there is none)."""
+    ests = search_doppler(spec, list(frame.tones_hz), _fd_max(frame.tones_hz, settings),
+                          settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets)
+    if settings.doppler_refine != "exact" or not ests[0].detected:
+        return ests
+    iq = np.iscomplexobj(x)
+    out = []
+    for est in ests:
         def neg_power(fd: float) -> float:
             fr = _line_freqs(frame.tones_hz, fd, iq)
             return -float(np.sum(np.abs(exact_dft(x, fr, frame.fs_hz)) ** 2))
@@ -212,8 +223,8 @@ def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSe
         half = spec.df_hz
         r = minimize_scalar(neg_power, bounds=(est.fd_hz - half, est.fd_hz + half), method="bounded",
                             options={"xatol": 1e-4 * frame.fs_hz / frame.n})
-        est = DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz, 0.0)
-    return est
+        out.append(DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz, 0.0))
+    return out
 
 
 def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
@@ -223,33 +234,54 @@ def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
     return np.concatenate([t + fd, np.abs(t - fd)])
 
 
-def _plan_lines(frame: Frame, fd: float, detected: bool, iq: bool, settings: ChainSettings):
-    """Frequencies to fit and the families built from them."""
+def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings):
+    """Line families per target candidate, and every frequency to fit.
+
+    Candidate 0 is static (Doppler 0: the S lines of a real detector, the +-f_i lines of an IQ
+    one); candidate k >= 1 is the k-th Doppler line (U and L families). Lines that fall within
+    2 record-bins of lines already planned (or of each other) cannot be separated: they are
+    marked unusable and not fitted.
+    """
     t = np.asarray(frame.tones_hz, float)
-    fams: list[tuple[str, np.ndarray, np.ndarray]] = []  # (name, line freqs, conj mask)
+    res = 2 * frame.fs_hz / frame.n
+    none = np.zeros(t.size, bool)
+    # (target, name, line freqs, conj mask, unusable mask)
+    fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = []
     if iq:
-        up, lo = fd + t, fd - t
-        fams.append(("U", up, np.zeros(t.size, bool)))
-        fams.append(("L", lo, np.ones(t.size, bool)))
+        fams.append((0, "U", t.copy(), none, none))
+        fams.append((0, "L", -t, ~none, none))
     else:
-        fams.append(("S", t.copy(), np.zeros(t.size, bool)))
-        if detected:
-            fams.append(("U", t + fd, np.zeros(t.size, bool)))
-            lo = t - fd
-            fams.append(("L", np.abs(lo), lo < 0))
-    used = np.concatenate([f for _, f, _ in fams])
+        fams.append((0, "S", t.copy(), none, none))
+    used = np.concatenate([f for _, _, f, _, _ in fams])
     extra: list[float] = []
-    if detected and abs(fd) > 0:
-        extra.append(abs(fd) if not iq else fd)
+    for k, fd in enumerate(fds, start=1):
+        if iq:
+            cand = [(k, "U", fd + t, none), (k, "L", fd - t, ~none)]
+        else:
+            lo = t - fd
+            cand = [(k, "U", t + fd, none), (k, "L", np.abs(lo), lo < 0)]
+        new = np.concatenate([f for _, _, f, _ in cand])
+        # a line within 2 bins of another (e.g. f_i + f_d = f_j - f_d at half the tone spacing,
+        # or another target's line) cannot be told apart: it is left out of this target
+        clash = np.abs(new[:, None] - used[None, :]).min(axis=1) <= res
+        d = np.where(np.eye(new.size, dtype=bool), np.inf, np.abs(new[:, None] - new[None, :]))
+        clash |= d.min(axis=1) <= res
+        for j, (kk, name, f, conj) in enumerate(cand):
+            bad = clash[j * t.size:(j + 1) * t.size]
+            fams.append((kk, name, f, conj, bad))
+            used = np.concatenate([used, f[~bad]])
+        extra.append(fd if iq else abs(fd))
+    if iq:
+        extra.append(0.0)  # the complex fit has no DC column: the LO's DC is a line at 0 Hz
     if settings.model_products and not iq:
         prods = [2 * a for a in t] + [a + b for i, a in enumerate(t) for b in t[i + 1:]] + \
                 [abs(a - b) for i, a in enumerate(t) for b in t[i + 1:]]
         extra += [p for p in prods if p < frame.fs_hz / 2]
-    # a line closer than 3 record-bins to another cannot be told apart: keep the used ones
-    res = 3 * frame.fs_hz / frame.n
+    # a product line too close to a used line cannot be told apart: keep the used ones
     keep = []
     for f in extra:
-        if np.all(np.abs(used - f) > res) and all(abs(f - k) > res for k in keep) and f > res:
+        if np.all(np.abs(used - f) > 1.5 * res) and all(abs(f - k) > 1.5 * res for k in keep) and (
+                abs(f) > 1.5 * res or (iq and f == 0.0)):
             keep.append(f)
     return fams, np.concatenate([used, np.asarray(keep, float)])
 
@@ -269,18 +301,17 @@ def _segments(n: int, fs: float, settings: ChainSettings,
     return np.asarray(starts, dtype=np.int64), length
 
 
-def extract_stage(x: np.ndarray, frame: Frame, dop: DopplerEstimate, spec: Spectrum,
+def extract_stage(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
                   settings: ChainSettings, windows: list[tuple[int, int]] | None = None) -> list[LineFamily]:
     """Complex amplitude of every used line, per segment, with its phase variance.
 
     ``windows`` (sample ranges where a quasi-CW echo is on) restricts extraction to them.
     """
     iq = np.iscomplexobj(x)
-    fams, all_f = _plan_lines(frame, dop.fd_hz, dop.detected, iq, settings)
+    fams, all_f = _plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings)
     n = x.size
     fs = frame.fs_hz
-    # unique frequencies (S and U/L never coincide when detected; guard anyway)
-    uniq, inv = np.unique(np.round(all_f, 6), return_inverse=True)
+    uniq = np.unique(np.round(all_f, 6))
     if settings.extraction == "filter":
         if windows:
             raise Rejected("unsupported", "the seed's filter extraction has no quasi-CW gating")
@@ -295,16 +326,16 @@ def extract_stage(x: np.ndarray, frame: Frame, dop: DopplerEstimate, spec: Spect
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
     out = []
-    pos = 0
-    for name, freqs, conj in fams:
-        idx = inv[pos:pos + freqs.size]
-        pos += freqs.size
+    for target, name, freqs, conj, bad in fams:
+        idx = np.clip(np.searchsorted(uniq, np.round(freqs, 6)), 0, uniq.size - 1)
         z = z_all[:, idx].copy()
         z[:, conj] = np.conj(z[:, conj])
+        z[:, bad] = 0.0
         amp2 = np.mean(np.abs(z) ** 2, axis=0)
         s2 = np.array([spec.noise_variance(f, list(uniq)) for f in freqs])
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
-        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var))
+        var[bad] = np.inf
+        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
     return out
 
 
@@ -339,7 +370,7 @@ def gate_stage(x: np.ndarray, frame: Frame, settings: ChainSettings) -> GateEsti
 
 
 def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings, lap=None,
-                  windows: list[tuple[int, int]] | None = None) -> tuple[DopplerEstimate, list[LineFamily]]:
+                  windows: list[tuple[int, int]] | None = None) -> tuple[list[DopplerEstimate], list[LineFamily]]:
     """Stages 3-4: spectrum, Doppler search and line extraction of a validated signal.
 
     ``lap(stage_name)``, when given, is called after each stage (the runner's timer);
@@ -355,11 +386,11 @@ def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings, lap=None
     nspec = max(256, int(xs.size * settings.doppler_fraction))
     spec = power_spectrum(xs, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
     tick("spectrum")
-    dop = doppler_stage(x, frame, spec, settings)
+    dops = doppler_stage(x, frame, spec, settings)
     tick("doppler")
-    fams = extract_stage(x, frame, dop, spec, settings, windows)
+    fams = extract_stage(x, frame, dops, spec, settings, windows)
     tick("extract")
-    return dop, fams
+    return dops, fams
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,6 +414,54 @@ def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq
         v = -dop.fd_hz * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"
     return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown"
+
+
+def _median_snr(p: TargetPoint) -> float:
+    return float(np.median(list(p.tone_snr_db.values())))
+
+
+def _solve_target(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, settings: ChainSettings,
+                  phases: dict[float, float], tau0: float, interval: tuple[float, float] | None, iq: bool,
+                  res: FrameResult) -> TargetPoint | None:
+    """Stages 5-6 for one target candidate: IF mixing, cycle resolution, sigma, quality."""
+    obs = pair_observations(fams, phases, settings.min_line_snr_db)
+    if obs.df_hz.size == 0:
+        return None
+    l_unamb = unambiguous_range(obs.df_hz)
+    res.unambiguous_range_m = l_unamb if res.unambiguous_range_m is None else max(res.unambiguous_range_m, l_unamb)
+    lo = settings.range_min_m
+    hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
+    ambiguous = False
+    if interval is not None:
+        centre, half = 0.5 * (interval[0] + interval[1]), 0.5 * (interval[1] - interval[0])
+        ambiguous = 2 * half >= l_unamb
+        half = min(half, 0.5 * l_unamb)  # one cycle at most: the best of them, flagged
+        lo, hi = centre - half, centre + half
+    if settings.method == "seed":
+        sol = resolve_seed(obs, tau0, hi, lo)
+    else:
+        sol = resolve_ml(obs, tau0, (lo, hi), settings.points_per_cycle)
+    ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
+    used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
+    sigma = fisher_sigma([f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used])
+    # do the line phases agree with one range within their noise? (Birge ratio)
+    chi2, dof = consistency(fams, phases, tau0 + 2 * sol.range_m / C, settings.min_line_snr_db)
+    ratio = chi2 / dof if dof > 0 else 1.0
+    if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
+        sigma *= math.sqrt(ratio)
+    v, vs, direction = _velocity(dop, frame, fams, iq)
+    tone_snr: dict[str, float] = {}
+    for f in fams:
+        for tone, snr in zip(f.tone_hz, f.snr_db):
+            key = f"{tone:.0f}"
+            tone_snr[key] = max(tone_snr.get(key, -np.inf), float(snr))
+    return TargetPoint(
+        range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
+        snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
+        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
+        blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio),
+        tone_snr_db=tone_snr, seed_sigma_k_m=sol.seed_sigma_k_m,
+    )
 
 
 def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
@@ -418,44 +497,41 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
             if not gate.detected:
                 res.status, res.reason = "no_target", f"no echo pulse (gate snr {gate.snr:.1f} < {settings.gate_min_snr})"
                 return res
-        dop, fams = measure_lines(x, frame, settings, lap, gate.windows if gate is not None else None)
-        res.doppler_hz = dop.fd_hz
-        obs = pair_observations(fams, phases, settings.min_line_snr_db)
+        dops, fams = measure_lines(x, frame, settings, lap, gate.windows if gate is not None else None)
+        res.doppler_hz = dops[0].fd_hz
         lap("mix")
-        best_snr = max(float(np.max(f.snr_db)) for f in fams)
-        if obs.df_hz.size == 0:
-            res.status, res.reason = "no_target", f"fewer than two lines above {settings.min_line_snr_db} dB"
-            return res
-        l_unamb = unambiguous_range(obs.df_hz)
-        res.unambiguous_range_m = l_unamb
-        lo = settings.range_min_m
-        hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
-        ambiguous = False
+        interval = None
         if gate is not None:
             half = settings.gate_k_sigma * res.coarse_sigma_m
-            ambiguous = 2 * half >= l_unamb
-            half = min(half, 0.5 * l_unamb)  # one cycle at most: the best of them, flagged
-            lo, hi = res.coarse_range_m - half, res.coarse_range_m + half
-        if settings.method == "seed":
-            sol = resolve_seed(obs, tau0, hi, lo)
-        else:
-            sol = resolve_ml(obs, tau0, (lo, hi), settings.points_per_cycle)
+            interval = (res.coarse_range_m - half, res.coarse_range_m + half)
+        static_dop = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, dops[0].min_detectable_hz)
+        moving = [d for d in dops if d.detected]
+        points: list[tuple[int, TargetPoint]] = []
+        for k in range(len(moving) + 1):
+            fam_k = [f for f in fams if f.target == k]
+            if not fam_k:
+                continue  # a Doppler line whose lines could not be separated from others
+            p = _solve_target(fam_k, moving[k - 1] if k else static_dop, frame, settings, phases, tau0, interval,
+                              iq, res)
+            if p is not None:
+                points.append((k, p))
+        # the static candidate of a frame with moving targets is often their own self-beat
+        # (|E_echo|^2 has no Doppler): at a mover's range, or far weaker than the movers' LO
+        # beats (a self-beat is sqrt(P_echo/P_lo) below them), it is not a second target
+        movers = [p for k, p in points if k > 0]
+        if movers:
+            loudest = max(_median_snr(m) for m in movers)
+            points = [(k, p) for k, p in points if k > 0 or not (
+                _median_snr(p) < loudest - settings.self_beat_margin_db or any(
+                    abs(p.range_m - m.range_m) < max(5 * math.hypot(p.range_sigma_m, m.range_sigma_m), 1e-3)
+                    for m in movers))]
         lap("resolve")
-        used = [f for f in fams if np.sum(f.snr_db >= settings.min_line_snr_db) >= 2]
-        sigma = fisher_sigma([f.tone_hz[f.snr_db >= settings.min_line_snr_db] for f in used],
-                             [f.phase_var[f.snr_db >= settings.min_line_snr_db] for f in used])
-        v, vs, direction = _velocity(dop, frame, fams, iq)
-        tone_snr = {}
-        for f in fams:
-            for tone, s in zip(f.tone_hz, f.snr_db):
-                key = f"{tone:.0f}"
-                tone_snr[key] = max(tone_snr.get(key, -np.inf), float(s))
-        res.targets.append(TargetPoint(
-            range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs,
-            direction=direction, snr_db=best_snr, margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
-            near_edge=sol.near_edge, cycle_ambiguous=ambiguous, tone_snr_db=tone_snr,
-            seed_sigma_k_m=sol.seed_sigma_k_m,
-        ))
+        if not points:
+            res.status, res.reason = "no_target", f"fewer than two lines above {settings.min_line_snr_db} dB"
+            return res
+        # strongest first, by the median SNR of the target's lines (one strong line -- a baseband
+        # beat sitting on a family's slot -- does not make a target strong)
+        res.targets = [p for _, p in sorted(points, key=lambda kp: -_median_snr(kp[1]))]
         res.status = "ok"
         lap("report")
     except Rejected as rej:

@@ -26,7 +26,7 @@ _FRAME_KEYS = ("v", "source", "seq", "t_ns", "fs_hz", "n", "dtype", "channels", 
 _POINT_KEYS = ("v", "source", "seq", "t_ns", "status", "profile", "targets")
 #: fields of each target in a point message (the spec's list, plus the quality fields)
 TARGET_KEYS = ("range_m", "range_sigma_m", "velocity_mps", "velocity_sigma_mps", "direction", "snr_db", "margin",
-               "near_edge", "cycle_ambiguous", "residual_rms_rad")
+               "near_edge", "cycle_ambiguous", "blended", "chi2_per_dof", "residual_rms_rad")
 
 
 class WireError(ValueError):

@@ -40,6 +40,9 @@ class LineFamily:
         Segment centres relative to the record's first sample (s).
     phase_var : ndarray, shape (T,)
         Variance of each line's whole-record phase (rad^2) from the local noise floor.
+    target : int
+        Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
+        k-th Doppler line.
     """
 
     name: str
@@ -48,6 +51,7 @@ class LineFamily:
     z: np.ndarray
     seg_centre_s: np.ndarray
     phase_var: np.ndarray
+    target: int = 0
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -83,3 +87,41 @@ def pair_observations(
                 ph.append(float(np.angle(np.exp(1j * phase))))
                 w.append(1.0 / (fam.phase_var[i] * fam.phase_var[j]))
     return Observations(np.asarray(df, float), np.asarray(ph, float), np.asarray(w, float))
+
+
+def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float], tau_s: float,
+                min_snr_db: float = -np.inf) -> tuple[float, int]:
+    """Chi-square of the line phases against one range, and its degrees of freedom.
+
+    Per family, every used line is paired with the family's strongest line ``r``; the pair
+    phases ``d_i`` (segment-averaged, calibrated) should equal ``-2*pi*(f_i - f_r)*tau`` with
+    covariance ``diag(v_i) + v_r`` (the reference line's noise is shared). ``chi2/dof`` near 1
+    means one target explains the phases; far above, either several static targets share the
+    lines (blended) or something the noise floor does not show (quantisation, spurs) moves them.
+
+    Parameters
+    ----------
+    tau_s : float, the solution's round-trip delay ``tau0 + 2*L/c`` (s)
+
+    Returns
+    -------
+    (chi2, dof); dof counts independent pair phases minus one (the range)
+    """
+    chi2, dof = 0.0, -1
+    for fam in families:
+        ok = np.flatnonzero(fam.snr_db >= min_snr_db)
+        if ok.size < 2:
+            continue
+        r = ok[np.argmax(fam.snr_db[ok])]
+        others = ok[ok != r]
+        res = []
+        for i in others:
+            d = fam.tone_hz[i] - fam.tone_hz[r]
+            prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, r]) * np.exp(-2j * np.pi * d * fam.seg_centre_s))
+            model = -2 * np.pi * d * tau_s + (tone_phases_rad[fam.tone_hz[i]] - tone_phases_rad[fam.tone_hz[r]])
+            res.append(np.angle(prod * np.exp(-1j * model)))
+        res = np.asarray(res)
+        cov = np.diag(fam.phase_var[others]) + fam.phase_var[r]
+        chi2 += float(res @ np.linalg.solve(cov, res))
+        dof += others.size
+    return chi2, dof

@@ -186,7 +186,8 @@ def search_doppler(
     min_bins: int = 4,
     threshold_factor: float = 8.0,
     use_baseband: bool = True,
-) -> DopplerEstimate:
+    max_targets: int = 1,
+) -> list[DopplerEstimate]:
     """Find the Doppler shift from the baseband line and the symmetric lines ``f_i +- f_d``.
 
     Every candidate shift ``b`` (in bins) is scored by the sum over lines of power over the local
@@ -195,6 +196,15 @@ def search_doppler(
     times the score expected from noise alone; its position is refined below one bin by a
     parabola through the logarithm of the three scores around it (the Kaiser window's main lobe is
     close to Gaussian). Zero Doppler is a valid answer.
+
+    Several targets: after the strongest line, further candidates (up to ``max_targets``) at
+    least ``2*min_bins`` away from those found are accepted when they pass the same tests and,
+    in addition, at least two of their sideband pairs stand above the threshold (a second
+    target must be rangeable, not a stray line).
+
+    Returns
+    -------
+    list of DopplerEstimate, strongest first; ``[not detected]`` when there is none
     """
     df = spec.df_hz
     nb = spec.power.size
@@ -202,10 +212,11 @@ def search_doppler(
     # the echo's delay every line is a Lorentzian whose wings carry random bumps that would
     # pass for Doppler pairs (the coherent window main lobe gives ~3 bins here)
     min_bins = max(min_bins, line_half_width(spec) + 1)
-    bmax = int(min(np.floor(fd_max_hz / df), nb // 2 - 1))
+    # two bins beyond the limit, so that a line exactly at it is still a local maximum
+    bmax = int(min(np.floor(fd_max_hz / df) + 2, nb // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
     if bmax <= min_bins + 1:
-        return DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)
+        return [DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)]
     floor = local_floor(spec.power, mirror_dc=not spec.complex_input)
 
     def power(f_hz: np.ndarray) -> np.ndarray:
@@ -219,18 +230,20 @@ def search_doppler(
         idx = np.clip(spec.bin_of(f_hz), 0, nb - 1)
         return power(f_hz) / floor[idx]
     signs = (1, -1) if spec.complex_input else (1,)
-    best = (0.0, 0, 1)
     n_lines = 2 * tones.size + (1 if use_baseband else 0)
     results = {}
+    fd_all = {}
     for s in signs:
         b = np.arange(0, bmax + 1)
         fd = s * b * df
+        fd_all[s] = fd
         score = np.zeros(b.size)
         f_base = fd if spec.complex_input else np.abs(fd)
         base = snr(f_base)
         if use_baseband:
             score += base
         strongest_pair = np.zeros(b.size)  # raw power of the strongest sideband pair
+        n_pairs = np.zeros(b.size, int)  # sideband pairs above the threshold
         for f in tones:
             up = snr(fd + f)
             # the lower line: signed for IQ, folded through 0 Hz for a real detector
@@ -238,6 +251,7 @@ def search_doppler(
             # a Doppler pair is symmetric; a spur (IMD product) usually sits on one side only
             pair = np.minimum(up, down)
             score += 2 * pair
+            n_pairs += pair > threshold_factor
             strongest_pair = np.maximum(strongest_pair, np.minimum(
                 power(fd + f), power(fd - f if spec.complex_input else np.abs(f - fd))))
         valid = np.ones(b.size, bool)
@@ -248,23 +262,56 @@ def search_doppler(
             valid &= (base > threshold_factor) & (power(f_base) > strongest_pair)
             spurs = intermod_frequencies(tuple(float(f) for f in tones), (bmax + min_bins) * df)
             if spurs.size:
+                # on a static intermodulation product, a candidate counts only when its line is
+                # stronger than every static first-order line (a product never is; a moving
+                # target's carrier beat is stronger than its own sidebands)
                 near = np.abs(np.abs(fd)[:, None] - spurs[None, :]).min(axis=1) < min_bins * df
-                valid &= ~near
-        if not valid.any():
-            results[s] = (score, 0)
-            continue
-        k = int(np.flatnonzero(valid)[np.argmax(score[valid])])
-        results[s] = (score, k)
-        if score[k] > best[0]:
-            best = (float(score[k]), k, s)
-    peak, k, s = best
+                static_max = float(np.max(power(tones)))
+                valid &= ~near | (power(f_base) > static_max)
+        results[s] = (score, valid, n_pairs)
     threshold = threshold_factor * n_lines
-    score = results[s][0]
-    is_local = 0 < k < score.size - 1 and score[k] >= score[k - 1] and score[k] >= score[k + 1]
-    if peak < threshold or not is_local:
-        return DopplerEstimate(0.0, False, peak, threshold, min_bins * df)
-    y0, y1, y2 = np.log(np.maximum(score[k - 1 : k + 2], 1e-300))
-    den = y0 - 2 * y1 + y2
-    delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
-    delta = float(np.clip(delta, -0.5, 0.5))
-    return DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df, 0.1 * df)
+    found: list[DopplerEstimate] = []
+    ghost_base = np.concatenate([[0.0], tones, -tones, intermod_frequencies(tuple(float(f) for f in tones),
+                                                                            float(np.max(tones)) + fd_max_hz)])
+    ghost_base = np.concatenate([ghost_base, -ghost_base])
+    taken: list[tuple[int, int]] = []  # (sign, bin)
+    for _ in range(max_targets):
+        best = None
+        for s, (score, valid, n_pairs) in results.items():
+            ok = valid.copy()
+            for ts, tb in taken:
+                if ts == s or not spec.complex_input:
+                    ok[max(tb - 2 * min_bins, 0): tb + 2 * min_bins + 1] = False
+            if found:
+                ok &= n_pairs >= 2
+                # not a ghost of a target already found: its lines and intermodulation products
+                # (tones, IMD, 0 Hz) shifted by that target's Doppler
+                # -- and the beat of two targets found (one acts as the other's LO: lines at
+                # the difference and the sum of their Dopplers)
+                base_f = np.abs(fd_all[s])
+                shifts = [d.fd_hz for d in found]
+                shifts += [a.fd_hz + sgn * b.fd_hz for i, a in enumerate(found) for b in found[i + 1:]
+                           for sgn in (1, -1)]
+                for sh in shifts:
+                    ghosts = np.abs(np.concatenate([ghost_base + sh, ghost_base - sh]))
+                    near = np.abs(base_f[:, None] - ghosts[None, :]).min(axis=1) < min_bins * df
+                    ok &= ~near
+            if not ok.any():
+                continue
+            k = int(np.flatnonzero(ok)[np.argmax(score[ok])])
+            if best is None or score[k] > best[0]:
+                best = (float(score[k]), k, s)
+        if best is None:
+            break
+        peak, k, s = best
+        score = results[s][0]
+        is_local = 0 < k < score.size - 1 and score[k] >= score[k - 1] and score[k] >= score[k + 1]
+        if peak < threshold or not is_local:
+            break
+        y0, y1, y2 = np.log(np.maximum(score[k - 1 : k + 2], 1e-300))
+        den = y0 - 2 * y1 + y2
+        delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+        delta = float(np.clip(delta, -0.5, 0.5))
+        found.append(DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df, 0.1 * df))
+        taken.append((s, k))
+    return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
