@@ -64,6 +64,8 @@ class ChainSettings(BaseModel):
     max_targets: int = Field(3, ge=1, le=8, description="Doppler lines (moving targets) looked for")
     self_beat_margin_db: float = Field(15.0, ge=0, description="a static candidate this far below the movers' "
                                                                "lines is taken for their self-beat")
+    incoherent_residual_rad: float = Field(0.25, gt=0, description="a moving candidate whose line phases miss one "
+                                                                   "range by this much (rms) at > 25 dB is noise")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
     # stage 4: tone extraction
@@ -234,16 +236,17 @@ def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
     return np.concatenate([t + fd, np.abs(t - fd)])
 
 
-def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings):
+def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings, fit_samples: int | None = None):
     """Line families per target candidate, and every frequency to fit.
 
     Candidate 0 is static (Doppler 0: the S lines of a real detector, the +-f_i lines of an IQ
     one); candidate k >= 1 is the k-th Doppler line (U and L families). Lines that fall within
     2 record-bins of lines already planned (or of each other) cannot be separated: they are
-    marked unusable and not fitted.
+    marked unusable and not fitted. ``fit_samples``: the length of the records the lines are
+    fitted on (a segment's, when extraction is segmented), which sets the resolution.
     """
     t = np.asarray(frame.tones_hz, float)
-    res = 2 * frame.fs_hz / frame.n
+    res = 2 * frame.fs_hz / (fit_samples or frame.n)
     none = np.zeros(t.size, bool)
     # (target, name, line freqs, conj mask, unusable mask)
     fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -308,9 +311,13 @@ def extract_stage(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     ``windows`` (sample ranges where a quasi-CW echo is on) restricts extraction to them.
     """
     iq = np.iscomplexobj(x)
-    fams, all_f = _plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings)
     n = x.size
     fs = frame.fs_hz
+    segmented = settings.extraction != "filter" and (windows or settings.segments > 1)
+    if segmented:
+        starts, length = _segments(n, fs, settings, windows)
+    fams, all_f = _plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
+                              length if segmented else None)
     uniq = np.unique(np.round(all_f, 6))
     if settings.extraction == "filter":
         if windows:
@@ -320,7 +327,6 @@ def extract_stage(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     elif not windows and settings.segments == 1:
         z_all, centres = fit_lines(x, uniq, fs)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
-        starts, length = _segments(n, fs, settings, windows)
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
@@ -515,6 +521,12 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
                               iq, res)
             if p is not None:
                 points.append((k, p))
+        # a "moving target" whose line phases are random at high SNR is the wings of the static
+        # lines (a laser incoherent at the echo's delay), not a target: when a static target
+        # is there, drop it
+        if any(k == 0 for k, _ in points):
+            points = [(k, p) for k, p in points if k == 0 or not (
+                p.residual_rms_rad > settings.incoherent_residual_rad and _median_snr(p) > 25.0)]
         # the static candidate of a frame with moving targets is often their own self-beat
         # (|E_echo|^2 has no Doppler): at a mover's range, or far weaker than the movers' LO
         # beats (a self-beat is sqrt(P_echo/P_lo) below them), it is not a second target

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -165,18 +166,37 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
     return np.exp((s1 + s2) / n + EULER_GAMMA)
 
 
-def line_half_width(spec: Spectrum, drop_db: float = 30.0) -> int:
-    """Half-width (bins) of the strongest line, down to ``drop_db`` below its peak (DC excluded)."""
+def line_width_bins(spec: Spectrum, tones_hz, half_span: int = 64) -> float:
+    """Median equivalent width (bins) of the lines near 0 Hz and near each tone.
+
+    ``sum(P)/max(P)`` over the strongest line's contiguous bins within 20 dB of its peak (inside
+    +-``half_span`` bins): 1-2.3 bins for a coherent line through the
+    Kaiser(14) window, ten bins and more when the laser is incoherent at the echo's delay and
+    every line is a Lorentzian with a ragged top (about ``pi/2`` times its FWHM in bins).
+    """
     p = spec.power
+    centres = [0.0] + [float(f) for f in tones_hz]
+    if spec.complex_input:
+        centres += [-float(f) for f in tones_hz]
     dc = int(spec.bin_of(0.0))
-    q = p.copy()
-    q[max(dc - 1, 0): dc + 2] = 0
-    k = int(np.argmax(q))
-    level = q[k] * 10 ** (-drop_db / 10)
-    below = q < level
-    right = np.flatnonzero(below[k:])
-    left = np.flatnonzero(below[: k + 1][::-1])
-    return int(max(right[0] if right.size else q.size - k, left[0] if left.size else k + 1))
+    widths = []
+    for f in centres:
+        k0 = int(spec.bin_of(f))
+        lo, hi = max(k0 - half_span, 0), min(k0 + half_span + 1, p.size)
+        seg = p[lo:hi].copy()
+        if lo <= dc < hi:  # the mean-removal notch and the DC bins are not a line
+            seg[max(dc - lo - 1, 0): dc - lo + 2] = 0.0
+        if not seg.size or seg.max() <= 0:
+            continue
+        # the strongest line's own extent: contiguous bins within 20 dB of its peak (a second
+        # line nearby, e.g. the other Doppler sideband, is not counted)
+        k = int(np.argmax(seg))
+        m = float(seg[k])
+        above = seg >= 0.01 * m
+        r = k + (int(np.argmin(above[k:])) if not above[k:].all() else seg.size - k)
+        l_ = k - (int(np.argmin(above[: k + 1][::-1])) if not above[: k + 1].all() else k + 1) + 1
+        widths.append(float(seg[l_:r].sum()) / m)
+    return float(np.median(widths)) if widths else 1.0
 
 
 def search_doppler(
@@ -208,10 +228,13 @@ def search_doppler(
     """
     df = spec.df_hz
     nb = spec.power.size
-    # a Doppler line must lie outside the skirt of the strongest line: with a laser incoherent at
-    # the echo's delay every line is a Lorentzian whose wings carry random bumps that would
-    # pass for Doppler pairs (the coherent window main lobe gives ~3 bins here)
-    min_bins = max(min_bins, line_half_width(spec) + 1)
+    # a Doppler line must lie outside the skirt of the lines: with a laser incoherent at the
+    # echo's delay every line is a Lorentzian whose wings carry random bumps that would pass for
+    # Doppler pairs; a coherent line is ~2.3 bins wide here
+    # (a coherent line: clear its main lobe; a Lorentzian: its wings' random bumps reach ~2.5
+    # FWHM at -15 dB, so keep ~5 FWHM, 4 equivalent widths, away)
+    w = line_width_bins(spec, tones_hz)
+    min_bins = max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
     # two bins beyond the limit, so that a line exactly at it is still a local maximum
     bmax = int(min(np.floor(fd_max_hz / df) + 2, nb // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)

@@ -73,6 +73,23 @@ def _cost(obs: Observations, tau0_s: float):
     return j
 
 
+def _newton_polish(obs: Observations, tau0_s: float, l_m: float, iterations: int = 3) -> float:
+    """Newton steps on dJ/dL = 0 with analytic derivatives: the bounded scalar search stops at
+    its tolerance, a peak of a sum of cosines is found to float precision this way."""
+    k = 2 * np.pi * obs.df_hz * 2 / C  # d(arg)/dL
+    for _ in range(iterations):
+        arg = obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C)
+        d1 = -float(np.sum(obs.weight * k * np.sin(arg)))
+        d2 = -float(np.sum(obs.weight * k**2 * np.cos(arg)))
+        if d2 >= 0:  # not at a maximum: keep what the search found
+            break
+        step = -d1 / d2
+        if abs(step) > 1e-3 * float(np.min(obs.synthetic_wavelengths_m)):
+            break
+        l_m += step
+    return l_m
+
+
 def _residual(obs: Observations, tau0_s: float, l_m: float) -> float:
     r = np.angle(np.exp(1j * (obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C))))
     return float(np.sqrt(np.sum(obs.weight * r**2) / np.sum(obs.weight)))
@@ -96,7 +113,7 @@ def resolve_ml(
     ib = int(np.argmax(vals))
     res = minimize_scalar(lambda l: -j(l)[0], bounds=(grid[ib] - step, grid[ib] + step), method="bounded",
                           options={"xatol": 1e-9})
-    best = float(res.x)
+    best = _newton_polish(obs, tau0_s, float(res.x))
     # J is periodic in the unambiguous range: a peak refined across an end of the interval is
     # the same solution, reported inside it (never a jump of one synthetic wavelength)
     period = unambiguous_range(obs.df_hz)
