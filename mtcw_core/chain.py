@@ -50,7 +50,8 @@ class ChainSettings(BaseModel):
     expected_samples: int | None = None
     # stage 2: quasi-CW coarse gating (pulsed frames only)
     gate: Literal["auto", "off"] = "auto"
-    gate_k_sigma: float = Field(4.0, gt=0, description="cycle search spans +-k coarse sigmas")
+    gate_k_sigma: float = Field(3.0, gt=0, description="the period is certain when k coarse sigmas stay within "
+                                                       "half the unambiguous range")
     gate_segment_s: float = Field(100e-9, gt=0, description="segment length for IF mixing in the echo windows; "
                                                           "short enough for the laser to stay coherent")
     gate_min_snr: float = Field(8.0, gt=0)
@@ -439,10 +440,11 @@ def _solve_target(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, se
     hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
     ambiguous = False
     if interval is not None:
+        # the phases fix the range modulo l_unamb; the coarse range picks the period: search
+        # the one centred on it, and say so when the coarse sigma leaves the period in doubt
         centre, half = 0.5 * (interval[0] + interval[1]), 0.5 * (interval[1] - interval[0])
-        ambiguous = 2 * half >= l_unamb
-        half = min(half, 0.5 * l_unamb)  # one cycle at most: the best of them, flagged
-        lo, hi = centre - half, centre + half
+        ambiguous = half >= 0.5 * l_unamb
+        lo, hi = centre - 0.5 * l_unamb, centre + 0.5 * l_unamb
     if settings.method == "seed":
         sol = resolve_seed(obs, tau0, hi, lo)
     else:
