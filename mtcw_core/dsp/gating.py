@@ -157,19 +157,79 @@ def band_envelope(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) ->
     -------
     ndarray, shape (M,), V^2
     """
+    return np.sum(np.abs(band_signals(y, fs_hz, tones_hz, half_band_hz)) ** 2, axis=0)
+
+
+def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> np.ndarray:
+    """The complex baseband signal of each band (0 Hz, then each tone), shape (1 + T, M), V.
+
+    A static target's band signal is ``g(t)*cos(psi(t))`` times a constant complex amplitude:
+    signed, so that a fading ``cos(psi)`` passing through zero near an edge is still a smooth
+    (linear) term, not the kink a magnitude would show.
+    """
     m = y.size
     spec = np.fft.fft(y)
     f = np.fft.fftfreq(m, 1 / fs_hz)
-    out = np.zeros(m)
-    centres = [0.0] + [float(t) for t in tones_hz]
-    for fc in centres:
-        # smooth (Hann-shaped) band so that the envelope does not ring
+    t = np.arange(m) / fs_hz
+    centres = [0.0] + [float(c) for c in tones_hz]
+    out = np.empty((len(centres), m), complex)
+    for i, fc in enumerate(centres):
+        # smooth (Hann-shaped) band so that the signal does not ring
         d = np.abs(np.abs(f) - fc) if fc > 0 else np.abs(f)
         w = np.where(d < half_band_hz, 0.5 * (1 + np.cos(np.pi * d / half_band_hz)), 0.0)
         if fc > 0:
             w = w * (f > 0)  # one side: the analytic band
-        out += np.abs(np.fft.ifft(spec * w)) ** 2
+        out[i] = np.fft.ifft(spec * w) * (np.exp(-2j * np.pi * fc * t) if fc > 0 else 1.0)
     return out
+
+
+def _fit_edge_bands(z: np.ndarray, fs_hz: float, ramp_samples: float, rising: bool
+                    ) -> tuple[float, float, float] | None:
+    """A gate edge in the band signals ``z`` (shape (B, n)), jointly.
+
+    Model per band: ``z_b[k] = H(k - t_e) * (a_b + c_b*(k - t_e)/n) + d_b`` with complex
+    ``a_b, c_b, d_b`` and ``H`` a linear ramp of ``ramp_samples`` centred on the edge (the band
+    filter's rise). Returns ``(t_e, sigma_t, contrast)`` in seconds from ``z[:, 0]`` (contrast:
+    the step's amplitude over its standard error), or None.
+    """
+    nbands, n = z.shape
+    k = np.arange(n, dtype=float)
+    zt = z.T  # (n, B)
+
+    def design(te: float) -> np.ndarray:
+        h = np.clip((k - te) / ramp_samples + 0.5, 0, 1)
+        if not rising:
+            h = 1 - h
+        return np.column_stack([h, h * (k - te) / n, np.ones(n)])
+
+    def sse(te: float):
+        a = design(te)
+        coef, *_ = np.linalg.lstsq(a, zt, rcond=None)
+        r = zt - a @ coef
+        return float(np.sum(r.real**2 + r.imag**2)), coef, a
+
+    grid = np.arange(ramp_samples, n - ramp_samples, max(ramp_samples / 4, 1.0))
+    if grid.size < 3:
+        return None
+    vals = np.array([sse(t)[0] for t in grid])
+    j = int(np.argmin(vals))
+    step_g = grid[1] - grid[0]
+    r = minimize_scalar(lambda t: sse(t)[0], bounds=(grid[j] - step_g, grid[j] + step_g), method="bounded",
+                        options={"xatol": 1e-3})
+    te = float(r.x)
+    err, coef, a = sse(te)
+    p = 3 * nbands
+    # per real component; the band signals are smooth over ~ramp samples: count those, not samples
+    s2 = err / max(2 * n * nbands - 2 * p, 1) * max(ramp_samples / 2, 1.0)
+    hh = 0.25 * ramp_samples
+    curv = (sse(te + hh)[0] - 2 * err + sse(te - hh)[0]) / hh**2
+    if not (curv > 0 and s2 > 0):
+        return None
+    var_t = 2 * s2 / curv
+    cov00 = s2 * float(np.linalg.pinv(a.T @ a)[0, 0])
+    step2 = float(np.sum(np.abs(coef[0]) ** 2))
+    contrast = math.sqrt(step2 / (2 * nbands * cov00)) if cov00 > 0 else math.inf
+    return te / fs_hz, math.sqrt(var_t) / fs_hz, contrast
 
 
 def _fit_edge(e: np.ndarray, fs_hz: float, ramp_samples: float, rising: bool) -> tuple[float, float, float] | None:
@@ -225,27 +285,34 @@ def _edge(x: np.ndarray, fs_hz: float, t_pred_s: float, half_window_s: float, of
           half_band: float, ramp: float, rising: bool, min_contrast: float) -> tuple[float, float, float] | None:
     """One edge: a wide window to find it, then a narrow one (+-3 filter rises) to place it.
 
-    The narrow pass keeps the echo's fading (a turning ``cos(psi)``) from bending the step.
+    Fitted on the signed band signals (:func:`band_signals`), so that a fading ``cos(psi)`` is
+    a slope, not a kink; the narrow pass keeps what fading remains from bending the step.
     Returns (time from the record's start (s), sigma (s), contrast) or None.
     """
     n = x.size
     hw = int(math.ceil(half_window_s * fs_hz))
+    pad = int(2 * ramp)  # the band filters are circular (FFT): compute wider, keep the middle
+
+    def bands(a: int, b: int) -> np.ndarray | None:
+        if a - pad < 0 or b + pad > n:
+            return None
+        return band_signals(x[a - pad:b + pad] - off_level, fs_hz, tones, half_band)[:, pad:-pad]
+
     i0 = int(round(t_pred_s * fs_hz)) - hw
-    if i0 < 0 or i0 + 2 * hw > n:
+    z = bands(i0, i0 + 2 * hw)
+    if z is None:
         return None
-    # amplitude, not power: squaring a smoothed step would move its half point toward the echo
-    fit = _fit_edge(np.sqrt(band_envelope(x[i0:i0 + 2 * hw] - off_level, fs_hz, tones, half_band)), fs_hz, ramp,
-                    rising)
+    fit = _fit_edge_bands(z, fs_hz, ramp, rising)
     if fit is None or fit[2] < min_contrast:
         return None
     t1 = i0 / fs_hz + fit[0]
     hw2 = int(3 * ramp)
     j0 = int(round(t1 * fs_hz)) - hw2
-    if j0 >= 0 and j0 + 2 * hw2 <= n and hw2 < hw:
-        fit2 = _fit_edge(np.sqrt(band_envelope(x[j0:j0 + 2 * hw2] - off_level, fs_hz, tones, half_band)), fs_hz,
-                         ramp, rising)
+    z2 = bands(j0, j0 + 2 * hw2) if hw2 < hw else None
+    if z2 is not None:
+        fit2 = _fit_edge_bands(z2, fs_hz, ramp, rising)
         if fit2 is not None and fit2[2] >= min_contrast and abs(j0 / fs_hz + fit2[0] - t1) < ramp / fs_hz:
-            return j0 / fs_hz + fit2[0], fit2[1], max(fit[2], fit2[2])
+            return j0 / fs_hz + fit2[0], fit2[1], fit2[2]
     return t1, fit[1], fit[2]
 
 
@@ -294,6 +361,9 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     c = float(cen[best] + np.sum(w * dev[agree]) / np.sum(w)) % period_s
     sigma = 1 / math.sqrt(float(np.sum(w)))
     if not agree.all():
+        # an edge where the echo's cos(psi) fades through zero carries no timing and may be
+        # fitted anywhere; which one did cannot be told (contrast, nearness to the block-level
+        # estimate: both tried, both slipped more often): the spread is the sigma
         sigma = max(sigma, float(np.max(np.abs(dev[~agree]))) / 3)
     return c, sigma
 
