@@ -183,6 +183,60 @@ def calibrate(
                            "phase_std_rad": cal.phase_std_rad, "frames": cal.frames_used}, indent=2))
 
 
+@app.command()
+def bench(
+    quick: bool = typer.Option(False, "--quick", help="a small grid for CI (2^16 samples, 3 frames)"),
+    out: Path = typer.Option(Path("out/bench"), "-o", "--out", help="output folder (CSV, JSON, PNG, report.md)"),
+    frames: Optional[int] = typer.Option(None, help="frames per cell"),
+    samples: Optional[int] = typer.Option(None, help="override the scenes' record length"),
+    scenes: Optional[str] = typer.Option(None, help="comma-separated scene names"),
+    profiles: Optional[str] = typer.Option(None, help="comma-separated profiles"),
+    losses: Optional[str] = typer.Option(None, help="comma-separated echo losses (dB)"),
+) -> None:
+    """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB."""
+    import platform
+    import shlex
+
+    from mtcw_core.benchmark import GridSpec, run_grid, simulation_costs
+    from services.bench_report import write_report
+
+    def csv_list(v: Optional[str], default: list) -> list:
+        return [x.strip() for x in v.split(",") if x.strip()] if v else default
+
+    if quick:
+        spec = GridSpec(scenes=csv_list(scenes, ["cw-bench", "six-tone"]),
+                        losses_db=[float(x) for x in csv_list(losses, ["30", "55"])],
+                        profiles=csv_list(profiles, ["fast", "balanced", "accurate", "seed"]), methods=["ml", "seed"],
+                        frames=frames or 3, samples=samples or 2**16, seed_points=2**20)
+    else:
+        spec = GridSpec(scenes=csv_list(scenes, ["cw-bench", "six-tone", "moving-target", "low-coherence"]),
+                        losses_db=[float(x) for x in csv_list(losses, ["20", "40", "50", "55", "60", "65"])],
+                        profiles=csv_list(profiles, ["fast", "balanced", "accurate", "seed"]), methods=["ml", "seed"],
+                        frames=frames or 20, samples=samples)
+    for p in spec.profiles:
+        _settings(p, None)
+    n_cells = len(spec.scenes) * len(spec.losses_db) * len(spec.profiles) * len(spec.methods)
+    bar = tqdm(total=n_cells, unit="cell", desc="bench", file=sys.stderr)
+
+    def progress(label: str) -> None:
+        bar.set_postfix_str(label)
+        bar.update(1)
+
+    try:
+        result = run_grid(spec, progress)
+    except (SceneError, ValueError) as err:
+        _fail(str(err))
+    bar.close()
+    result["simulation_costs"] = simulation_costs(spec.samples or 1_000_000, repeat=2 if quick else 3)
+    result["machine"] = f"{platform.machine()}, {platform.processor() or 'cpu'}, Python {platform.python_version()}"
+    given = {"--quick": quick, "-o": out, "--frames": frames, "--samples": samples, "--scenes": scenes,
+             "--profiles": profiles, "--losses": losses}
+    cmd = "mtcw bench" + "".join(f" {k}" if v is True else f" {k} {shlex.quote(str(v))}"
+                                 for k, v in given.items() if v not in (None, False))
+    path = write_report(result, out, cmd)
+    typer.echo(f"wrote {path} (and results.csv, results.json, PNG figures) for {len(result['cells'])} cells")
+
+
 def _stop_on_signals():
     """A threading.Event set by SIGINT/SIGTERM (a service's clean stop)."""
     import signal
