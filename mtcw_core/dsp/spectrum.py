@@ -64,6 +64,15 @@ class Spectrum:
         return float(np.median(vals) / LN2 / self.window_power)
 
 
+@lru_cache(maxsize=8)
+def _window(window: tuple | str, m: int) -> np.ndarray:
+    """The (symmetric) window, cached: a stream's frames share one length, and a Kaiser window
+    of 1e6 points costs more than the FFT it weights."""
+    w = get_window(window, m, fftbins=False)
+    w.setflags(write=False)
+    return w
+
+
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None) -> Spectrum:
     """Periodogram of the first ``n`` samples (all by default), mean removed.
 
@@ -75,7 +84,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
     """
     seg = x if n is None or n >= x.size else x[:n]
     m = seg.size
-    w = get_window(window, m, fftbins=False)
+    w = _window(window if isinstance(window, str) else tuple(window), m)
     y = (seg - seg.mean()) * w
     if np.iscomplexobj(y):
         X = scipy.fft.fftshift(scipy.fft.fft(y))
