@@ -73,6 +73,11 @@ def _window(window: tuple | str, m: int) -> np.ndarray:
     return w
 
 
+@lru_cache(maxsize=8)
+def _window_power(window: tuple | str, m: int) -> float:
+    return float(np.sum(_window(window, m) ** 2))
+
+
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None) -> Spectrum:
     """Periodogram of the first ``n`` samples (all by default), mean removed.
 
@@ -91,12 +96,13 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)
         p = (X.real**2 + X.imag**2)
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
-        wp = float(np.sum(w**2))
-        return Spectrum(p, fs_hz / m, f0, wp, m, True)
+        return Spectrum(p, fs_hz / m, f0, _window_power(window if isinstance(window, str) else tuple(window), m),
+                        m, True)
     X = scipy.fft.rfft(y)
     p = X.real**2 + X.imag**2
     # real noise of variance s2: E|X|^2 = s2 * sum(w^2)
-    return Spectrum(p, fs_hz / m, 0.0, float(np.sum(w**2)), m, False)
+    return Spectrum(p, fs_hz / m, 0.0, _window_power(window if isinstance(window, str) else tuple(window), m), m,
+                    False)
 
 
 @dataclass(frozen=True)
