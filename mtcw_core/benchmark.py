@@ -16,7 +16,7 @@ import numpy as np
 import scipy.fft
 
 from .bounds import range_bound
-from .chain import get_profile, process_frame
+from .chain import get_profile, match_truth, process_frame
 from .ranging.triangulation import C
 from .scene import Scene, load_scene
 from .simulate import Simulator
@@ -90,12 +90,7 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
         if res.status != "ok" or not fr.truth:
             continue
         truth = fr.truth[0]
-        # the target nearest in speed to the truth (several points in multi-target scenes)
-        p = min(res.targets, key=lambda q: abs(abs(q.velocity_mps) - abs(truth.velocity_mps)))
-        e = p.range_m - truth.range_m
-        if res.coarse_range_m is None and res.unambiguous_range_m:
-            lu = res.unambiguous_range_m
-            e = (e + lu / 2) % lu - lu / 2
+        p, e = match_truth(res, truth)
         if abs(e) > lam_min / 4:
             out += 1
             continue

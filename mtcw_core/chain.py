@@ -423,6 +423,23 @@ def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq
     return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown"
 
 
+def match_truth(res: FrameResult, truth) -> tuple[TargetPoint, float] | None:
+    """The point that answers a simulator truth target, and its range error (m).
+
+    The point nearest in speed (several targets are told apart by Doppler); the error is wrapped
+    into +-half the unambiguous range for CW frames (a range is only known modulo it), plain for
+    gated frames (the coarse range removed the ambiguity).
+    """
+    if not res.targets:
+        return None
+    p = min(res.targets, key=lambda q: abs(abs(q.velocity_mps) - abs(truth.velocity_mps)))
+    e = p.range_m - truth.range_m
+    if res.coarse_range_m is None and res.unambiguous_range_m:
+        lu = res.unambiguous_range_m
+        e = (e + lu / 2) % lu - lu / 2
+    return p, e
+
+
 def _median_snr(p: TargetPoint) -> float:
     return float(np.median(list(p.tone_snr_db.values())))
 
@@ -555,5 +572,5 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
     return res
 
 
-__all__ = ["ChainSettings", "PROFILES", "get_profile", "process_frame", "FrameResult", "TargetPoint",
+__all__ = ["ChainSettings", "PROFILES", "get_profile", "process_frame", "match_truth", "FrameResult", "TargetPoint",
            "Rejected", "validate", "gate_stage", "doppler_stage", "extract_stage", "measure_lines", "C"]

@@ -119,7 +119,7 @@ def process(
     import numpy as np
 
     from mtcw_core.calibration import Calibration, CalibrationError
-    from mtcw_core.chain import process_frame
+    from mtcw_core.chain import match_truth, process_frame
 
     rec = _open(recording)
     settings = _settings(profile, method)
@@ -138,9 +138,11 @@ def process(
         status[res.status] = status.get(res.status, 0) + 1
         times.append(sum(res.stage_seconds.values()))
         rows += _point_rows(res)
-        if fr.truth and res.targets:
-            t, p = fr.truth[0], res.targets[0]
-            errs.append((p.range_m - t.range_m, p.range_sigma_m, abs(p.velocity_mps) - abs(t.velocity_mps)))
+        for t in fr.truth or ():
+            m = match_truth(res, t)
+            if m is not None:
+                p, e = m
+                errs.append((e, p.range_sigma_m, abs(p.velocity_mps) - abs(t.velocity_mps)))
     if output is not None:
         if output.suffix == ".json":
             output.write_text(json.dumps(rows, indent=1, default=float))
