@@ -118,6 +118,7 @@ class TargetPoint:
     near_edge: bool = False
     cycle_ambiguous: bool = False  # the coarse range could not pick one cycle: range is one of several
     blended: bool = False  # the line phases are not those of one target (e.g. two static targets)
+    doppler_hz: float = 0.0  # the target's Doppler line (signed for IQ; 0 for the static target)
     chi2_per_dof: float = 1.0  # line-phase consistency; the sigma is scaled by its root when significant
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
@@ -484,7 +485,7 @@ def _solve_target(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, se
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
         residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
-        blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio),
+        blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=tone_snr, seed_sigma_k_m=sol.seed_sigma_k_m,
     )
 
@@ -549,13 +550,22 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         # the static candidate of a frame with moving targets is often their own self-beat
         # (|E_echo|^2 has no Doppler): at a mover's range, or far weaker than the movers' LO
         # beats (a self-beat is sqrt(P_echo/P_lo) below them), it is not a second target
+        # -- and a weak "mover" at the static target's range is that target's own phase-noise
+        # sidebands (they carry its tone phases): of two candidates at one range, the stronger
+        # is the target
+        def same_range(a: TargetPoint, b: TargetPoint) -> bool:
+            return abs(a.range_m - b.range_m) < max(5 * math.hypot(a.range_sigma_m, b.range_sigma_m), 1e-3)
+
+        static = next((p for k, p in points if k == 0), None)
         movers = [p for k, p in points if k > 0]
-        if movers:
+        if static is not None and movers:
             loudest = max(_median_snr(m) for m in movers)
-            points = [(k, p) for k, p in points if k > 0 or not (
-                _median_snr(p) < loudest - settings.self_beat_margin_db or any(
-                    abs(p.range_m - m.range_m) < max(5 * math.hypot(p.range_sigma_m, m.range_sigma_m), 1e-3)
-                    for m in movers))]
+            twins = [m for m in movers if same_range(static, m)]
+            if _median_snr(static) < loudest - settings.self_beat_margin_db or any(
+                    _median_snr(m) >= _median_snr(static) for m in twins):
+                points = [(k, p) for k, p in points if k > 0]
+            else:
+                points = [(k, p) for k, p in points if not any(p is m for m in twins)]
         lap("resolve")
         if not points:
             res.status, res.reason = "no_target", f"fewer than two lines above {settings.min_line_snr_db} dB"
@@ -563,6 +573,7 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         # strongest first, by the median SNR of the target's lines (one strong line -- a baseband
         # beat sitting on a family's slot -- does not make a target strong)
         res.targets = [p for _, p in sorted(points, key=lambda kp: -_median_snr(kp[1]))]
+        res.doppler_hz = res.targets[0].doppler_hz
         res.status = "ok"
         lap("report")
     except Rejected as rej:

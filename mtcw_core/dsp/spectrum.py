@@ -214,6 +214,18 @@ def line_width_bins(spec: Spectrum, tones_hz, half_span: int = 64) -> float:
     return float(np.median(widths)) if widths else 1.0
 
 
+def _near(x: np.ndarray, marks: np.ndarray, tol: float) -> np.ndarray:
+    """``|x - nearest mark| < tol`` for every x, by sorted search (x: many bins, marks: a few hundred)."""
+    m = np.sort(np.asarray(marks, float))
+    if m.size == 0:
+        return np.zeros(x.shape, bool)
+    i = np.clip(np.searchsorted(m, x), 1, m.size - 1)
+    d = np.minimum(np.abs(x - m[i - 1]), np.abs(x - m[i]))
+    if m.size == 1:
+        d = np.abs(x - m[0])
+    return d < tol
+
+
 def search_doppler(
     spec: Spectrum,
     tones_hz: list[float],
@@ -303,7 +315,7 @@ def search_doppler(
                 # on a static intermodulation product, a candidate counts only when its line is
                 # stronger than every static first-order line (a product never is; a moving
                 # target's carrier beat is stronger than its own sidebands)
-                near = np.abs(np.abs(fd)[:, None] - spurs[None, :]).min(axis=1) < min_bins * df
+                near = _near(np.abs(fd), spurs, min_bins * df)
                 static_max = float(np.max(power(tones)))
                 valid &= ~near | (power(f_base) > static_max)
         results[s] = (score, valid, n_pairs)
@@ -332,7 +344,7 @@ def search_doppler(
                            for sgn in (1, -1)]
                 for sh in shifts:
                     ghosts = np.abs(np.concatenate([ghost_base + sh, ghost_base - sh]))
-                    near = np.abs(base_f[:, None] - ghosts[None, :]).min(axis=1) < min_bins * df
+                    near = _near(base_f, ghosts, min_bins * df)
                     ok &= ~near
             if not ok.any():
                 continue
