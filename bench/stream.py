@@ -112,6 +112,9 @@ def main() -> None:
         rows.append({"workers": w, "throughput": thr, "latency_at_80pct": lat})
         print(json.dumps(rows[-1], indent=1), file=sys.stderr)
     print(json.dumps(rows, indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "stream.json").write_text(json.dumps({"command": "python bench/stream.py " + " ".join(sys.argv[1:]),
+                                                      "rows": rows}, indent=1))
     print(f"\n| workers | frames/s (block) | chain median (ms) | rate for latency (/s) | p50 latency (ms) | "
           f"p99 latency (ms) | dropped |\n|---|---|---|---|---|---|---|")
     for r in rows:

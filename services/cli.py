@@ -194,6 +194,7 @@ def bench(
     scenes: Optional[str] = typer.Option(None, help="comma-separated scene names"),
     profiles: Optional[str] = typer.Option(None, help="comma-separated profiles"),
     losses: Optional[str] = typer.Option(None, help="comma-separated echo losses (dB)"),
+    stream_json: Optional[Path] = typer.Option(None, help="include bench/stream.py's stream.json in the report"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB."""
     import platform
@@ -235,8 +236,13 @@ def bench(
     bar.close()
     result["simulation_costs"] = simulation_costs(spec.samples or 1_000_000, repeat=2 if quick else 3)
     result["machine"] = f"{platform.machine()}, {platform.processor() or 'cpu'}, Python {platform.python_version()}"
+    if stream_json is not None:
+        try:
+            result["stream"] = json.loads(stream_json.read_text())
+        except (OSError, ValueError) as err:
+            _fail(f"stream-json: {err}")
     given = {"--quick": quick, "-o": out, "--frames": frames, "--samples": samples, "--scenes": scenes,
-             "--profiles": profiles, "--losses": losses}
+             "--profiles": profiles, "--losses": losses, "--stream-json": stream_json}
     cmd = "mtcw bench" + "".join(f" {k}" if v is True else f" {k} {shlex.quote(str(v))}"
                                  for k, v in given.items() if v not in (None, False))
     path = write_report(result, out, cmd)

@@ -310,7 +310,9 @@ def search_doppler(
             # the LO x echo-carrier beat is the strongest line of a moving target: require it,
             # and ignore candidates sitting on a static intermodulation product
             valid &= (base > threshold_factor) & (power(f_base) > strongest_pair)
-            spurs = intermod_frequencies(tuple(float(f) for f in tones), (bmax + min_bins) * df)
+            # one cached enumeration per tone plan and search range (min_bins varies per frame)
+            spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
+            spurs = spurs[spurs <= (bmax + min_bins) * df]
             if spurs.size:
                 # on a static intermodulation product, a candidate counts only when its line is
                 # stronger than every static first-order line (a product never is; a moving
