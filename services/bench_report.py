@@ -57,7 +57,7 @@ def _plot_pareto(cells: list[dict], path: Path) -> None:
 
 
 def _plot_sigma_vs_snr(cells: list[dict], path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(9.5, 4.8))
     keys = sorted({(c["scene"], c["profile"], c["method"]) for c in cells})
     for scene, prof, meth in keys:
         pts = sorted((c["line_snr_db"], c["range_sigma_m"]) for c in cells
@@ -75,14 +75,14 @@ def _plot_sigma_vs_snr(cells: list[dict], path: Path) -> None:
     ax.set_title("range sigma vs SNR, with the Cramér–Rao bound")
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def _plot_outliers(cells: list[dict], path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(9.5, 4.8))
     keys = sorted({(c["scene"], c["profile"], c["method"]) for c in cells})
     for scene, prof, meth in keys:
         pts = sorted((c["line_snr_db"], c["outlier_rate"]) for c in cells
@@ -95,7 +95,7 @@ def _plot_outliers(cells: list[dict], path: Path) -> None:
     ax.set_title("cycle-resolution outliers: seed vs ml")
     ax.grid(True, alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
