@@ -56,44 +56,25 @@ def _plot_pareto(cells: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _plot_sigma_vs_snr(cells: list[dict], path: Path) -> None:
+def _plot_vs_snr(cells: list[dict], key: str, path: Path, ylabel: str, title: str, log: bool,
+                 bound_key: str | None = None) -> None:
+    """``key`` against the truth's line SNR, one curve per scene/profile/method (and the bound)."""
     fig, ax = plt.subplots(figsize=(9.5, 4.8))
-    keys = sorted({(c["scene"], c["profile"], c["method"]) for c in cells})
-    for scene, prof, meth in keys:
-        pts = sorted((c["line_snr_db"], c["range_sigma_m"]) for c in cells
+    plot = ax.semilogy if log else ax.plot
+    for scene, prof, meth in sorted({(c["scene"], c["profile"], c["method"]) for c in cells}):
+        pts = sorted((c["line_snr_db"], c[key]) for c in cells
                      if (c["scene"], c["profile"], c["method"]) == (scene, prof, meth)
-                     and c.get("line_snr_db") is not None and c["range_sigma_m"])
+                     and c.get("line_snr_db") is not None and c[key] is not None and (c[key] or not log))
         if len(pts) >= 2:
-            ax.semilogy(*zip(*pts), "o-", ms=4, label=f"{scene} {prof}/{meth}")
-    for scene in sorted({c["scene"] for c in cells}):
-        b = sorted({(c["line_snr_db"], c["crb_range_m"]) for c in cells if c["scene"] == scene
-                    and c.get("crb_range_m")})
+            plot(*zip(*pts), "o-" if meth == "ml" else "s--", ms=4, label=f"{scene} {prof}/{meth}")
+    for scene in sorted({c["scene"] for c in cells}) if bound_key else ():
+        b = sorted({(c["line_snr_db"], c[bound_key]) for c in cells if c["scene"] == scene and c.get(bound_key)})
         if len(b) >= 2:
-            ax.semilogy(*zip(*b), "k--", lw=1.2, label=f"{scene} CRB")
+            plot(*zip(*b), "k--", lw=1.2, label=f"{scene} CRB")
     ax.set_xlabel("median line SNR (dB, from truth)")
-    ax.set_ylabel("range sigma (m)")
-    ax.set_title("range sigma vs SNR, with the Cramér–Rao bound")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _plot_outliers(cells: list[dict], path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(9.5, 4.8))
-    keys = sorted({(c["scene"], c["profile"], c["method"]) for c in cells})
-    for scene, prof, meth in keys:
-        pts = sorted((c["line_snr_db"], c["outlier_rate"]) for c in cells
-                     if (c["scene"], c["profile"], c["method"]) == (scene, prof, meth)
-                     and c.get("line_snr_db") is not None and c["outlier_rate"] is not None)
-        if len(pts) >= 2:
-            ax.plot(*zip(*pts), "o-" if meth == "ml" else "s--", ms=4, label=f"{scene} {prof}/{meth}")
-    ax.set_xlabel("median line SNR (dB, from truth)")
-    ax.set_ylabel("outlier (wrong-cycle) rate")
-    ax.set_title("cycle-resolution outliers: seed vs ml")
-    ax.grid(True, alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
     fig.tight_layout()
@@ -194,8 +175,10 @@ def write_report(result: dict, out: Path, command: str) -> Path:
     sim = result.get("simulation_costs") or []
     _plot_pareto([c for c in cells if c["scene"] == "cw-bench" and c["loss_db"] == min(
         (d["loss_db"] for d in cells if d["scene"] == "cw-bench"), default=None)] or cells, out / "pareto.png")
-    _plot_sigma_vs_snr(cells, out / "sigma_vs_snr.png")
-    _plot_outliers(cells, out / "outliers_vs_snr.png")
+    _plot_vs_snr(cells, "range_sigma_m", out / "sigma_vs_snr.png", "range sigma (m)",
+                 "range sigma vs SNR, with the Cramér–Rao bound", True, "crb_range_m")
+    _plot_vs_snr(cells, "outlier_rate", out / "outliers_vs_snr.png", "outlier (wrong-cycle) rate",
+                 "cycle-resolution outliers: seed vs ml", False)
     if sim:
         _plot_sim_cost(sim, refs.get(str(sim[0]["samples"]), {}).get("rfft_s"), out / "sim_cost.png")
     lines = ["# mtcw benchmark", "", f"Command: `{command}`", "",

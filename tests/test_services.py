@@ -10,7 +10,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,21 +24,12 @@ import zmq
 from services.acquisition import Publisher
 from services.monitor import Subscriber
 from services.settings import AcquisitionSettings, TransportSettings
+from services.supervisor import free_ports
 
 from .conftest import make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 RANGE = 1.234
-
-
-def free_ports(n: int) -> list[int]:
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 class Bench:
@@ -88,7 +78,7 @@ class Bench:
         return self.get("/healthz").json()
 
     @staticmethod
-    def wait(cond, what: str, timeout: float = 60.0) -> None:
+    def wait(cond, what: str, timeout: float = 120.0) -> None:
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
             try:
@@ -125,7 +115,7 @@ def bench(tmp_path):
     b.close()
 
 
-def _wait_total(bench: Bench, n: int, timeout: float = 90) -> dict:
+def _wait_total(bench: Bench, n: int, timeout: float = 150) -> dict:
     bench.wait(lambda: (lambda h: h["processed"] + h["rejected"] + h["dropped"] >= n and h["held_for_reordering"] == 0)(
         bench.health()), f"{n} frames accounted for", timeout)
     return bench.health()
