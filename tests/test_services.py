@@ -84,7 +84,7 @@ class Bench:
             try:
                 if cond():
                     return
-            except httpx.HTTPError:
+            except (httpx.HTTPError, ValueError, KeyError):  # not up yet: no answer, or not JSON yet
                 pass
             time.sleep(0.1)
         raise AssertionError(f"timed out waiting for {what}")
