@@ -9,10 +9,12 @@ one, from the known gate timing. ``tau`` is then
 
 1. coarse: the lag maximising the cross-correlation of ``e`` with the periodic gate, block by
    block (an FFT correlation);
-2. fine: least squares of ``e[b] = A*G(b; c_tx + tau) + floor`` where ``G`` is the exact
-   fraction of block ``b`` covered by the (periodic, rectangular) echo gate, refined below one
-   block; its Cramér–Rao-style sigma follows from the residual and the slope of ``G`` at the
-   edges.
+2. below a block: least squares of ``e[b] = A*G(b; c_tx + tau) + floor`` where ``G`` is the
+   exact fraction of block ``b`` covered by the (periodic, rectangular) echo gate; its sigma
+   follows from the residual and the slope of ``G`` at the edges;
+3. fine: each gate edge fitted on the signed band signals (0 Hz and one band per tone), jointly
+   over bands (:func:`refine_edges`); edges that agree are combined, disagreeing ones widen
+   the sigma.
 
 The delay is known modulo ``P`` (``c*P/2``: 30 km for the dissertation's 200 us).
 """
@@ -141,25 +143,6 @@ def envelope(x: np.ndarray, block: int, n_bins: int) -> np.ndarray:
     return p[:, k].sum(axis=1)
 
 
-def band_envelope(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> np.ndarray:
-    """Beat power vs time, band by band: baseband plus a band around each tone, never mixed.
-
-    Within each band of ``+-half_band_hz`` (half the smallest tone spacing, so that each band
-    holds one tone's beats whatever the Doppler shift) the signal is shifted to 0 Hz and its
-    squared magnitude taken; the bands' powers are summed. Unlike the power of the raw signal,
-    this does not beat the tones against each other (the multi-tone waveform's own envelope).
-
-    Parameters
-    ----------
-    y : ndarray, shape (M,), signal minus its echo-off level (V)
-
-    Returns
-    -------
-    ndarray, shape (M,), V^2
-    """
-    return np.sum(np.abs(band_signals(y, fs_hz, tones_hz, half_band_hz)) ** 2, axis=0)
-
-
 def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> np.ndarray:
     """The complex baseband signal of each band (0 Hz, then each tone), shape (1 + T, M), V.
 
@@ -232,55 +215,6 @@ def _fit_edge_bands(z: np.ndarray, fs_hz: float, ramp_samples: float, rising: bo
     return te / fs_hz, math.sqrt(var_t) / fs_hz, contrast
 
 
-def _fit_edge(e: np.ndarray, fs_hz: float, ramp_samples: float, rising: bool) -> tuple[float, float, float] | None:
-    """Step fit to a beat-power envelope around one gate edge.
-
-    Model: ``e[k] = off + H(k - t_e) * (step + slope*(k - t_e))``, ``H`` a linear ramp of
-    ``ramp_samples`` centred on the edge (the band filter's own rise); the slope follows the
-    echo's fading (laser phase noise turns the beat's ``cos(psi)`` over microseconds). Returns ``(t_e, sigma_t, contrast)`` in
-    seconds from ``e[0]`` (contrast: step over its standard error), or None.
-    """
-    n = e.size
-    k = np.arange(n, dtype=float)
-
-    def frac(te: float) -> np.ndarray:
-        h = np.clip((k - te) / ramp_samples + 0.5, 0, 1)
-        return h if rising else 1 - h
-
-    def design(te: float):
-        h = frac(te)
-        return np.column_stack([h, h * (k - te) / n, np.ones(n)]), h
-
-    def sse(te: float):
-        a, h = design(te)
-        coef, *_ = np.linalg.lstsq(a, e, rcond=None)
-        r = e - a @ coef
-        return float(r @ r), coef, h
-
-    grid = np.arange(ramp_samples, n - ramp_samples, max(ramp_samples / 4, 1.0))
-    if grid.size < 3:
-        return None
-    vals = [sse(t)[0] for t in grid]
-    j = int(np.argmin(vals))
-    step_g = grid[1] - grid[0]
-    r = minimize_scalar(lambda t: sse(t)[0], bounds=(grid[j] - step_g, grid[j] + step_g), method="bounded",
-                        options={"xatol": 1e-3})
-    te = float(r.x)
-    err, (step, _, _), h = sse(te)
-    # the envelope is smooth over ~ramp samples: count independent samples, not samples
-    dof_scale = max(ramp_samples / 2, 1.0)
-    s2 = err / max(n - 4, 1) * dof_scale
-    hh = 0.05 * ramp_samples
-    dh = (frac(te + hh) - frac(te - hh)) / (2 * hh)
-    info = step**2 * float(dh @ dh) / s2 if s2 > 0 else math.inf
-    if not (info > 0) or step <= 0:
-        return None
-    a, _ = design(te)
-    cov = s2 * np.linalg.pinv(a.T @ a)
-    contrast = step / math.sqrt(cov[0, 0]) if cov[0, 0] > 0 else math.inf
-    return te / fs_hz, 1 / math.sqrt(info) / fs_hz, float(contrast)
-
-
 def _edge(x: np.ndarray, fs_hz: float, t_pred_s: float, half_window_s: float, off_level: float, tones,
           half_band: float, ramp: float, rising: bool, min_contrast: float) -> tuple[float, float, float] | None:
     """One edge: a wide window to find it, then a narrow one (+-3 filter rises) to place it.
@@ -322,7 +256,7 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     """Echo gate centre (s, modulo the period) and its sigma from every edge inside the record.
 
     Each rising edge near ``t_start + m*P`` and falling edge near ``t_start + width + m*P`` is
-    fitted on the band envelope (:func:`band_envelope`) of ``x - off_level``; a rising edge gives
+    fitted on the band signals (:func:`band_signals`) of ``x - off_level``; a rising edge gives
     the centre as ``t + width/2``, a falling one as ``t - width/2``. Edges that agree are combined
     by inverse variance; when they disagree beyond their sigmas (an edge bent by fading), the one
     of highest contrast is kept and the sigma widened to cover the others. Edges of contrast
