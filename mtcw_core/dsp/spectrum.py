@@ -276,9 +276,11 @@ def search_doppler(
         out[ok] = spec.power[idx[ok]]
         return out
 
-    def snr(f_hz: np.ndarray) -> np.ndarray:
-        idx = np.clip(spec.bin_of(f_hz), 0, nb - 1)
-        return power(f_hz) / floor[idx]
+    def line(f_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Power at f, and power over the local floor (the search's hot path: one lookup each)."""
+        p = power(f_hz)
+        return p, p / floor[np.clip(spec.bin_of(f_hz), 0, nb - 1)]
+
     signs = (1, -1) if spec.complex_input else (1,)
     n_lines = 2 * tones.size + (1 if use_baseband else 0)
     results = {}
@@ -289,27 +291,26 @@ def search_doppler(
         fd_all[s] = fd
         score = np.zeros(b.size)
         f_base = fd if spec.complex_input else np.abs(fd)
-        base = snr(f_base)
+        base_p, base = line(f_base)
         if use_baseband:
             score += base
         strongest_pair = np.zeros(b.size)  # raw power of the strongest sideband pair
         n_pairs = np.zeros(b.size, int)  # sideband pairs above the threshold
         for f in tones:
-            up = snr(fd + f)
+            up_p, up = line(fd + f)
             # the lower line: signed for IQ, folded through 0 Hz for a real detector
-            down = snr(fd - f if spec.complex_input else np.abs(f - fd))
+            down_p, down = line(fd - f if spec.complex_input else np.abs(f - fd))
             # a Doppler pair is symmetric; a spur (IMD product) usually sits on one side only
             pair = np.minimum(up, down)
             score += 2 * pair
             n_pairs += pair > threshold_factor
-            strongest_pair = np.maximum(strongest_pair, np.minimum(
-                power(fd + f), power(fd - f if spec.complex_input else np.abs(f - fd))))
+            strongest_pair = np.maximum(strongest_pair, np.minimum(up_p, down_p))
         valid = np.ones(b.size, bool)
         valid[:min_bins] = False
         if use_baseband:
             # the LO x echo-carrier beat is the strongest line of a moving target: require it,
             # and ignore candidates sitting on a static intermodulation product
-            valid &= (base > threshold_factor) & (power(f_base) > strongest_pair)
+            valid &= (base > threshold_factor) & (base_p > strongest_pair)
             # one cached enumeration per tone plan and search range (min_bins varies per frame)
             spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
             spurs = spurs[spurs <= (bmax + min_bins) * df]
@@ -319,7 +320,7 @@ def search_doppler(
                 # target's carrier beat is stronger than its own sidebands)
                 near = _near(np.abs(fd), spurs, min_bins * df)
                 static_max = float(np.max(power(tones)))
-                valid &= ~near | (power(f_base) > static_max)
+                valid &= ~near | (base_p > static_max)
         results[s] = (score, valid, n_pairs)
     threshold = threshold_factor * n_lines
     found: list[DopplerEstimate] = []
