@@ -231,11 +231,21 @@ def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSe
     return out
 
 
-def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
+def _doppler_families(tones, fd: float, iq: bool) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The U and L lines of a target at Doppler ``fd``: (name, frequencies, conjugate mask).
+
+    IQ: ``fd +- f_i`` (signed; L is the mirror image, conjugated). Real detector: ``f_i + fd``
+    and ``|f_i - fd|`` (conjugated where it folds through 0 Hz).
+    """
     t = np.asarray(tones, float)
     if iq:
-        return np.concatenate([fd + t, fd - t])
-    return np.concatenate([t + fd, np.abs(t - fd)])
+        return [("U", fd + t, np.zeros(t.size, bool)), ("L", fd - t, np.ones(t.size, bool))]
+    lo = t - fd
+    return [("U", t + fd, np.zeros(t.size, bool)), ("L", np.abs(lo), lo < 0)]
+
+
+def _line_freqs(tones, fd: float, iq: bool) -> np.ndarray:
+    return np.concatenate([f for _, f, _ in _doppler_families(tones, fd, iq)])
 
 
 def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings, fit_samples: int | None = None):
@@ -252,19 +262,14 @@ def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSetting
     none = np.zeros(t.size, bool)
     # (target, name, line freqs, conj mask, unusable mask)
     fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = []
-    if iq:
-        fams.append((0, "U", t.copy(), none, none))
-        fams.append((0, "L", -t, ~none, none))
+    if iq:  # a static target is the Doppler-0 case of the U/L layout
+        fams += [(0, name, f, conj, none) for name, f, conj in _doppler_families(t, 0.0, True)]
     else:
         fams.append((0, "S", t.copy(), none, none))
     used = np.concatenate([f for _, _, f, _, _ in fams])
     extra: list[float] = []
     for k, fd in enumerate(fds, start=1):
-        if iq:
-            cand = [(k, "U", fd + t, none), (k, "L", fd - t, ~none)]
-        else:
-            lo = t - fd
-            cand = [(k, "U", t + fd, none), (k, "L", np.abs(lo), lo < 0)]
+        cand = [(k, name, f, conj) for name, f, conj in _doppler_families(t, fd, iq)]
         new = np.concatenate([f for _, _, f, _ in cand])
         # a line within 2 bins of another (e.g. f_i + f_d = f_j - f_d at half the tone spacing,
         # or another target's line) cannot be told apart: it is left out of this target
