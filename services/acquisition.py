@@ -5,7 +5,9 @@ per frame) and the trigger time ``t_ns``, then sends each frame on a PUSH socket
 them) and a PUB socket (recorders and monitors, never slowing the workers). When no worker can
 take a frame the drop policy decides: ``drop`` counts it and goes on (the consumer sees the seq
 gap), ``block`` waits. A real digitizer plugs in as any class with a ``frames()`` iterator,
-named ``module:Class`` in the ``source`` setting.
+named ``module:Class`` in the ``source`` setting. When a run ends (frame count reached, source
+exhausted, or a clean stop) the node sends an end-of-run notice with the number of frames, so
+that the consumer also counts frames lost after the last one it received.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from mtcw_core.scene import load_scene
 from mtcw_core.simulate import Simulator
 
 from .settings import AcquisitionSettings, log_settings
-from .wire import encode_frame
+from .wire import encode_end, encode_frame
 
 log = logging.getLogger("mtcw.acquisition")
 
@@ -130,6 +132,25 @@ class Publisher:
         self.published += 1
         return True
 
+    def finish(self, timeout_s: float) -> bool:
+        """Send the end-of-run notice to a worker (waiting up to ``timeout_s``); True if handed over.
+
+        The PUSH socket then lingers up to ``timeout_s`` so that the notice and the frames still
+        queued for workers are delivered rather than discarded on close.
+        """
+        parts = encode_end(self.settings.source_name, self.run, self.seq, time.time_ns(), self.dropped)
+        ok = bool(self.push.poll(int(timeout_s * 1000), zmq.POLLOUT))
+        if ok:
+            try:
+                self.push.send_multipart(parts, flags=zmq.NOBLOCK)
+            except zmq.Again:  # the pipe filled between the poll and the send
+                ok = False
+        if ok:
+            self.push.setsockopt(zmq.LINGER, max(self.settings.linger_ms, int(timeout_s * 1000)))
+        else:
+            log.warning("acquisition: no worker took the end-of-run notice within %.1f s", timeout_s)
+        return ok
+
     def close(self) -> None:
         self.push.close()
         self.pub.close()
@@ -170,6 +191,8 @@ def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None 
                 on_frame(pub)
             if settings.frames and pub.seq >= settings.frames:
                 break
+        if pub.seq:
+            pub.finish(settings.end_timeout_s)
     finally:
         log.info("acquisition: stopped after %d frames (%d sent to workers, %d dropped: no worker free)",
                  pub.seq, pub.published, pub.dropped)

@@ -3,7 +3,9 @@
 A background thread binds the points socket (PULL), decodes, puts points back in ``seq`` order
 (:class:`~services.ordering.Reorderer`) and updates the store and the Prometheus metrics; the
 FastAPI app reads the store. Counters add up: ``received = processed + rejected`` (late and
-repeated points are rejected with reason ``stale``); frames that never came are ``dropped``.
+repeated points are rejected with reason ``stale``); frames that never came are ``dropped``,
+including those after the last arrival of a run, once the acquisition node's end-of-run notice
+(forwarded by a worker) has said how many frames the run had.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, G
 
 from .ordering import Reorderer
 from .settings import ApiSettings, log_settings
-from .wire import WireError, decode_points
+from .wire import END_TOPIC, WireError, decode_end, decode_points
 
 log = logging.getLogger("mtcw.api")
 
@@ -83,6 +85,14 @@ class PointStore:
             self.order.add(msg, now_mono)
             self._after_order(stale_before, dropped_before)
 
+    def end(self, msg: dict, now_mono: float) -> None:
+        """An end-of-run notice: the run had ``msg["frames"]`` frames; the missing tail is dropped."""
+        with self.lock:
+            stale_before, dropped_before = self.order.stale, self.order.dropped
+            if self.order.end(msg["source"], msg.get("run"), msg["frames"], msg["t_ns"], now_mono) == "stale":
+                log.info("api: end-of-run notice of an older run of %r ignored", msg["source"])
+            self._after_order(stale_before, dropped_before)
+
     def poll(self, now_mono: float) -> None:
         with self.lock:
             stale_before, dropped_before = self.order.stale, self.order.dropped
@@ -128,6 +138,7 @@ class PointStore:
             now = time.monotonic()
             age = None if self.last_arrival is None else now - self.last_arrival
             return {**self.counts, "last_frame_age_s": age, "held_for_reordering": self.order.held(),
+                    "awaited_after_end": self.order.awaited(),
                     "uptime_s": now - self.started}
 
 
@@ -152,13 +163,14 @@ class PointReceiver(threading.Thread):
             while not self.stop_event.is_set():
                 if poller.poll(100):
                     parts = self.sock.recv_multipart()
+                    is_end = bool(parts) and parts[0] == END_TOPIC
                     try:
-                        msg = decode_points(parts)
+                        msg = decode_end(parts) if is_end else decode_points(parts)
                     except WireError as err:
                         self.store.m.malformed.labels(err.reason).inc()
-                        log.warning("api: dropped a malformed point message: %s", err)
+                        log.warning("api: dropped a malformed %s message: %s", "end" if is_end else "point", err)
                         continue
-                    self.store.add(msg, time.monotonic())
+                    (self.store.end if is_end else self.store.add)(msg, time.monotonic())
                 self.store.poll(time.monotonic())
         finally:
             self.sock.close()

@@ -6,7 +6,8 @@ held), then counted as dropped. A point that arrives after its slot was given up
 is counted as stale and never released twice. A publisher restart starts a new run: the
 message's ``run`` id changes (or, from a publisher that sends none, ``seq`` goes back while the
 trigger time ``t_ns`` moves forward); a point of the previous run that arrives afterwards is
-stale, not new.
+stale, not new. An end-of-run notice (:meth:`Reorderer.end`) tells how many frames the run had,
+so that frames lost after the last one that arrived are counted as dropped as well.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ class _SourceState:
     max_t_ns: int = 0
     floor_t_ns: int = -1  # without run ids: points triggered at or before this belong to an older run
     held: dict[int, tuple[float, dict]] = field(default_factory=dict)  # seq -> (arrival time, message)
+    end_seq: int | None = None  # the run's frame count, once its end-of-run notice came
+    end_at: float = 0.0  # when that notice came
 
 
 class Reorderer:
@@ -79,6 +82,30 @@ class Reorderer:
         self._check_limits(st, now)
         return outcome
 
+    def end(self, source: str, run: int | None, frames: int, t_ns: int, now: float) -> str:
+        """The run ``run`` of ``source`` had ``frames`` frames (seq ``0 .. frames - 1``).
+
+        Seqs still missing when the timeout has passed after this notice (and after every held
+        point) are counted as dropped. Returns ``"ended"`` or ``"stale"`` (a notice of an older run).
+        """
+        st = self._src.get(source)
+        if st is None:
+            st = self._src[source] = _SourceState(next_seq=0, run=run)
+        elif run is not None and st.run is not None and run != st.run:
+            if t_ns <= st.max_t_ns:
+                return "stale"
+            self._new_run(st, 0, run)
+        elif run is None and t_ns <= st.floor_t_ns:
+            return "stale"
+        st.max_t_ns = max(st.max_t_ns, t_ns)
+        st.end_seq, st.end_at = frames, now
+        self._check_limits(st, now)
+        return "ended"
+
+    def awaited(self) -> int:
+        """Frames announced by an end-of-run notice that have neither arrived nor been given up."""
+        return sum(max(s.end_seq - s.next_seq - len(s.held), 0) for s in self._src.values() if s.end_seq is not None)
+
     def poll(self, now: float) -> None:
         """Give up gaps that have waited longer than the timeout."""
         for st in self._src.values():
@@ -93,6 +120,7 @@ class Reorderer:
         st.floor_t_ns = st.max_t_ns
         st.next_seq = 0 if seq <= self.max_held else seq
         st.run = run
+        st.end_seq = None
         self.restarts += 1
 
     def _drain(self, st: _SourceState) -> bool:
@@ -108,6 +136,10 @@ class Reorderer:
         while st.held and (len(st.held) > self.max_held
                            or now - min(t for t, _ in st.held.values()) > self.timeout_s):
             self._give_up(st)
+        if (st.end_seq is not None and not st.held and st.next_seq < st.end_seq
+                and now - st.end_at > self.timeout_s):
+            self.dropped += st.end_seq - st.next_seq  # the tail of the run never came
+            st.next_seq = st.end_seq
 
     def _give_up(self, st: _SourceState, everything: bool = False) -> None:
         """Count the gap before the lowest held seq as dropped and release what follows it."""

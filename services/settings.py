@@ -55,6 +55,8 @@ class AcquisitionSettings(TransportSettings):
     seed: Optional[int] = None
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
     wait_for_worker_s: float = Field(5.0, ge=0, description="before the first frame, wait this long for a worker")
+    end_timeout_s: float = Field(5.0, ge=0, description="at the end of a run, wait this long to hand the "
+                                                        "end-of-run notice (and queued frames) to a worker")
 
     @field_validator("recording")
     @classmethod

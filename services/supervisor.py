@@ -52,21 +52,22 @@ class Supervisor:
         return [c.name for c in self.children if c.proc is not None and c.proc.poll() is None]
 
     def stop(self) -> dict[str, int]:
-        """SIGTERM in reverse start order (API last out, so points still land), then SIGKILL."""
-        for c in reversed(self.children):
-            if c.proc is not None and c.proc.poll() is None:
-                c.proc.send_signal(signal.SIGTERM)
+        """SIGTERM one by one in reverse start order, upstream first (the acquisition node's
+        end-of-run notice still finds a worker, and the API is last out so that points still
+        land); whatever has not stopped by the deadline is killed."""
         deadline = time.monotonic() + self.stop_timeout_s
         codes = {}
-        for c in self.children:
+        for c in reversed(self.children):
             if c.proc is None:
                 continue
+            if c.proc.poll() is None:
+                c.proc.send_signal(signal.SIGTERM)
             try:
                 codes[c.name] = c.proc.wait(max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
                 c.proc.kill()
                 codes[c.name] = c.proc.wait()
-        return codes
+        return {c.name: codes[c.name] for c in self.children if c.name in codes}
 
     def run_until_signal(self, on_tick=None) -> dict[str, int]:
         """Start, then wait for SIGINT/SIGTERM or a child's death; stop everything."""

@@ -1,6 +1,8 @@
 """Wire format version 1: ZeroMQ multipart messages with msgpack headers (docs/wire-format.md).
 
-Frame message: ``[b"frame", header, samples]``; point message: ``[b"points", result]``.
+Frame message: ``[b"frame", header, samples]``; point message: ``[b"points", result]``;
+end-of-run message: ``[b"end", header]`` (the acquisition node's last word on a run, passed on
+by a worker to the API, so that frames lost at the tail of a run are counted too).
 Samples travel as the raw little-endian buffer, channel-major, and are sent and received
 without copying (``copy=False`` on both ends; the receiver wraps the ZeroMQ buffer with
 ``np.frombuffer``).
@@ -20,6 +22,7 @@ from mtcw_core.frame import SAMPLE_DTYPES, Frame, PulseInfo, TruthTarget
 VERSION = 1
 FRAME_TOPIC = b"frame"
 POINTS_TOPIC = b"points"
+END_TOPIC = b"end"
 _RECEIVERS = ("single", "balanced", "iq")
 _FRAME_KEYS = ("v", "source", "seq", "t_ns", "fs_hz", "n", "dtype", "channels", "scale", "offset", "tones_hz",
                "wavelength_m", "receiver")
@@ -203,3 +206,34 @@ def decode_points(parts: Sequence) -> dict:
     if not isinstance(m["targets"], list):
         raise WireError("bad_field", "targets must be a list")
     return m
+
+
+# ---------------------------------------------------------------------------------------------
+def encode_end(source: str, run: int | None, frames: int, t_ns: int, dropped: int) -> list[bytes]:
+    """``[b"end", header]``: the run ``run`` of ``source`` published seq ``0 .. frames - 1``.
+
+    ``dropped`` is how many of them the acquisition node itself could not hand to a worker.
+    """
+    h: dict[str, Any] = {"v": VERSION, "source": source, "frames": int(frames), "t_ns": int(t_ns),
+                         "dropped": int(dropped)}
+    if run is not None:
+        h["run"] = int(run)
+    return [END_TOPIC, msgpack.packb(h, use_bin_type=True)]
+
+
+def decode_end(parts: Sequence) -> dict:
+    """``[b"end", header]`` -> dict with ``source``, ``frames``, ``t_ns``, ``dropped`` (and ``run``)."""
+    if len(parts) != 2:
+        raise WireError("bad_parts", f"end message has {len(parts)} parts, expected 2")
+    if bytes(parts[0]) != END_TOPIC:
+        raise WireError("bad_topic", f"topic {bytes(parts[0])[:16]!r}, expected {END_TOPIC!r}")
+    h = _unpack(parts[1], "end")
+    _check_version(h)
+    if not isinstance(h.get("source"), str):
+        raise WireError("bad_field", "end: source must be a string")
+    for k in ("frames", "t_ns", "dropped"):
+        if not isinstance(h.get(k), int) or isinstance(h.get(k), bool) or h[k] < 0:
+            raise WireError("bad_field", f"end: {k} must be a non-negative integer, got {h.get(k)!r}")
+    if "run" in h and not (isinstance(h["run"], int) and not isinstance(h["run"], bool)):
+        raise WireError("bad_field", "end: run must be an integer")
+    return h

@@ -3,7 +3,8 @@
 A worker holds at most ``hwm`` frames in its queue, so that frames are shared fairly between
 workers and a killed worker loses little (the consumer counts the loss from seq gaps). A message
 that is not a valid frame becomes a ``rejected`` point with the decoder's reason, so that the
-consumer's counters still add up. Reconnection after a publisher restart is ZeroMQ's.
+consumer's counters still add up. The acquisition node's end-of-run notice is passed on to the
+API unchanged. Reconnection after a publisher restart is ZeroMQ's.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
 
 from .settings import WorkerSettings, log_settings
-from .wire import VERSION, WireError, decode_frame, encode_points, result_message
+from .wire import END_TOPIC, VERSION, WireError, decode_frame, encode_points, result_message
 
 log = logging.getLogger("mtcw.worker")
 
@@ -80,6 +81,13 @@ class Worker:
                 if not poller.poll(200):
                     continue
                 parts = self.pull.recv_multipart(copy=False)
+                if len(parts) == 2 and parts[0].bytes == END_TOPIC:  # end of a run: the API checks it
+                    try:
+                        self.push.send_multipart([p.bytes for p in parts])
+                    except zmq.Again:
+                        log.warning("worker %s: API not reachable; end-of-run notice not delivered",
+                                    self.settings.name)
+                    continue
                 self.received += 1
                 msg = self.handle(parts)
                 if self._metrics:

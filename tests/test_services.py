@@ -181,6 +181,31 @@ def test_two_workers_every_point_exactly_once_in_order(bench):
     assert min(got) > 0 and sum(got) == len(seqs)
 
 
+def test_frames_lost_after_the_last_arrival_are_counted_from_the_end_notice(bench):
+    """The tail of a run leaves no seq gap behind it; the end-of-run notice makes it count."""
+    from mtcw_core.simulate import simulate_frame
+
+    bench.api()
+    bench.start("worker", "worker")
+    st = AcquisitionSettings(frames_endpoint=bench.env["MTCW_FRAMES_ENDPOINT"],
+                             monitor_endpoint=bench.env["MTCW_MONITOR_ENDPOINT"], drop_policy="block")
+    ctx = zmq.Context()
+    pub = Publisher(st, ctx)
+    try:
+        assert pub.wait_for_worker(60)
+        fr = simulate_frame(make_scene(digitizer={"samples": 2**12}))
+        for _ in range(8):
+            pub.send(fr)
+        pub.seq += 5  # five frames lost on the way (never sent): nothing after them shows a gap
+        assert pub.finish(10)
+    finally:
+        pub.close()
+        ctx.term()
+    h = _wait_total(bench, 13, timeout=60)
+    assert (h["processed"], h["dropped"], h["awaited_after_end"]) == (8, 5, 0)
+    assert "mtcw_frames_dropped_total 5.0" in bench.get("/metrics").text
+
+
 def test_worker_killed_and_restarted_loses_only_what_is_counted(bench):
     bench.api()
     bench.start("w0", "worker", "--name", "w0")

@@ -9,8 +9,8 @@ import pytest
 from mtcw_core.chain import process_frame
 from mtcw_core.simulate import simulate_frame
 from services.ordering import GapCounter, Reorderer
-from services.wire import (VERSION, WireError, decode_frame, decode_points, encode_frame, encode_points,
-                           frame_header, result_message)
+from services.wire import (VERSION, WireError, decode_end, decode_frame, decode_points, encode_end, encode_frame,
+                           encode_points, frame_header, result_message)
 from services.worker import rejection_message
 
 from .conftest import make_scene
@@ -151,6 +151,43 @@ def test_reorderer_without_run_ids_detects_restart_from_time():
     assert r.add(_msg(0, t_ns=500), now=0.1) == "restart"
     assert r.add(_msg(1, t_ns=102), now=0.1) == "stale"
     assert out == [0, 1, 2, 3, 4, 0]
+
+
+def test_reorderer_counts_the_lost_tail_of_a_run_after_its_end_notice():
+    out = []
+    r = Reorderer(lambda m: out.append(m["seq"]), timeout_s=1.0)
+    for s in [0, 1, 2, 4]:  # 3 is late, 5..9 never come
+        r.add(_msg(s, run=7), now=0.0)
+    assert r.end("s", 7, frames=10, t_ns=2000, now=0.2) == "ended"
+    assert r.awaited() == 6 and r.dropped == 0  # 3 and 5..9
+    r.add(_msg(3, run=7), now=0.5)
+    r.poll(now=1.0)
+    assert r.dropped == 0  # the timeout counts from the notice
+    r.poll(now=1.3)
+    assert out == [0, 1, 2, 3, 4] and r.dropped == 5 and r.awaited() == 0
+    assert r.add(_msg(7, run=7), now=1.4) == "stale"  # a tail frame after its slot was given up
+    assert r.end("s", 3, frames=4, t_ns=50, now=1.5) == "stale"  # an older run's notice changes nothing
+    assert r.dropped == 5
+
+
+def test_reorderer_end_notice_of_a_run_it_never_saw_counts_every_frame():
+    r = Reorderer(lambda m: None, timeout_s=1.0)
+    r.add(_msg(0, t_ns=100, run=1), now=0.0)
+    assert r.end("s", 2, frames=3, t_ns=900, now=0.1) == "ended"  # new run: none of its frames came
+    r.poll(now=1.2)
+    assert r.dropped == 3 and r.restarts == 1
+
+
+def test_end_message_round_trip_and_bad_fields():
+    h = decode_end(encode_end("bench", 42, frames=60, t_ns=123, dropped=7))
+    assert (h["source"], h["run"], h["frames"], h["t_ns"], h["dropped"]) == ("bench", 42, 60, 123, 7)
+    assert "run" not in decode_end(encode_end("bench", None, 1, 1, 0))
+    bad = [b"end", msgpack.packb({"v": VERSION, "source": "bench", "frames": -1, "t_ns": 0, "dropped": 0})]
+    with pytest.raises(WireError, match="frames"):
+        decode_end(bad)
+    with pytest.raises(WireError) as err:
+        decode_end([b"end"])
+    assert err.value.reason == "bad_parts"
 
 
 def test_gap_counter():
