@@ -227,7 +227,8 @@ def doppler_stage(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSe
         half = spec.df_hz
         r = minimize_scalar(neg_power, bounds=(est.fd_hz - half, est.fd_hz + half), method="bounded",
                             options={"xatol": 1e-4 * frame.fs_hz / frame.n})
-        out.append(DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz, 0.0))
+        out.append(DopplerEstimate(float(r.x), True, est.score, est.threshold, est.min_detectable_hz, 0.0,
+                                   est.wander_hz))
     return out
 
 
@@ -296,15 +297,23 @@ def _plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSetting
     return fams, np.concatenate([used, np.asarray(keep, float)])
 
 
-def _segments(n: int, fs: float, settings: ChainSettings,
-              windows: list[tuple[int, int]] | None) -> tuple[np.ndarray, int]:
+def _segments(n: int, fs: float, settings: ChainSettings, windows: list[tuple[int, int]] | None,
+              fds: list[float] = ()) -> tuple[np.ndarray, int]:
     """Segment starts and common length: the whole record in ``settings.segments`` parts, or
-    each echo window cut into pieces of ``gate_segment_s``."""
+    each echo window cut into pieces of ``gate_segment_s`` -- longer when a Doppler line ``fds``
+    (Hz) is found, so that a mover's lines ``f_i +- f_d`` lie 3 segment-bins from ``f_i`` and
+    are told apart from a static target's (the IF products cancel the laser's phase noise
+    whatever the length; a longer segment only spreads an incoherent line over more bins)."""
     if not windows:
         length = n // settings.segments
         return np.arange(settings.segments) * length, length
     span = sum(b - a for a, b in windows)
-    length = int(min(max(64, round(settings.gate_segment_s * fs)), span))
+    longest = max(b - a for a, b in windows)
+    want = max(64, round(settings.gate_segment_s * fs))
+    moving = [abs(f) for f in fds if f != 0.0]
+    if moving:
+        want = max(want, int(math.ceil(3 * fs / min(moving))))
+    length = int(min(want, longest, span))
     starts = [a + k * length for a, b in windows for k in range((b - a) // length)]
     if not starts:
         raise Rejected("gate", f"echo windows ({span} samples) shorter than one segment")
@@ -322,7 +331,7 @@ def extract_stage(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     fs = frame.fs_hz
     segmented = settings.extraction != "filter" and (windows or settings.segments > 1)
     if segmented:
-        starts, length = _segments(n, fs, settings, windows)
+        starts, length = _segments(n, fs, settings, windows, [d.fd_hz for d in dops if d.detected])
     fams, all_f = _plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
                               length if segmented else None)
     uniq = np.unique(np.round(all_f, 6))
@@ -422,7 +431,7 @@ def _velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq
         var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
         inv_var += float(np.sum(1 / var_f))
     sig_f = 1 / math.sqrt(inv_var) if inv_var > 0 else math.inf
-    sig_f = max(math.hypot(sig_f, dop.refine_error_hz), 0.01 * fs / n)
+    sig_f = max(math.hypot(sig_f, dop.refine_error_hz, dop.wander_hz), 0.01 * fs / n)
     if iq:
         v = -dop.fd_hz * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"

@@ -22,10 +22,11 @@ L_UNAMB = unambiguous_range(np.diff(PLAN))  # 7.5 m from the pair differences
 
 
 def pulsed_scene(range_m: float, loss_db: float = 40.0, ref: bool = True, linewidth: float = 100e3,
-                 frames: int = 4):
+                 frames: int = 4, velocity_mps: float = 0.0, receiver: str = "single"):
     return make_scene(
-        laser={"linewidth_hz": linewidth}, modulator=tones(*PLAN),
-        targets=[{"range_m": range_m, "loss_db": loss_db}], noise={"shot": True, "thermal": True},
+        laser={"linewidth_hz": linewidth}, modulator=tones(*PLAN), receiver={"kind": receiver},
+        targets=[{"range_m": range_m, "loss_db": loss_db, "velocity_mps": velocity_mps}],
+        noise={"shot": True, "thermal": True},
         digitizer={"samples": 2**18}, frames={"count": frames},
         pulsing={"period_s": 50e-6, "duty": 0.2, "delay_s": 3e-6, "rise_time_s": 5e-9, "reference_channel": ref},
     )
@@ -47,6 +48,24 @@ def test_km_ranges_without_cycle_slips(range_m, ref):
         assert abs(p.range_m - truth) < max(5 * p.range_sigma_m, 1e-3), (p.range_m - truth, p.range_sigma_m)
 
 
+@pytest.mark.parametrize("receiver,v,ref", [("single", 8.0, False), ("iq", -3.0, True)])
+def test_a_moving_target_at_km_range_gets_its_speed_and_range(receiver, v, ref):
+    """A mover's lines f_i +- f_d sit a few MHz from f_i: the segments of the gated extraction
+    are made long enough to tell them apart (else the static fit at f_i takes them in)."""
+    for fr in Simulator(pulsed_scene(930.0, ref=ref, velocity_mps=v, receiver=receiver, frames=2), seed=1).frames():
+        res = process_frame(fr, "balanced")
+        assert res.status == "ok", res.reason
+        p = res.targets[0]
+        truth = fr.truth[0]
+        assert abs(2 * abs(v) / fr.wavelength_m - abs(res.doppler_hz)) < 5 * p.velocity_sigma_mps * 2 / fr.wavelength_m
+        if receiver == "iq":
+            assert p.direction == "approaching" and p.velocity_mps == pytest.approx(v, abs=5 * p.velocity_sigma_mps)
+        else:
+            assert p.direction == "unknown" and p.velocity_mps == pytest.approx(abs(v), abs=5 * p.velocity_sigma_mps)
+        assert not p.cycle_ambiguous
+        assert abs(p.range_m - truth.range_m) < max(5 * p.range_sigma_m, 1e-3), (p.range_m - truth.range_m)
+
+
 def test_coarse_gate_delay_against_2L_over_c():
     fr = Simulator(pulsed_scene(2500.0, linewidth=0.0), seed=1).frame(0)
     g = coarse_gate(fr.volts("pd"), fr.fs_hz, fr.pulse.period_s, fr.pulse.duty, fr.pulse.delay_s, fr.tones_hz,
@@ -61,9 +80,15 @@ def test_coarse_gate_delay_against_2L_over_c():
 
 
 def test_coarse_sigma_too_large_to_pick_a_cycle_is_said():
+    """The period is picked only when k coarse sigmas stay within half of it; otherwise say so."""
     fr = Simulator(pulsed_scene(930.0), seed=3).frame(0)
-    res = process_frame(fr, get_profile("balanced", gate_k_sigma=20.0))  # a search wider than 7.5 m
+    sigma = process_frame(fr, "balanced").coarse_sigma_m
+    k_edge = (L_UNAMB / 2) / sigma  # k at which k sigmas reach half the unambiguous range
+    res = process_frame(fr, get_profile("balanced", gate_k_sigma=1.5 * k_edge))
     assert res.status == "ok" and res.targets[0].cycle_ambiguous
+    res = process_frame(fr, get_profile("balanced", gate_k_sigma=0.6 * k_edge))
+    assert res.status == "ok" and not res.targets[0].cycle_ambiguous
+    assert abs(res.targets[0].range_m - 930.0) < 5 * res.targets[0].range_sigma_m
 
 
 def test_no_echo_pulse_is_no_target():

@@ -12,9 +12,11 @@ one, from the known gate timing. ``tau`` is then
 2. below a block: least squares of ``e[b] = A*G(b; c_tx + tau) + floor`` where ``G`` is the
    exact fraction of block ``b`` covered by the (periodic, rectangular) echo gate; its sigma
    follows from the residual and the slope of ``G`` at the edges;
-3. fine: each gate edge fitted on the signed band signals (0 Hz and one band per tone), jointly
-   over bands (:func:`refine_edges`); edges that agree are combined, disagreeing ones widen
-   the sigma.
+3. fine: a likelihood over each gate edge's time from the band signals (0 Hz and one band per
+   tone), with the echo's wandering amplitude (a single detector sees ``cos(psi(t))``, which
+   fades through zero with the laser's phase noise) integrated out by a Kalman filter; the
+   edges' likelihoods combine, the gate width integrated out (:func:`refine_edges`). A faded
+   edge is a wide likelihood, not a confident wrong time.
 
 The delay is known modulo ``P`` (``c*P/2``: 30 km for the dissertation's 200 us).
 """
@@ -166,145 +168,203 @@ def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> 
     return out
 
 
-def _fit_edge_bands(z: np.ndarray, fs_hz: float, ramp_samples: float, rising: bool
-                    ) -> tuple[float, float, float] | None:
-    """A gate edge in the band signals ``z`` (shape (B, n)), jointly.
+def _step_response(half_band_hz: float, fs_hz: float):
+    """The band filters' response to a unit step, as a function of time from the step (samples).
 
-    Model per band: ``z_b[k] = H(k - t_e) * (a_b + c_b*(k - t_e)/n) + d_b`` with complex
-    ``a_b, c_b, d_b`` and ``H`` a linear ramp of ``ramp_samples`` centred on the edge (the band
-    filter's rise). Returns ``(t_e, sigma_t, contrast)`` in seconds from ``z[:, 0]`` (contrast:
-    the step's amplitude over its standard error), or None.
+    The band weight is Hann-shaped, ``W(f) = (1 + cos(pi*f/B))/2`` for ``|f| < B``, so the
+    impulse response is ``w(t) = B*sinc(2Bt)/(1 - (2Bt)^2)``; its running integral is tabulated.
     """
-    nbands, n = z.shape
-    k = np.arange(n, dtype=float)
-    zt = z.T  # (n, B)
-
-    def design(te: float) -> np.ndarray:
-        h = np.clip((k - te) / ramp_samples + 0.5, 0, 1)
-        if not rising:
-            h = 1 - h
-        return np.column_stack([h, h * (k - te) / n, np.ones(n)])
-
-    def sse(te: float):
-        a = design(te)
-        coef, *_ = np.linalg.lstsq(a, zt, rcond=None)
-        r = zt - a @ coef
-        return float(np.sum(r.real**2 + r.imag**2)), coef, a
-
-    grid = np.arange(ramp_samples, n - ramp_samples, max(ramp_samples / 4, 1.0))
-    if grid.size < 3:
-        return None
-    vals = np.array([sse(t)[0] for t in grid])
-    j = int(np.argmin(vals))
-    step_g = grid[1] - grid[0]
-    r = minimize_scalar(lambda t: sse(t)[0], bounds=(grid[j] - step_g, grid[j] + step_g), method="bounded",
-                        options={"xatol": 1e-3})
-    te = float(r.x)
-    err, coef, a = sse(te)
-    p = 3 * nbands
-    # per real component; the band signals are smooth over ~ramp samples: count those, not samples
-    s2 = err / max(2 * n * nbands - 2 * p, 1) * max(ramp_samples / 2, 1.0)
-    hh = 0.25 * ramp_samples
-    curv = (sse(te + hh)[0] - 2 * err + sse(te - hh)[0]) / hh**2
-    if not (curv > 0 and s2 > 0):
-        return None
-    var_t = 2 * s2 / curv
-    cov00 = s2 * float(np.linalg.pinv(a.T @ a)[0, 0])
-    step2 = float(np.sum(np.abs(coef[0]) ** 2))
-    contrast = math.sqrt(step2 / (2 * nbands * cov00)) if cov00 > 0 else math.inf
-    return te / fs_hz, math.sqrt(var_t) / fs_hz, contrast
+    span = 12.0 / half_band_hz
+    t = np.linspace(-span, span, 4097)
+    x = 2 * half_band_hz * t
+    den = 1 - x**2
+    safe = np.where(np.abs(den) < 1e-9, 1.0, den)
+    w = np.where(np.abs(den) < 1e-9, 0.5 * half_band_hz, half_band_hz * np.sinc(x) / safe)
+    h = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
+    h /= h[-1]
+    ts = t * fs_hz
+    return lambda k: np.interp(k, ts, h, left=0.0, right=1.0)
 
 
-def _edge(x: np.ndarray, fs_hz: float, t_pred_s: float, half_window_s: float, off_level: float, tones,
-          half_band: float, ramp: float, rising: bool, min_contrast: float) -> tuple[float, float, float] | None:
-    """One edge: a wide window to find it, then a narrow one (+-3 filter rises) to place it.
+@dataclass(frozen=True)
+class _EchoStats:
+    """What the edge likelihood needs to know of the echo, per frame.
 
-    Fitted on the signed band signals (:func:`band_signals`), so that a fading ``cos(psi)`` is
-    a slope, not a kink; the narrow pass keeps what fading remains from bending the step.
-    Returns (time from the record's start (s), sigma (s), contrast) or None.
+    ``basis`` (2*bands, r): the real directions the echo takes in the stacked band signals
+    ``[Re z; Im z]`` (r = 1 for a real detector, whose echo is ``a*cos(psi(t))``; 2 for an IQ
+    receiver); per component ``r``: ``noise`` variance (echo off), ``drift`` variance growth per
+    sample of the echo's slowly wandering amplitude (laser phase noise, Doppler), ``power``.
     """
-    n = x.size
-    hw = int(math.ceil(half_window_s * fs_hz))
-    pad = int(2 * ramp)  # the band filters are circular (FFT): compute wider, keep the middle
 
-    def bands(a: int, b: int) -> np.ndarray | None:
-        if a - pad < 0 or b + pad > n:
-            return None
-        return band_signals(x[a - pad:b + pad] - off_level, fs_hz, tones, half_band)[:, pad:-pad]
+    basis: np.ndarray
+    noise: np.ndarray
+    drift: np.ndarray
+    power: np.ndarray
 
-    i0 = int(round(t_pred_s * fs_hz)) - hw
-    z = bands(i0, i0 + 2 * hw)
-    if z is None:
+
+def _echo_stats(on: list[tuple[int, int]], off: list[tuple[int, int]], bands, ramp: float, rank: int
+                ) -> _EchoStats | None:
+    """Estimate :class:`_EchoStats` from the band signals (``bands(a, b)``: shape (B, b - a)) of a
+    few stretches ``(a, b)`` where the echo is on / off."""
+    def stacked(spans):
+        parts = [bands(a, b) for a, b in spans]
+        return [np.concatenate([p.real, p.imag]) for p in parts if p is not None]
+
+    on_parts, off_parts = stacked(on), stacked(off)
+    if not on_parts or not off_parts:
         return None
-    fit = _fit_edge_bands(z, fs_hz, ramp, rising)
-    if fit is None or fit[2] < min_contrast:
+    z_on = np.concatenate(on_parts, axis=1)
+    _, evecs = np.linalg.eigh(z_on @ z_on.T)
+    basis = evecs[:, ::-1][:, :rank]
+    noise = np.mean(np.concatenate([basis.T @ p for p in off_parts], axis=1) ** 2, axis=1)
+    lag = int(math.ceil(3 * ramp))  # noise decorrelated at this lag
+    dif = [basis.T @ p for p in on_parts if p.shape[1] > 2 * lag]
+    if not dif:
         return None
-    t1 = i0 / fs_hz + fit[0]
-    hw2 = int(3 * ramp)
-    j0 = int(round(t1 * fs_hz)) - hw2
-    z2 = bands(j0, j0 + 2 * hw2) if hw2 < hw else None
-    if z2 is not None:
-        fit2 = _fit_edge_bands(z2, fs_hz, ramp, rising)
-        if fit2 is not None and fit2[2] >= min_contrast and abs(j0 / fs_hz + fit2[0] - t1) < ramp / fs_hz:
-            return j0 / fs_hz + fit2[0], fit2[1], fit2[2]
-    return t1, fit[1], fit[2]
+    var_lag = np.mean(np.concatenate([d[:, lag:] - d[:, :-lag] for d in dif], axis=1) ** 2, axis=1)
+    power = np.mean((basis.T @ z_on) ** 2, axis=1)
+    drift = np.maximum(var_lag - 2 * noise, 1e-4 * power) / lag
+    return _EchoStats(basis, noise, drift, power)
+
+
+def _edge_loglik(y: np.ndarray, te: np.ndarray, step, stats: _EchoStats, dec: int, info_spacing: float,
+                 rising: bool) -> np.ndarray:
+    """Log-likelihood of each candidate edge time ``te`` (samples) given the projected band signals.
+
+    ``y`` (r, n): the band signals in the echo's directions. Model per component:
+    ``y[k] = h(k - te) * u[k] + noise`` where ``h`` is the filtered gate edge and ``u`` the echo's
+    amplitude, a random walk (a single detector sees ``cos(psi(t))``: it fades through zero with
+    the laser's phase noise, and where it does near an edge, the edge is simply not seen there,
+    which a step-with-a-slope fit mistakes for an edge elsewhere). ``u`` is integrated out by a
+    Kalman filter, one per candidate (vectorised). Samples are taken every ``dec``; each counts
+    for ``dec / info_spacing`` of an independent one (the band-limited noise is correlated).
+    """
+    r, n = y.shape
+    ks = np.arange(0, n, dec)
+    obs = y[:, ks]
+    inflate = max(info_spacing / dec, 1.0)
+    ll = np.zeros(te.size)
+    for c in range(r):
+        m = np.zeros(te.size)
+        pvar = np.full(te.size, stats.power[c])
+        rv = stats.noise[c] * inflate
+        q = stats.drift[c] * dec
+        for j, k in enumerate(ks):
+            h = step(k - te)
+            if not rising:
+                h = 1.0 - h
+            pvar = pvar + q
+            sv = h * h * pvar + rv
+            v = obs[c, j] - h * m
+            ll -= 0.5 * (np.log(sv) + v * v / sv)
+            gain = pvar * h / sv
+            m = m + gain * v
+            pvar = pvar * (1 - gain * h)
+    return ll
 
 
 def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, period_s: float,
-                 off_level: float, half_window_s: float, tones_hz, min_contrast: float = 5.0,
-                 sure_contrast: float = 10.0) -> tuple[float, float] | None:
-    """Echo gate centre (s, modulo the period) and its sigma from every edge inside the record.
+                 off_level: float | complex, half_window_s: float, tones_hz, width_sigma_s: float,
+                 min_gain: float = 12.5) -> tuple[float, float] | None:
+    """Echo gate centre (s, modulo the period) and its sigma from every gate edge in the record.
 
-    Each rising edge near ``t_start + m*P`` and falling edge near ``t_start + width + m*P`` is
-    fitted on the band signals (:func:`band_signals`) of ``x - off_level``; a rising edge gives
-    the centre as ``t + width/2``, a falling one as ``t - width/2``. Edges that agree are combined
-    by inverse variance; when they disagree beyond their sigmas (an edge bent by fading), the one
-    of highest contrast is kept and the sigma widened to cover the others. Edges of contrast
-    between ``min_contrast`` and ``sure_contrast`` count only when two of them agree. None when
-    no edge is usable.
+    Each rising edge near ``t_start + m*P`` and falling edge near ``t_start + width + m*P`` gives
+    a log-likelihood over its time (:func:`_edge_loglik`, on the band signals of
+    ``x - off_level``). Rising edges sit at ``centre - W/2``, falling ones at ``centre + W/2``;
+    the gate width ``W`` is known to ``width_sigma_s`` (measured on the reference channel, or
+    only nominal without one: the gate's ramps are not known) and is integrated out, so that a
+    centre resting on one kind of edge alone carries the width's doubt. The centre and its sigma
+    are the mean and standard deviation of the result. An edge counts only if its best
+    candidate beats "no edge in this window" by ``min_gain`` in log-likelihood. A faded edge
+    has a flat, wide likelihood, so it neither pulls the centre nor makes the sigma small; edges
+    that disagree give a wide or two-humped result, so a large sigma. None when no edge counts.
     """
     n = x.size
+    cx = np.iscomplexobj(x)
     t = sorted(float(f) for f in tones_hz)
     half_band = 0.5 * min([b - a for a, b in zip(t, t[1:])] + [t[0]])
     ramp = max(fs_hz / half_band, 2.0)  # the band filter's rise, in samples
-    centres, sig, contrast = [], [], []
-    t_end = n / fs_hz
-    m = math.floor(-t_start_s / period_s) - 1
-    while t_start_s + m * period_s - width_s < t_end:
-        for rising, t_pred in ((True, t_start_s + m * period_s), (False, t_start_s + width_s + m * period_s)):
-            e = _edge(x, fs_hz, t_pred, half_window_s, off_level, t, half_band, ramp, rising, min_contrast)
-            if e is None:
-                continue
-            # the step model is not the envelope's exact shape (the gate's own ramp, residual
-            # fading): 0.15 of the band filter's rise is the floor of what one edge tells
-            st = math.hypot(e[1], 0.15 * ramp / fs_hz)
-            c = e[0] + width_s / 2 if rising else e[0] - width_s / 2
-            centres.append(c % period_s)
-            sig.append(st)
-            contrast.append(e[2])
+    pad = int(2 * ramp)  # the band filters are circular (FFT): compute wider, keep the middle
+
+    def bands(a: int, b: int) -> np.ndarray | None:
+        if a - pad < 0 or b + pad > n or b <= a:
+            return None
+        return band_signals(x[a - pad:b + pad] - off_level, fs_hz, t, half_band)[:, pad:-pad]
+
+    # where the echo is surely on and surely off, a few stretches of each
+    hw = int(math.ceil(half_window_s * fs_hz))
+    seg = int(24 * ramp)
+    on, off = [], []
+    m0 = math.floor(-t_start_s / period_s) - 1
+    m = m0
+    while t_start_s + m * period_s - width_s < n / fs_hz:
+        a_on = int((t_start_s + m * period_s) * fs_hz) + hw + pad
+        b_on = int((t_start_s + width_s + m * period_s) * fs_hz) - hw - pad
+        a_off = int((t_start_s + width_s + m * period_s) * fs_hz) + hw + pad
+        b_off = int((t_start_s + period_s + m * period_s) * fs_hz) - hw - pad
+        for lo, hi, dst in ((a_on, b_on, on), (a_off, b_off, off)):
+            lo, hi = max(lo, pad), min(hi, n - pad)
+            for c in np.linspace(lo, hi - seg, 4) if hi - lo > seg else []:
+                dst.append((int(c), int(c) + seg))
         m += 1
-    if not centres:
+    stats = _echo_stats(on, off, bands, ramp, 2 if cx else 1)
+    if stats is None:
         return None
-    cen, sig = np.asarray(centres), np.asarray(sig)
-    best = int(np.argmax(contrast))
-    dev = (cen - cen[best] + period_s / 2) % period_s - period_s / 2
-    agree = np.abs(dev) <= 3 * np.hypot(sig, sig[best])
-    if contrast[best] < sure_contrast and np.count_nonzero(agree) < 2:
-        return None  # weak edges that do not confirm each other
-    w = 1 / sig[agree] ** 2
-    c = float(cen[best] + np.sum(w * dev[agree]) / np.sum(w)) % period_s
-    sigma = 1 / math.sqrt(float(np.sum(w)))
-    if not agree.all():
-        # an edge where the echo's cos(psi) fades through zero carries no timing and may be
-        # fitted anywhere; which one did cannot be told (contrast, nearness to the block-level
-        # estimate: both tried, both slipped more often): the spread is the sigma
-        sigma = max(sigma, float(np.max(np.abs(dev[~agree]))) / 3)
-    return c, sigma
+    step = _step_response(half_band, fs_hz)
+    dec = max(int(round(ramp / 4)), 1)
+    info_spacing = ramp / 0.75  # noise-equivalent spacing of independent samples of a Hann band
+    gstep = max(ramp / 16, 0.5)
+    grid = np.arange(-hw + ramp, hw - ramp, gstep)  # offsets from the prediction, samples
+    total = {True: np.zeros(grid.size), False: np.zeros(grid.size)}  # rising, falling
+    used = 0
+    m = m0
+    while t_start_s + m * period_s - width_s < n / fs_hz:
+        for rising, t_pred in ((True, t_start_s + m * period_s), (False, t_start_s + width_s + m * period_s)):
+            i0 = int(round(t_pred * fs_hz)) - hw
+            z = bands(i0, i0 + 2 * hw)
+            if z is None:
+                continue
+            y = stats.basis.T @ np.concatenate([z.real, z.imag])
+            off_pred = t_pred * fs_hz - i0  # the prediction's index in the window
+            ll = _edge_loglik(y, off_pred + grid, step, stats, dec, info_spacing, rising)
+            # no edge in the window at all: the step far outside it, on either side
+            none = _edge_loglik(y, np.array([-10.0 * ramp, 2 * hw + 10.0 * ramp]), step, stats, dec, info_spacing,
+                                rising)
+            if ll.max() - none.max() >= min_gain:
+                total[rising] += ll
+                used += 1
+        m += 1
+    if not used:
+        return None
+    # integrate out the width: rising offset = dc - dW/2, falling = dc + dW/2, dW = 2*j*gstep
+    sw = max(width_sigma_s * fs_hz, gstep)
+    jmax = min(int(math.ceil(4 * sw / (2 * gstep))), grid.size // 4)
+    js = np.arange(-jmax, jmax + 1)
+    joint = np.full((js.size, grid.size), -np.inf)
+    for row, j in enumerate(js):
+        sh = np.full(grid.size, -np.inf)
+        lo, hi = max(j, 0, -j), grid.size - max(j, -j, 0)
+        if hi <= lo:
+            continue
+        i = np.arange(lo, hi)
+        sh[i] = total[True][i - j] + total[False][i + j]
+        joint[row] = sh - 0.5 * (2 * j * gstep / sw) ** 2
+    post = np.logaddexp.reduce(joint, axis=0)
+    if not np.isfinite(post).any():
+        return None
+    w = np.exp(post - post.max())
+    w /= w.sum()
+    mu = float(w @ grid)
+    sd = math.sqrt(float(w @ (grid - mu) ** 2) + (ramp / 16) ** 2 / 12)
+    if min(mu - grid[0], grid[-1] - mu) < 3 * sd:
+        return None  # the centre is not inside the searched window
+    centre = (t_start_s + width_s / 2 + mu / fs_hz) % period_s
+    return centre, sd / fs_hz
 
 
 def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay_s: float,
                 tones_hz, ref: np.ndarray | None = None, block: int = 256, margin_s: float = 10e-9,
-                min_snr: float = 8.0) -> GateEstimate:
+                min_snr: float = 8.0, nominal_width_sigma_s: float = 10e-9) -> GateEstimate:
     """Find the echo gate in a pulsed record.
 
     Parameters
@@ -316,6 +376,8 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     block : int, samples per envelope block (coarse stage)
     margin_s : float, extra time cut from each end of the echo-on windows (s)
     min_snr : float, detection threshold on the envelope amplitude over its standard error
+    nominal_width_sigma_s : float, doubt on the echo gate's width when there is no reference
+        channel and it is taken from ``duty * period`` (s)
     """
     n = x.size
     block = int(min(block, max(16, n // 64)))
@@ -323,6 +385,9 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     e = envelope(x - np.mean(x), block, 2 * len(tones_hz) + 1)
     nb = e.size
     c_tx, width = transmit_centre(ref, fs_hz, period_s, duty, delay_s)
+    # the echo gate's width between half maxima: measured on the reference (to about a tenth of
+    # a sample), or nominal (the gate's ramps, unknown here, shorten it by their length)
+    width_sigma_s = 0.1 / fs_hz if ref is not None else nominal_width_sigma_s
     t_tx = c_tx - width / 2  # transmitted gate start (s), modulo P
     starts = np.arange(nb) * bs
     # 1. coarse: correlation over every lag in one period, block resolution
@@ -362,8 +427,10 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
         gs = _coverage(np.arange(n // 16) * 16 / fs_hz, 16 / fs_hz, t_tx + tau, width, period_s)
         off = x[: gs.size * 16].reshape(gs.size, 16)[gs == 0]
         if off.size:
-            fine = refine_edges(x, fs_hz, t_tx + tau, width, period_s, float(np.mean(off)),
-                                half_window_s=max(6 * sigma, 2 * bs), tones_hz=tones_hz)
+            off_level = np.mean(off)  # complex for an IQ receiver
+            fine = refine_edges(x, fs_hz, t_tx + tau, width, period_s, off_level.item(),
+                                half_window_s=max(6 * sigma, 2 * bs), tones_hz=tones_hz,
+                                width_sigma_s=width_sigma_s)
             if fine is not None and fine[1] < sigma:
                 tau = float((fine[0] - c_tx) % period_s)
                 sigma = fine[1]

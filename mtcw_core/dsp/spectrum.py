@@ -121,6 +121,10 @@ class DopplerEstimate:
     #: systematic error of the sub-bin refinement (Hz): the log-parabola through a Kaiser(14)
     #: main lobe is biased by up to ~0.1 bin; an exact refinement sets it to 0
     refine_error_hz: float = 0.0
+    #: the line's own wander (Hz): a laser incoherent at the echo's delay broadens the beat into
+    #: a Lorentzian of FWHM ``G``, whose centre over ``T`` seconds wanders by ``sqrt(G/(2*pi*T))``
+    #: (the phase random walk's end-to-end change over ``2*pi*T``); 0 for a coherent line
+    wander_hz: float = 0.0
 
 
 @lru_cache(maxsize=64)
@@ -262,6 +266,9 @@ def search_doppler(
     # FWHM at -15 dB, so keep ~5 FWHM, 4 equivalent widths, away)
     w = line_width_bins(spec, tones_hz)
     min_bins = max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
+    # a Lorentzian's equivalent width is pi/2 FWHM; the window's own main lobe is ~2.3 bins
+    fwhm_hz = max(w - 2.3, 0.0) * df * 2 / math.pi
+    wander = math.sqrt(fwhm_hz * df / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # T ~ 1/df
     # two bins beyond the limit, so that a line exactly at it is still a local maximum
     bmax = int(min(np.floor(fd_max_hz / df) + 2, nb // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
@@ -365,6 +372,6 @@ def search_doppler(
         den = y0 - 2 * y1 + y2
         delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
         delta = float(np.clip(delta, -0.5, 0.5))
-        found.append(DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df, 0.1 * df))
+        found.append(DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df, 0.1 * df, wander))
         taken.append((s, k))
     return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
