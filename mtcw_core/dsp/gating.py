@@ -66,6 +66,29 @@ def _crossings(r: np.ndarray, level: float, rising: bool) -> np.ndarray:
     return idx + (level - y0) / (y1 - y0)
 
 
+def ramp_duration(ref: np.ndarray | None, fs_hz: float) -> float:
+    """Length (s) of the transmitted gate's rising ramp from the reference channel, 0 without one.
+
+    The 10-90 % time of the rising edges (median), as a raised-cosine ramp ``sin^2(pi*t/(2r))``
+    (whose 10-90 % time is 0.590 ``r``).
+    """
+    if ref is None:
+        return 0.0
+    r = np.asarray(ref, np.float64)
+    lo, hi = np.percentile(r, 1), np.percentile(r, 99)
+    if not hi > lo:
+        return 0.0
+    mid = _crossings(r, lo + 0.5 * (hi - lo), True)
+    c10 = _crossings(r, lo + 0.1 * (hi - lo), True)
+    c90 = _crossings(r, lo + 0.9 * (hi - lo), True)
+    rise = []
+    for u in mid:
+        i, j = np.searchsorted(c10, u) - 1, np.searchsorted(c90, u)
+        if i >= 0 and j < c90.size and u - c10[i] < 0.25 * r.size and c90[j] - u < 0.25 * r.size:
+            rise.append(c90[j] - c10[i])
+    return float(np.median(rise)) / fs_hz / 0.590 if rise else 0.0
+
+
 def transmit_centre(ref: np.ndarray | None, fs_hz: float, period_s: float, duty: float,
                     delay_s: float) -> tuple[float, float]:
     """Centre of the transmitted gate modulo the period (s) and its half-maximum width (s).
@@ -168,20 +191,24 @@ def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> 
     return out
 
 
-def _step_response(half_band_hz: float, fs_hz: float):
-    """The band filters' response to a unit step, as a function of time from the step (samples).
+def _step_response(half_band_hz: float, fs_hz: float, ramp_s: float = 0.0):
+    """The band signals' response to a gate edge, as a function of time from its half maximum
+    (samples).
 
-    The band weight is Hann-shaped, ``W(f) = (1 + cos(pi*f/B))/2`` for ``|f| < B``, so the
-    impulse response is ``w(t) = B*sinc(2Bt)/(1 - (2Bt)^2)``; its running integral is tabulated.
+    The edge is a raised-cosine ramp of ``ramp_s`` (0: a step); the band weight is Hann-shaped,
+    ``W(f) = (1 + cos(pi*f/B))/2`` for ``|f| < B``, with impulse response
+    ``w(t) = B*sinc(2Bt)/(1 - (2Bt)^2)``. Their convolution is tabulated.
     """
-    span = 12.0 / half_band_hz
-    t = np.linspace(-span, span, 4097)
+    span = 12.0 / half_band_hz + ramp_s
+    t = np.linspace(-span, span, 8193)
+    dt = t[1] - t[0]
     x = 2 * half_band_hz * t
     den = 1 - x**2
     safe = np.where(np.abs(den) < 1e-9, 1.0, den)
     w = np.where(np.abs(den) < 1e-9, 0.5 * half_band_hz, half_band_hz * np.sinc(x) / safe)
-    h = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
-    h /= h[-1]
+    edge = (np.sin(0.5 * np.pi * np.clip(t / ramp_s + 0.5, 0, 1)) ** 2 if ramp_s > 0 else (t >= 0).astype(float))
+    h = np.convolve(edge - 0.5, w * dt, mode="same") + 0.5 * np.sum(w * dt)
+    h /= np.sum(w * dt)
     ts = t * fs_hz
     return lambda k: np.interp(k, ts, h, left=0.0, right=1.0)
 
@@ -265,7 +292,7 @@ def _edge_loglik(y: np.ndarray, te: np.ndarray, step, stats: _EchoStats, dec: in
 
 def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, period_s: float,
                  off_level: float | complex, half_window_s: float, tones_hz, width_sigma_s: float,
-                 min_gain: float = 12.5) -> tuple[float, float] | None:
+                 ramp_s: float = 0.0, min_gain: float = 12.5) -> tuple[float, float] | None:
     """Echo gate centre (s, modulo the period) and its sigma from every gate edge in the record.
 
     Each rising edge near ``t_start + m*P`` and falling edge near ``t_start + width + m*P`` gives
@@ -310,7 +337,7 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     stats = _echo_stats(on, off, bands, ramp, 2 if cx else 1)
     if stats is None:
         return None
-    step = _step_response(half_band, fs_hz)
+    step = _step_response(half_band, fs_hz, ramp_s)
     dec = max(int(round(ramp / 4)), 1)
     info_spacing = ramp / 0.75  # noise-equivalent spacing of independent samples of a Hann band
     gstep = max(ramp / 16, 0.5)
@@ -388,6 +415,7 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     # the echo gate's width between half maxima: measured on the reference (to about a tenth of
     # a sample), or nominal (the gate's ramps, unknown here, shorten it by their length)
     width_sigma_s = 0.1 / fs_hz if ref is not None else nominal_width_sigma_s
+    ramp_s = ramp_duration(ref, fs_hz)
     t_tx = c_tx - width / 2  # transmitted gate start (s), modulo P
     starts = np.arange(nb) * bs
     # 1. coarse: correlation over every lag in one period, block resolution
@@ -430,7 +458,7 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
             off_level = np.mean(off)  # complex for an IQ receiver
             fine = refine_edges(x, fs_hz, t_tx + tau, width, period_s, off_level.item(),
                                 half_window_s=max(6 * sigma, 2 * bs), tones_hz=tones_hz,
-                                width_sigma_s=width_sigma_s)
+                                width_sigma_s=width_sigma_s, ramp_s=ramp_s)
             if fine is not None and fine[1] < sigma:
                 tau = float((fine[0] - c_tx) % period_s)
                 sigma = fine[1]
