@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import fft as sfft
 from scipy import signal as sps
 from scipy.optimize import minimize_scalar
 
@@ -66,7 +67,13 @@ def _crossings(r: np.ndarray, level: float, rising: bool) -> np.ndarray:
     return idx + (level - y0) / (y1 - y0)
 
 
-def ramp_duration(ref: np.ndarray | None, fs_hz: float) -> float:
+def ref_levels(ref: np.ndarray) -> tuple[float, float]:
+    """Low and high levels of the reference gate waveform: its 1st and 99th percentiles (V)."""
+    lo, hi = np.percentile(np.asarray(ref, np.float64), [1, 99])
+    return float(lo), float(hi)
+
+
+def ramp_duration(ref: np.ndarray | None, fs_hz: float, levels: tuple[float, float] | None = None) -> float:
     """Length (s) of the transmitted gate's rising ramp from the reference channel, 0 without one.
 
     The 10-90 % time of the rising edges (median), as a raised-cosine ramp ``sin^2(pi*t/(2r))``
@@ -75,7 +82,7 @@ def ramp_duration(ref: np.ndarray | None, fs_hz: float) -> float:
     if ref is None:
         return 0.0
     r = np.asarray(ref, np.float64)
-    lo, hi = np.percentile(r, 1), np.percentile(r, 99)
+    lo, hi = levels or ref_levels(r)
     if not hi > lo:
         return 0.0
     mid = _crossings(r, lo + 0.5 * (hi - lo), True)
@@ -90,7 +97,7 @@ def ramp_duration(ref: np.ndarray | None, fs_hz: float) -> float:
 
 
 def transmit_centre(ref: np.ndarray | None, fs_hz: float, period_s: float, duty: float,
-                    delay_s: float) -> tuple[float, float]:
+                    delay_s: float, levels: tuple[float, float] | None = None) -> tuple[float, float]:
     """Centre of the transmitted gate modulo the period (s) and its half-maximum width (s).
 
     From the reference channel when given (``ref``: shape (N,), volts), else from the known gate
@@ -99,7 +106,7 @@ def transmit_centre(ref: np.ndarray | None, fs_hz: float, period_s: float, duty:
     w_known = duty * period_s
     if ref is not None:
         r = np.asarray(ref, np.float64)
-        lo, hi = np.percentile(r, 1), np.percentile(r, 99)
+        lo, hi = levels or ref_levels(r)
         if hi > lo:
             mid = 0.5 * (lo + hi)
             up = _crossings(r, mid, True) / fs_hz
@@ -158,10 +165,10 @@ def envelope(x: np.ndarray, block: int, n_bins: int) -> np.ndarray:
     nb = x.size // block
     xb = x[: nb * block].reshape(nb, block)
     if np.iscomplexobj(xb):
-        p = np.abs(np.fft.fft(xb, axis=1)) ** 2
+        p = np.abs(sfft.fft(xb, axis=1)) ** 2
         p[:, 0] = 0
     else:
-        p = np.abs(np.fft.rfft(xb, axis=1)) ** 2
+        p = np.abs(sfft.rfft(xb, axis=1)) ** 2
         p[:, :2] = 0  # DC and its neighbour carry the sign-fluctuating carrier beat
     mean = p.mean(axis=0)
     k = np.argsort(mean)[-n_bins:]
@@ -176,8 +183,8 @@ def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> 
     (linear) term, not the kink a magnitude would show.
     """
     m = y.size
-    spec = np.fft.fft(y)
-    f = np.fft.fftfreq(m, 1 / fs_hz)
+    spec = sfft.fft(y)
+    f = sfft.fftfreq(m, 1 / fs_hz)
     t = np.arange(m) / fs_hz
     centres = [0.0] + [float(c) for c in tones_hz]
     out = np.empty((len(centres), m), complex)
@@ -187,7 +194,7 @@ def band_signals(y: np.ndarray, fs_hz: float, tones_hz, half_band_hz: float) -> 
         w = np.where(d < half_band_hz, 0.5 * (1 + np.cos(np.pi * d / half_band_hz)), 0.0)
         if fc > 0:
             w = w * (f > 0)  # one side: the analytic band
-        out[i] = np.fft.ifft(spec * w) * (np.exp(-2j * np.pi * fc * t) if fc > 0 else 1.0)
+        out[i] = sfft.ifft(spec * w) * (np.exp(-2j * np.pi * fc * t) if fc > 0 else 1.0)
     return out
 
 
@@ -220,7 +227,8 @@ class _EchoStats:
     ``basis`` (2*bands, r): the real directions the echo takes in the stacked band signals
     ``[Re z; Im z]`` (r = 1 for a real detector, whose echo is ``a*cos(psi(t))``; 2 for an IQ
     receiver); per component ``r``: ``noise`` variance (echo off), ``drift`` variance growth per
-    sample of the echo's slowly wandering amplitude (laser phase noise, Doppler), ``power``.
+    sample of the echo's slowly wandering amplitude (laser phase noise, Doppler; its value where
+    the echo fades), ``power``.
     """
 
     basis: np.ndarray
@@ -250,7 +258,9 @@ def _echo_stats(on: list[tuple[int, int]], off: list[tuple[int, int]], bands, ra
         return None
     var_lag = np.mean(np.concatenate([d[:, lag:] - d[:, :-lag] for d in dif], axis=1) ** 2, axis=1)
     power = np.mean((basis.T @ z_on) ** 2, axis=1)
-    drift = np.maximum(var_lag - 2 * noise, 1e-4 * power) / lag
+    # the wander of cos(psi) is sin(psi)^2 * D per unit time: twice its average where the echo
+    # fades through zero, which is where an edge can be mistaken
+    drift = 2 * np.maximum(var_lag - 2 * noise, 1e-4 * power) / lag
     return _EchoStats(basis, noise, drift, power)
 
 
@@ -329,11 +339,16 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
         b_on = int((t_start_s + width_s + m * period_s) * fs_hz) - hw - pad
         a_off = int((t_start_s + width_s + m * period_s) * fs_hz) + hw + pad
         b_off = int((t_start_s + period_s + m * period_s) * fs_hz) - hw - pad
-        for lo, hi, dst in ((a_on, b_on, on), (a_off, b_off, off)):
+        # stretches spread over the echo: its wander (cos(psi) over microseconds) is averaged
+        # over many states of psi, not taken from the few it had in one place
+        for lo, hi, dst, count, size in ((a_on, b_on, on, 6, 8192), (a_off, b_off, off, 2, 4096)):
             lo, hi = max(lo, pad), min(hi, n - pad)
-            for c in np.linspace(lo, hi - seg, 4) if hi - lo > seg else []:
-                dst.append((int(c), int(c) + seg))
+            size = min(size, hi - lo)
+            if size >= seg:
+                k = min(count, (hi - lo) // size)
+                dst.extend((int(c), int(c) + size) for c in np.linspace(lo, hi - size, k))
         m += 1
+    on, off = on[: 12], off[: 4]
     stats = _echo_stats(on, off, bands, ramp, 2 if cx else 1)
     if stats is None:
         return None
@@ -389,6 +404,22 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     return centre, sd / fs_hz
 
 
+def _correlation_time(res: np.ndarray) -> float:
+    """Integrated autocorrelation time of a residual series (in samples, >= 1): ``1 + 2*sum rho_k``
+    over the lags before the autocorrelation first drops below 0.05."""
+    r = res - res.mean()
+    n = r.size
+    if n < 8:
+        return 1.0
+    f = sfft.rfft(r, 2 * n)
+    acf = sfft.irfft(np.abs(f) ** 2)[: n // 4]
+    if acf[0] <= 0:
+        return 1.0
+    rho = acf[1:] / acf[0]
+    stop = int(np.argmax(rho < 0.05)) if np.any(rho < 0.05) else rho.size
+    return float(max(1.0, 1.0 + 2.0 * np.sum(rho[:stop])))
+
+
 def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay_s: float,
                 tones_hz, ref: np.ndarray | None = None, block: int = 256, margin_s: float = 10e-9,
                 min_snr: float = 8.0, nominal_width_sigma_s: float = 10e-9) -> GateEstimate:
@@ -411,11 +442,12 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     bs = block / fs_hz
     e = envelope(x - np.mean(x), block, 2 * len(tones_hz) + 1)
     nb = e.size
-    c_tx, width = transmit_centre(ref, fs_hz, period_s, duty, delay_s)
+    levels = ref_levels(ref) if ref is not None else None
+    c_tx, width = transmit_centre(ref, fs_hz, period_s, duty, delay_s, levels)
     # the echo gate's width between half maxima: measured on the reference (to about a tenth of
     # a sample), or nominal (the gate's ramps, unknown here, shorten it by their length)
     width_sigma_s = 0.1 / fs_hz if ref is not None else nominal_width_sigma_s
-    ramp_s = ramp_duration(ref, fs_hz)
+    ramp_s = ramp_duration(ref, fs_hz, levels)
     t_tx = c_tx - width / 2  # transmitted gate start (s), modulo P
     starts = np.arange(nb) * bs
     # 1. coarse: correlation over every lag in one period, block resolution
@@ -445,7 +477,9 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     h = 0.05 * bs
     dg = (_coverage(starts, bs, t_tx + tau + h, width, period_s)
           - _coverage(starts, bs, t_tx + tau - h, width, period_s)) / (2 * h)
-    info = amp**2 * float(dg @ dg) / s2 if s2 > 0 else math.inf
+    # the residuals are not independent from block to block: the echo fades with cos(psi(t)) over
+    # microseconds, many blocks; the timing information counts independent stretches only
+    info = amp**2 * float(dg @ dg) / (s2 * _correlation_time(e - a @ np.array([amp, _floor]))) if s2 > 0 else math.inf
     # a rectangle's coverage is not the envelope's exact shape (fading, the gate's ramps): a
     # quarter block is the floor of what the block fit can tell
     sigma = math.hypot(1 / math.sqrt(info) if info > 0 else math.inf, 0.25 * bs)
