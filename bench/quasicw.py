@@ -82,14 +82,16 @@ def loss_sweep(range_m: float, losses: list[float], frames: int, profile: str, s
     out = []
     settings = get_profile(profile)
     for loss in losses:
-        n_ok = n_right = 0
+        n_ok = n_right = n_flagged = 0
         for fr in Simulator(scene_at(range_m, loss), seed).frames(frames):
             res = process_frame(fr, settings)
+            n_flagged += res.status == "ok" and res.targets[0].cycle_ambiguous
             if res.status == "ok" and not res.targets[0].cycle_ambiguous:
                 n_ok += 1
                 p = res.targets[0]
                 n_right += abs(p.range_m - fr.truth[0].range_m) < max(5 * p.range_sigma_m, 0.03)
-        out.append({"loss_db": loss, "frames": frames, "ok": n_ok, "right_within_5sigma_or_3cm": n_right})
+        out.append({"loss_db": loss, "frames": frames, "ok": n_ok, "right_within_5sigma_or_3cm": n_right,
+                    "flagged_ambiguous": int(n_flagged), "no_target": frames - n_ok - int(n_flagged)})
         print(json.dumps(out[-1]), file=sys.stderr)
     return out
 
