@@ -58,6 +58,8 @@ class ChainSettings(BaseModel):
     # stage 3: spectrum and Doppler
     doppler_fraction: float = Field(0.25, gt=0, le=1, description="part of the record used for the Doppler FFT")
     window_beta: float = Field(14.0, ge=0)
+    spectrum_single: bool = Field(False, description="Doppler-search spectrum in single precision (~2x faster; "
+                                                     "line phases are fitted in float64 regardless)")
     doppler_min_bins: int = Field(4, ge=1)
     doppler_threshold: float = Field(8.0, gt=0)
     fd_max_hz: float | None = Field(None, gt=0, description="default: half the smallest tone spacing")
@@ -86,9 +88,9 @@ class ChainSettings(BaseModel):
 
 PROFILES: dict[str, ChainSettings] = {
     # Doppler from 1/8 of the record, plain LS at known lines, coarse ML grid.
-    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 8, points_per_cycle=8),
+    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 8, points_per_cycle=8, spectrum_single=True),
     # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
-    "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0),
+    "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0, spectrum_single=True),
     # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
     "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="exact",
                               model_products=True, points_per_cycle=32),
@@ -406,7 +408,7 @@ def measure_lines(x: np.ndarray, frame: Frame, settings: ChainSettings, lap=None
         a, b = max(windows, key=lambda w: w[1] - w[0])
         xs = x[a:b]
     nspec = max(256, int(xs.size * settings.doppler_fraction))
-    spec = power_spectrum(xs, frame.fs_hz, ("kaiser", settings.window_beta), nspec)
+    spec = power_spectrum(xs, frame.fs_hz, ("kaiser", settings.window_beta), nspec, settings.spectrum_single)
     tick("spectrum")
     dops = doppler_stage(x, frame, spec, settings)
     tick("doppler")
