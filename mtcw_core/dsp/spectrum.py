@@ -212,10 +212,15 @@ def line_width_bins(spec: Spectrum, tones_hz, half_span: int = 64) -> float:
     Kaiser(14) window, ten bins and more when the laser is incoherent at the echo's delay and
     every line is a Lorentzian with a ragged top (about ``pi/2`` times its FWHM in bins).
     """
-    p = spec.power
     centres = [0.0] + [float(f) for f in tones_hz]
     if spec.complex_input:
         centres += [-float(f) for f in tones_hz]
+    return widths_at(spec, centres, half_span)
+
+
+def widths_at(spec: Spectrum, centres, half_span: int = 64) -> float:
+    """Median equivalent width (bins) of the strongest line near each of ``centres`` (Hz)."""
+    p = spec.power
     dc = int(spec.bin_of(0.0))
     widths = []
     for f in centres:
@@ -285,9 +290,19 @@ def search_doppler(
     # FWHM at -15 dB, so keep ~5 FWHM, 4 equivalent widths, away)
     w = line_width_bins(spec, tones_hz)
     min_bins = max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
-    # a Lorentzian's equivalent width is pi/2 FWHM; the window's own main lobe is ~2.3 bins
-    fwhm_hz = max(w - 2.3, 0.0) * df * 2 / math.pi
-    wander = math.sqrt(fwhm_hz * df / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # T ~ 1/df
+
+    def wander(fd: float) -> float:
+        """The Doppler line's own wander (Hz) from the width of its lines (baseband, f_i +- f_d).
+
+        A Lorentzian's equivalent width is pi/2 FWHM on top of the window's ~2.3 bins; a
+        coherent line measures 2.3-3 bins (scalloping), so only wider lines count.
+        """
+        t = np.asarray(tones_hz, float)
+        centres = np.concatenate([[fd], fd + t, fd - t]) if spec.complex_input else np.abs(
+            np.concatenate([[fd], t + fd, t - fd]))
+        wd = widths_at(spec, [float(c) for c in centres], half_span=16)
+        fwhm_hz = (wd - 2.3) * df * 2 / math.pi if wd > 3.2 else 0.0
+        return math.sqrt(fwhm_hz * df / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # over T ~ 1/df
     # two bins beyond the limit, so that a line exactly at it is still a local maximum
     bmax = int(min(np.floor(fd_max_hz / df) + 2, nb // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
@@ -391,6 +406,7 @@ def search_doppler(
         den = y0 - 2 * y1 + y2
         delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
         delta = float(np.clip(delta, -0.5, 0.5))
-        found.append(DopplerEstimate(s * (k + delta) * df, True, peak, threshold, min_bins * df, 0.1 * df, wander))
+        fd = s * (k + delta) * df
+        found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, wander(fd)))
         taken.append((s, k))
     return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
