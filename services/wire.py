@@ -188,14 +188,20 @@ def encode_points(msg: dict) -> list[bytes]:
     return [POINTS_TOPIC, msgpack.packb(msg, use_bin_type=True)]
 
 
+def _two_part(parts: Sequence, topic: bytes, what: str) -> dict:
+    """``[topic, msgpack map]`` -> the map, its parts, topic and version checked."""
+    if len(parts) != 2:
+        raise WireError("bad_parts", f"{what} message has {len(parts)} parts, expected 2")
+    if bytes(parts[0]) != topic:
+        raise WireError("bad_topic", f"topic {bytes(parts[0])[:16]!r}, expected {topic!r}")
+    m = _unpack(parts[1], what)
+    _check_version(m)
+    return m
+
+
 def decode_points(parts: Sequence) -> dict:
     """``[b"points", result]`` -> dict; raises :class:`WireError`."""
-    if len(parts) != 2:
-        raise WireError("bad_parts", f"points message has {len(parts)} parts, expected 2")
-    if bytes(parts[0]) != POINTS_TOPIC:
-        raise WireError("bad_topic", f"topic {bytes(parts[0])[:16]!r}, expected {POINTS_TOPIC!r}")
-    m = _unpack(parts[1], "points")
-    _check_version(m)
+    m = _two_part(parts, POINTS_TOPIC, "points")
     missing = [k for k in _POINT_KEYS if k not in m]
     if missing:
         raise WireError("missing_key", f"points message lacks {', '.join(missing)}")
@@ -223,12 +229,7 @@ def encode_end(source: str, run: int | None, frames: int, t_ns: int, dropped: in
 
 def decode_end(parts: Sequence) -> dict:
     """``[b"end", header]`` -> dict with ``source``, ``frames``, ``t_ns``, ``dropped`` (and ``run``)."""
-    if len(parts) != 2:
-        raise WireError("bad_parts", f"end message has {len(parts)} parts, expected 2")
-    if bytes(parts[0]) != END_TOPIC:
-        raise WireError("bad_topic", f"topic {bytes(parts[0])[:16]!r}, expected {END_TOPIC!r}")
-    h = _unpack(parts[1], "end")
-    _check_version(h)
+    h = _two_part(parts, END_TOPIC, "end")
     if not isinstance(h.get("source"), str):
         raise WireError("bad_field", "end: source must be a string")
     for k in ("frames", "t_ns", "dropped"):
