@@ -250,13 +250,25 @@ def bench(
 
 
 def _stop_on_signals():
-    """A threading.Event set by SIGINT/SIGTERM (a service's clean stop)."""
+    """A threading.Event set by SIGINT/SIGTERM (a service's clean stop).
+
+    Once stopping, further SIGINT/SIGTERM are ignored: Ctrl-C reaches every process of the
+    terminal's group and ``mtcw run`` then sends SIGTERM too, which would otherwise land during
+    interpreter shutdown and end a clean stop as "killed by signal" (a stuck service is still
+    SIGKILLed by the supervisor after its timeout).
+    """
     import signal
     import threading
 
     stop = threading.Event()
+
+    def handler(*_):
+        stop.set()
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, handler)
     return stop
 
 
