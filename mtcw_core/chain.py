@@ -268,17 +268,9 @@ def _refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool
     length = x.size // segments
     if length < 64:
         return est
-    freqs, slope = [fd if iq else abs(fd)], [1.0 if (iq or fd >= 0) else -1.0]
-    for name, f, conj in _doppler_families(frame.tones_hz, fd, iq):
-        freqs.extend(f)
-        # d f_line / d fd: +1 for U and for IQ's L (fd - f_i); a real detector's L (|f_i - fd|)
-        # moves down unless it folded through 0 Hz
-        slope.extend(np.where(conj, 1.0, -1.0) if (name == "L" and not iq) else np.ones(len(f)))
-    freqs, slope = np.asarray(freqs, float), np.asarray(slope)
-    # every other line there may be: static ones, 0 Hz, the other targets'
-    t = np.asarray(frame.tones_hz, float)
-    near = np.concatenate([[0.0], t, -t if iq else []] + [_line_freqs(frame.tones_hz, o, iq) for o in others
-                                                         if o != fd] + [[o if iq else abs(o)] for o in others if o != fd])
+    freqs, slope = _target_lines(frame.tones_hz, fd, iq)
+    # every other line there may be: the static target's (and 0 Hz), the other targets'
+    near = np.concatenate([_target_lines(frame.tones_hz, o, iq)[0] for o in [0.0, *others] if o != fd])
     sep = 3 * fs / length
     use = np.array([np.all(np.abs(near - f) > sep) and np.sum(np.abs(freqs - f) < sep) == 1 for f in freqs])
     if not use.any():
@@ -309,6 +301,17 @@ def _refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool
     chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
     spread = stat * math.sqrt(max(chi2 / max(len(w) - 1, 1), 1.0))
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread)
+
+
+def _target_lines(tones, fd: float, iq: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Every line of a target at Doppler ``fd`` -- baseband, then U and L -- (Hz), and how each
+    moves with ``fd`` (+-1: a real detector's L line ``|f_i - fd|`` moves down until it folds
+    through 0 Hz; baseband ``|fd|`` moves down for a negative ``fd``)."""
+    freqs, slope = [fd if iq else abs(fd)], [1.0 if (iq or fd >= 0) else -1.0]
+    for name, f, conj in _doppler_families(tones, fd, iq):
+        freqs.extend(f)
+        slope.extend(np.where(conj, 1.0, -1.0) if (name == "L" and not iq) else np.ones(len(f)))
+    return np.asarray(freqs, float), np.asarray(slope)
 
 
 def _doppler_families(tones, fd: float, iq: bool) -> list[tuple[str, np.ndarray, np.ndarray]]:

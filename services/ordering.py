@@ -53,22 +53,12 @@ class Reorderer:
         """Offer one point; returns ``"held"``, ``"released"``, ``"stale"`` or ``"restart"``."""
         source, seq, t_ns = msg["source"], int(msg["seq"]), int(msg.get("t_ns", 0))
         run = msg.get("run")
-        st = self._src.get(source)
-        outcome = "held"
+        st, kind = self._run_state(source, seq, run, t_ns)
         if st is None:
-            # a run's seq starts at 0: what came before the first arrival was lost (unless we
-            # joined long after the start)
-            st = self._src[source] = _SourceState(next_seq=0 if seq <= self.max_held else seq, run=run)
-        elif run is not None and st.run is not None and run != st.run:
-            if t_ns <= st.max_t_ns:  # a frame of an earlier run, late
-                self.stale += 1
-                return "stale"
-            self._new_run(st, seq, run)
-            outcome = "restart"
-        elif run is None and t_ns <= st.floor_t_ns:
             self.stale += 1
             return "stale"
-        elif seq < st.next_seq or seq in st.held:
+        outcome = "restart" if kind == "restart" else "held"
+        if kind == "same" and (seq < st.next_seq or seq in st.held):
             if run is None and t_ns > st.max_t_ns and seq not in st.held:
                 self._new_run(st, seq, run)  # no run ids: seq went back while time went on
                 outcome = "restart"
@@ -88,14 +78,8 @@ class Reorderer:
         Seqs still missing when the timeout has passed after this notice (and after every held
         point) are counted as dropped. Returns ``"ended"`` or ``"stale"`` (a notice of an older run).
         """
-        st = self._src.get(source)
+        st, _ = self._run_state(source, 0, run, t_ns)
         if st is None:
-            st = self._src[source] = _SourceState(next_seq=0, run=run)
-        elif run is not None and st.run is not None and run != st.run:
-            if t_ns <= st.max_t_ns:
-                return "stale"
-            self._new_run(st, 0, run)
-        elif run is None and t_ns <= st.floor_t_ns:
             return "stale"
         st.max_t_ns = max(st.max_t_ns, t_ns)
         st.end_seq, st.end_at = frames, now
@@ -115,6 +99,25 @@ class Reorderer:
         return sum(len(s.held) for s in self._src.values())
 
     # ------------------------------------------------------------------------------------------
+    def _run_state(self, source: str, seq: int, run: int | None, t_ns: int) -> tuple[_SourceState | None, str]:
+        """The source's state for a message of run ``run`` triggered at ``t_ns``, and whether it
+        is ``"new"`` (first of the source), a ``"restart"`` (a new run: the old one is finished)
+        or the ``"same"`` run; ``(None, "stale")`` for a message of an earlier run."""
+        st = self._src.get(source)
+        if st is None:
+            # a run's seq starts at 0: what came before the first arrival was lost (unless we
+            # joined long after the start)
+            st = self._src[source] = _SourceState(next_seq=0 if seq <= self.max_held else seq, run=run)
+            return st, "new"
+        if run is not None and st.run is not None and run != st.run:
+            if t_ns <= st.max_t_ns:  # a message of an earlier run, late
+                return None, "stale"
+            self._new_run(st, seq, run)
+            return st, "restart"
+        if run is None and t_ns <= st.floor_t_ns:
+            return None, "stale"
+        return st, "same"
+
     def _new_run(self, st: _SourceState, seq: int, run: int | None) -> None:
         self._give_up(st, everything=True)  # finish the old run
         st.floor_t_ns = st.max_t_ns

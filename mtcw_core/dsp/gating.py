@@ -279,6 +279,9 @@ def _edge_loglik(y: np.ndarray, te: np.ndarray, step, stats: _EchoStats, dec: in
     r, n = y.shape
     ks = np.arange(0, n, dec)
     obs = y[:, ks]
+    hs = step(ks[:, None] - te[None, :])  # (samples, candidates): the gate seen through the bands
+    if not rising:
+        hs = 1.0 - hs
     inflate = max(info_spacing / dec, 1.0)
     ll = np.zeros(te.size)
     for c in range(r):
@@ -286,10 +289,7 @@ def _edge_loglik(y: np.ndarray, te: np.ndarray, step, stats: _EchoStats, dec: in
         pvar = np.full(te.size, stats.power[c])
         rv = stats.noise[c] * inflate
         q = stats.drift[c] * dec
-        for j, k in enumerate(ks):
-            h = step(k - te)
-            if not rising:
-                h = 1.0 - h
+        for j, h in enumerate(hs):
             pvar = pvar + q
             sv = h * h * pvar + rv
             v = obs[c, j] - h * m
@@ -328,17 +328,22 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
             return None
         return band_signals(x[a - pad:b + pad] - off_level, fs_hz, t, half_band)[:, pad:-pad]
 
+    def gate_starts():
+        """Start (s) of every echo gate that may touch the record."""
+        m = math.floor(-t_start_s / period_s) - 1
+        while t_start_s + m * period_s - width_s < n / fs_hz:
+            yield t_start_s + m * period_s
+            m += 1
+
     # where the echo is surely on and surely off, a few stretches of each
     hw = int(math.ceil(half_window_s * fs_hz))
     seg = int(24 * ramp)
     on, off = [], []
-    m0 = math.floor(-t_start_s / period_s) - 1
-    m = m0
-    while t_start_s + m * period_s - width_s < n / fs_hz:
-        a_on = int((t_start_s + m * period_s) * fs_hz) + hw + pad
-        b_on = int((t_start_s + width_s + m * period_s) * fs_hz) - hw - pad
-        a_off = int((t_start_s + width_s + m * period_s) * fs_hz) + hw + pad
-        b_off = int((t_start_s + period_s + m * period_s) * fs_hz) - hw - pad
+    for t0 in gate_starts():
+        a_on = int(t0 * fs_hz) + hw + pad
+        b_on = int((t0 + width_s) * fs_hz) - hw - pad
+        a_off = int((t0 + width_s) * fs_hz) + hw + pad
+        b_off = int((t0 + period_s) * fs_hz) - hw - pad
         # stretches spread over the echo: its wander (cos(psi) over microseconds) is averaged
         # over many states of psi, not taken from the few it had in one place
         for lo, hi, dst, count, size in ((a_on, b_on, on, 6, 8192), (a_off, b_off, off, 2, 4096)):
@@ -347,7 +352,6 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
             if size >= seg:
                 k = min(count, (hi - lo) // size)
                 dst.extend((int(c), int(c) + size) for c in np.linspace(lo, hi - size, k))
-        m += 1
     on, off = on[: 12], off[: 4]
     stats = _echo_stats(on, off, bands, ramp, 2 if cx else 1)
     if stats is None:
@@ -359,9 +363,8 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     grid = np.arange(-hw + ramp, hw - ramp, gstep)  # offsets from the prediction, samples
     total = {True: np.zeros(grid.size), False: np.zeros(grid.size)}  # rising, falling
     used = 0
-    m = m0
-    while t_start_s + m * period_s - width_s < n / fs_hz:
-        for rising, t_pred in ((True, t_start_s + m * period_s), (False, t_start_s + width_s + m * period_s)):
+    for t0 in gate_starts():
+        for rising, t_pred in ((True, t0), (False, t0 + width_s)):
             i0 = int(round(t_pred * fs_hz)) - hw
             z = bands(i0, i0 + 2 * hw)
             if z is None:
@@ -375,7 +378,6 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
             if ll.max() - none.max() >= min_gain:
                 total[rising] += ll
                 used += 1
-        m += 1
     if not used:
         return None
     # integrate out the width: rising offset = dc - dW/2, falling = dc + dW/2, dW = 2*j*gstep
@@ -384,13 +386,8 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     js = np.arange(-jmax, jmax + 1)
     joint = np.full((js.size, grid.size), -np.inf)
     for row, j in enumerate(js):
-        sh = np.full(grid.size, -np.inf)
-        lo, hi = max(j, 0, -j), grid.size - max(j, -j, 0)
-        if hi <= lo:
-            continue
-        i = np.arange(lo, hi)
-        sh[i] = total[True][i - j] + total[False][i + j]
-        joint[row] = sh - 0.5 * (2 * j * gstep / sw) ** 2
+        i = np.arange(abs(j), grid.size - abs(j))  # both shifted offsets inside the grid
+        joint[row, i] = total[True][i - j] + total[False][i + j] - 0.5 * (2 * j * gstep / sw) ** 2
     post = np.logaddexp.reduce(joint, axis=0)
     if not np.isfinite(post).any():
         return None

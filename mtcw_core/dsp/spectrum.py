@@ -174,33 +174,18 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
     tiny = np.finfo(power.dtype).tiny if power.dtype.kind == "f" else 1e-300
     lp = np.log(np.maximum(power, tiny))
     nb = lp.size
-    pad = min(outer, nb - 1)
-    if mirror_dc:
-        # a real signal's spectrum is even about 0 Hz and about fs/2: at both ends the ring
-        # continues on the mirror side (one-sided, it would see only the falling side of a
-        # pedestal around 0 Hz)
-        lp = np.concatenate([lp[1 : pad + 1][::-1], lp, lp[-pad - 1 : -1][::-1]])
-    else:
-        # an fftshifted complex spectrum is periodic: the ring wraps around +-fs/2
-        lp = np.concatenate([lp[-pad:], lp, lp[:pad]])
+    # a real signal's spectrum is even about 0 Hz and about fs/2: at both ends the ring continues
+    # on the mirror side (one-sided, it would see only the falling side of a pedestal around
+    # 0 Hz); an fftshifted complex spectrum is periodic: the ring wraps around +-fs/2
+    lp = np.pad(lp, outer, mode="reflect" if mirror_dc else "wrap")
     c = np.concatenate([[0.0], np.cumsum(lp, dtype=np.float64)])
-    # ring sums as differences of shifted slices of the running sum (no index arrays)
-    k0 = pad  # index of bin 0 in the padded array
-    lo = max(outer - pad, 0)  # with fewer than `outer` bins, rings are cut at the ends
 
     def window_sum(a: int, b: int) -> np.ndarray:
-        """sum(lp[k + a : k + b]) for every bin k, the ends cut to the padded array."""
-        ia = np.clip(np.arange(nb) + k0 + a, 0, lp.size) if lo else slice(k0 + a, k0 + a + nb)
-        ib = np.clip(np.arange(nb) + k0 + b, 0, lp.size) if lo else slice(k0 + b, k0 + b + nb)
-        return c[ib] - c[ia]
+        """sum(lp[k + a : k + b]) for every bin k: differences of shifted slices of the running sum."""
+        return c[outer + b: outer + b + nb] - c[outer + a: outer + a + nb]
 
     total = window_sum(-outer, -inner + 1) + window_sum(inner, outer + 1)
     count = 2.0 * (outer - inner + 1)
-    if lo:  # tiny spectra only: count what the cut rings hold
-        idx = np.arange(nb) + k0
-        count = ((np.clip(idx - inner + 1, 0, lp.size) - np.clip(idx - outer, 0, lp.size))
-                 + (np.clip(idx + outer + 1, 0, lp.size) - np.clip(idx + inner, 0, lp.size))).astype(float)
-        count = np.maximum(count, 1.0)
     return np.exp(total / count + EULER_GAMMA)
 
 
