@@ -27,6 +27,28 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
+def free_port_block(n: int, tries: int = 50) -> int:
+    """A port ``p`` such that ``p .. p + n - 1`` are all free on loopback right now (``mtcw run
+    --base-port`` takes consecutive ports)."""
+    for _ in range(tries):
+        base = free_ports(1)[0]
+        if base + n > 65535:
+            continue
+        socks = []
+        try:
+            for q in range(base, base + n):
+                s = socket.socket()
+                socks.append(s)
+                s.bind(("127.0.0.1", q))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError(f"no {n} consecutive free ports found")
+
+
 @dataclass
 class Child:
     name: str

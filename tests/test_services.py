@@ -24,7 +24,7 @@ import zmq
 from services.acquisition import Publisher
 from services.monitor import Subscriber
 from services.settings import AcquisitionSettings, TransportSettings
-from services.supervisor import free_ports
+from services.supervisor import free_port_block, free_ports
 
 from .conftest import make_scene
 
@@ -300,7 +300,8 @@ def test_mtcw_record_writes_the_monitor_stream_to_sigmf(bench):
 
 
 def test_mtcw_run_serves_points_and_stops_cleanly_on_sigterm(tmp_path):
-    p = free_ports(4)
+    base = free_port_block(4)  # three consecutive ZeroMQ ports (--base-port), then HTTP
+    p = [base + 3, base]
     log = open(tmp_path / "run.log", "wb")
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--scene", str(Bench(tmp_path).scene),
                              "--port", str(p[0]), "--base-port", str(p[1]), "--rate", "10"],
