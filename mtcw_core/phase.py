@@ -1,4 +1,4 @@
-"""Exact phase arithmetic.
+"""Exact phase arithmetic, and the one speed of light.
 
 Phases are carried as fractional cycles in float64, computed from the integer sample index
 modulo the period. ``cos(2*pi*f*t)`` with float32 ``t`` (or float64 ``t`` for long records at GHz)
@@ -10,6 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+#: Speed of light in vacuum (m/s), exact by the SI definition of the metre. The only definition.
+C = 299_792_458.0
 
 
 def frac(x: float) -> float:
@@ -50,11 +53,6 @@ def tone_cycles(f_hz: float, fs_hz: float, n: int, offset_cycles: float = 0.0, s
     cyc += off
     cyc -= np.floor(cyc)
     return cyc
-
-
-def cycles_to_phasor(cycles: np.ndarray) -> np.ndarray:
-    """exp(j*2*pi*cycles) for cycles already reduced to [0, 1)."""
-    return np.exp(2j * np.pi * cycles)
 
 
 def wrap_pi(x: np.ndarray | float) -> np.ndarray | float:

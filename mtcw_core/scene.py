@@ -18,7 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-C = 299_792_458.0
+from .phase import C
 
 
 class SceneError(ValueError):

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from mtcw_core.scene import C, SceneError, load_scene, bundled_scenes, scene_from_dict
+from mtcw_core.phase import C
+from mtcw_core.scene import SceneError, load_scene, bundled_scenes, scene_from_dict
 from mtcw_core.simulate import Simulator, simulate_frame
 from mtcw_core.simulate.engine import K_B, Q_E
 from mtcw_core.simulate.optics import delayed_phase, wiener_phase

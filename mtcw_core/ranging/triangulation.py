@@ -19,7 +19,7 @@ from functools import reduce
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-C = 299_792_458.0
+from ..phase import C
 
 
 @dataclass(frozen=True)

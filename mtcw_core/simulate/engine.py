@@ -18,8 +18,8 @@ import numpy as np
 from scipy import signal
 
 from ..frame import Frame, PulseInfo, TruthTarget
-from ..phase import tone_cycles
-from ..scene import C, Scene
+from ..phase import C, tone_cycles
+from ..scene import Scene
 from .optics import carrier_cycles, delayed_phase, gate, mzm_transmission, wiener_phase
 
 Q_E = 1.602176634e-19

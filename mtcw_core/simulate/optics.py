@@ -11,7 +11,7 @@ from functools import reduce
 
 import numpy as np
 
-from ..phase import _as_int, frac, tone_cycles
+from ..phase import C, _as_int, frac, tone_cycles
 
 
 def wiener_phase(n: int, fs_hz: float, linewidth_hz: float, rng: np.random.Generator) -> np.ndarray:
@@ -122,5 +122,4 @@ def gate(n: int, fs_hz: float, period_s: float, duty: float, start_s: float, ris
 
 def carrier_cycles(wavelength_m: float, tau0_s: float, range_m: float) -> float:
     """``f0*tau`` reduced modulo 1 for ``tau = tau0 + 2*L/c`` without losing precision."""
-    c = 299_792_458.0
-    return frac(frac(c / wavelength_m * tau0_s) + frac(2.0 * range_m / wavelength_m))
+    return frac(frac(C / wavelength_m * tau0_s) + frac(2.0 * range_m / wavelength_m))
