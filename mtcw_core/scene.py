@@ -155,10 +155,6 @@ class Scene(_Model):
     def tones_hz(self) -> list[float]:
         return self.modulator.tones_hz
 
-    @property
-    def is_static(self) -> bool:
-        return all(t.velocity_mps == 0 for t in self.targets)
-
 
 def _format_validation(err: ValidationError, origin: str) -> str:
     lines = [f"invalid scene {origin}:"]
@@ -174,6 +170,27 @@ def scene_from_dict(data: dict, origin: str = "<dict>") -> Scene:
         return Scene.model_validate(data)
     except ValidationError as err:
         raise SceneError(_format_validation(err, origin)) from None
+
+
+def _merge(base, change):
+    """``change`` laid over ``base``: mappings merge key by key, a list of mappings merges item by
+    item (extra items appended), anything else replaces."""
+    if isinstance(base, dict) and isinstance(change, dict):
+        return {**base, **{k: _merge(base.get(k), v) for k, v in change.items()}}
+    if isinstance(base, list) and isinstance(change, list) and all(isinstance(c, dict) for c in change):
+        merged = [_merge(b, c) for b, c in zip(base, change)]
+        return merged + list(change[len(base):]) + list(base[len(change):])
+    return change
+
+
+def scene_variant(scene: Scene, **changes) -> Scene:
+    """A validated copy of ``scene`` with ``changes`` laid over it (nested mappings merge).
+
+    ``scene_variant(sc, digitizer={"samples": 2**16}, targets=[{"loss_db": 60.0}])`` changes the
+    record length and the first target's loss and keeps everything else. Raises
+    :class:`SceneError` naming the field when the result is not a valid scene.
+    """
+    return scene_from_dict(_merge(scene.model_dump(), changes), origin=f"variant of {scene.name}")
 
 
 def bundled_scenes() -> dict[str, Path]:

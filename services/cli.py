@@ -12,7 +12,7 @@ import typer
 from tqdm import tqdm
 
 from mtcw_core.recording import RecordingError, RecordingWriter, read_recording
-from mtcw_core.scene import SceneError, bundled_scenes, load_scene
+from mtcw_core.scene import SceneError, bundled_scenes, load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Multi-tone CW lidar: simulate, process, serve.")
@@ -43,7 +43,7 @@ def simulate(
     try:
         sc = load_scene(scene)
         if samples is not None:
-            sc = sc.model_validate({**sc.model_dump(), "digitizer": {**sc.digitizer.model_dump(), "samples": samples}})
+            sc = scene_variant(sc, digitizer={"samples": samples})
     except (SceneError, ValueError) as err:
         _fail(str(err))
     sim = Simulator(sc, seed)
@@ -119,7 +119,8 @@ def process(
     import numpy as np
 
     from mtcw_core.calibration import Calibration, CalibrationError
-    from mtcw_core.chain import match_truth, process_frame
+    from mtcw_core.chain import process_frame
+    from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
     settings = _settings(profile, method)
@@ -132,17 +133,14 @@ def process(
     else:
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
                     err=True, fg=typer.colors.YELLOW)
-    rows, errs, times, status = [], [], [], {}
+    rows, times, status, log = [], [], {}, ErrorLog()
     for fr in tqdm(rec, total=len(rec), unit="frame", desc=f"process [{settings.profile}]", file=sys.stderr):
         res = process_frame(fr, settings, cal)
         status[res.status] = status.get(res.status, 0) + 1
         times.append(sum(res.stage_seconds.values()))
         rows += _point_rows(res)
         for t in fr.truth or ():
-            m = match_truth(res, t)
-            if m is not None:
-                p, e = m
-                errs.append((e, p.range_sigma_m, abs(p.velocity_mps) - abs(t.velocity_mps)))
+            log.add(res, t)
     if output is not None:
         if output.suffix == ".json":
             output.write_text(json.dumps(rows, indent=1, default=float))
@@ -153,14 +151,8 @@ def process(
                 w.writeheader()
                 w.writerows(rows)
     summary = {"frames": len(rec), "status": status, "median_ms_per_frame": 1e3 * float(np.median(times))}
-    if errs:
-        e = np.asarray(errs)
-        summary.update({
-            "range_bias_m": float(np.mean(e[:, 0])), "range_std_m": float(np.std(e[:, 0])),
-            "median_reported_sigma_m": float(np.median(e[:, 1])),
-            "max_abs_range_error_m": float(np.max(np.abs(e[:, 0]))),
-            "speed_bias_mps": float(np.mean(e[:, 2])),
-        })
+    if log.range_error_m:
+        summary.update(log.summary())
     typer.echo(json.dumps(summary, indent=2))
 
 
@@ -171,8 +163,9 @@ def calibrate(
     output: Path = typer.Option(Path("calibration.json"), "-o", "--output"),
 ) -> None:
     """Derive tone phase offsets and tau0 from a known reflector; write a calibration file."""
-    from mtcw_core.calibration import CalibrationError, derive_calibration
-    from mtcw_core.chain import Rejected
+    from mtcw_core.calibrate import derive_calibration
+    from mtcw_core.calibration import CalibrationError
+    from mtcw_core.results import Rejected
 
     rec = _open(recording)
     try:
@@ -194,14 +187,14 @@ def bench(
     scenes: Optional[str] = typer.Option(None, help="comma-separated scene names"),
     profiles: Optional[str] = typer.Option(None, help="comma-separated profiles"),
     losses: Optional[str] = typer.Option(None, help="comma-separated echo losses (dB)"),
-    stream_json: Optional[Path] = typer.Option(None, help="include bench/stream.py's stream.json in the report"),
+    stream_json: Optional[Path] = typer.Option(None, help="include mtcw-bench-stream's stream.json in the report"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB."""
     import platform
     import shlex
 
-    from mtcw_core.benchmark import GridSpec, run_grid, simulation_costs
-    from services.bench_report import write_report
+    from mtcw_bench.grid import GridSpec, run_grid, simulation_costs
+    from mtcw_bench.report import write_report
 
     def csv_list(v: Optional[str], default: list) -> list:
         return [x.strip() for x in v.split(",") if x.strip()] if v else default

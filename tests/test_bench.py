@@ -9,7 +9,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from mtcw_core.bounds import range_bound
+from mtcw_core.evaluate import range_bound
 from services.cli import app
 
 from .conftest import make_scene

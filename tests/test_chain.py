@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
-from mtcw_core.calibration import derive_calibration
+from mtcw_core.calibrate import derive_calibration
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.frame import Frame
 from mtcw_core.ranging.triangulation import C, Observations, resolve_ml, resolve_seed, unambiguous_range
 from mtcw_core.recording import read_recording
+from mtcw_core.scene import scene_variant
 from mtcw_core.simulate import Simulator, simulate_frame
 
 from .conftest import make_scene, tones
@@ -141,7 +142,7 @@ def true_range_crb(scene, seed: int) -> float:
     common nuisance ``psi`` and variance ``2*s2/(N*A_i^2)``; the bound is the inverse Fisher
     information of L with psi profiled out.
     """
-    quiet = scene.model_copy(update={"noise": scene.noise.model_copy(update={"shot": False, "thermal": False})})
+    quiet = scene_variant(scene, noise={"shot": False, "thermal": False})
     clean = Simulator(quiet, seed=seed).frame(0)
     noisy = Simulator(scene, seed=seed).frame(0)
     x0, x1 = clean.volts("pd"), noisy.volts("pd")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_core.calibration import derive_calibration
+from mtcw_core.calibrate import derive_calibration
 from mtcw_core.chain import process_frame
 from mtcw_core.ranging.triangulation import C, unambiguous_range
 from mtcw_core.simulate import Simulator, simulate_frame

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mtcw_core.chain import get_profile, process_frame
-from mtcw_core.dsp.gating import coarse_gate
+from mtcw_core.ranging.gating import coarse_gate
 from mtcw_core.ranging.triangulation import C, unambiguous_range
 from mtcw_core.simulate import Simulator
 

@@ -1,9 +1,11 @@
-"""Windowed power spectrum, local noise floor and the Doppler search."""
+"""Stage ``spectrum``: the windowed power spectrum, its local noise floor and line widths.
+
+The spectrum serves the Doppler search (``doppler``) and the lines' noise floors (``extract``);
+no phase is ever taken from it (the line fits are float64 exact DFTs, :mod:`.tones`).
+"""
 
 from __future__ import annotations
 
-import itertools
-import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -113,47 +115,6 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
                     False)
 
 
-@dataclass(frozen=True)
-class DopplerEstimate:
-    """Result of the Doppler search.
-
-    ``fd_hz`` is signed for complex (IQ) input and >= 0 for real input; 0 when no Doppler line
-    was detected (``detected`` False). ``score`` is the summed line-to-noise ratio at the peak.
-    """
-
-    fd_hz: float
-    detected: bool
-    score: float
-    threshold: float
-    min_detectable_hz: float
-    #: systematic error of the sub-bin refinement (Hz): the log-parabola through a Kaiser(14)
-    #: main lobe is biased by up to ~0.1 bin; an exact refinement sets it to 0
-    refine_error_hz: float = 0.0
-    #: the line's own wander (Hz): a laser incoherent at the echo's delay broadens the beat into
-    #: a Lorentzian of FWHM ``G``, whose centre over ``T`` seconds wanders by ``sqrt(G/(2*pi*T))``
-    #: (the phase random walk's end-to-end change over ``2*pi*T``); 0 for a coherent line
-    wander_hz: float = 0.0
-
-
-@lru_cache(maxsize=64)
-def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: int | None = None) -> np.ndarray:
-    """|sum_i n_i*f_i| for integer n with sum|n_i| <= order (5 for up to 4 tones, else 4), below f_max.
-
-    These static lines (MZM harmonics and intermodulation) sit at fixed frequencies; a Doppler
-    candidate whose baseband line falls on one of them is a blind speed of the tone plan.
-    """
-    t = np.asarray(tones_hz, float)
-    if order is None:
-        order = 5 if t.size <= 4 else 4
-    out = set()
-    for n in itertools.product(range(-order, order + 1), repeat=t.size):
-        if 0 < sum(map(abs, n)) <= order:
-            f = abs(float(np.dot(n, t)))
-            if 0 < f <= f_max_hz:
-                out.add(f)
-    return np.array(sorted(out))
-
-
 def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: bool = False) -> np.ndarray:
     """Mean noise power around every bin, from the bins ``inner..outer`` away on both sides.
 
@@ -227,171 +188,22 @@ def widths_at(spec: Spectrum, centres, half_span: int = 64) -> float:
     return float(np.median(widths)) if widths else 1.0
 
 
-def _near(x: np.ndarray, marks: np.ndarray, tol: float) -> np.ndarray:
-    """``|x - nearest mark| < tol`` for every x, by sorted search (x: many bins, marks: a few hundred)."""
-    m = np.sort(np.asarray(marks, float))
-    if m.size == 0:
-        return np.zeros(x.shape, bool)
-    i = np.clip(np.searchsorted(m, x), 1, m.size - 1)
-    d = np.minimum(np.abs(x - m[i - 1]), np.abs(x - m[i]))
-    if m.size == 1:
-        d = np.abs(x - m[0])
-    return d < tol
+def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, single: bool,
+                    windows: list[tuple[int, int]] | None = None) -> Spectrum:
+    """The stage: the Kaiser(``beta``) spectrum of the first ``fraction`` of the record.
 
+    A quasi-CW record's spectrum is taken over its longest echo window alone: the gate's own
+    harmonics around every line (multiples of 1/period) would otherwise pass for Doppler pairs.
 
-def search_doppler(
-    spec: Spectrum,
-    tones_hz: list[float],
-    fd_max_hz: float,
-    min_bins: int = 4,
-    threshold_factor: float = 8.0,
-    use_baseband: bool = True,
-    max_targets: int = 1,
-) -> list[DopplerEstimate]:
-    """Find the Doppler shift from the baseband line and the symmetric lines ``f_i +- f_d``.
-
-    Every candidate shift ``b`` (in bins) is scored by the sum over lines of power over the local
-    noise floor: baseband ``|f_d|``, ``f_i + f_d`` and ``|f_i - f_d|`` (folding through 0 Hz for a
-    real detector). The peak is accepted when it is a local maximum above ``threshold_factor``
-    times the score expected from noise alone; its position is refined below one bin by a
-    parabola through the logarithm of the three scores around it (the Kaiser window's main lobe is
-    close to Gaussian). Zero Doppler is a valid answer.
-
-    Several targets: after the strongest line, further candidates (up to ``max_targets``) at
-    least ``2*min_bins`` away from those found are accepted when they pass the same tests and,
-    in addition, at least two of their sideband pairs stand above the threshold (a second
-    target must be rangeable, not a stray line).
-
-    Returns
-    -------
-    list of DopplerEstimate, strongest first; ``[not detected]`` when there is none
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V
+    windows : list of (start, stop) sample indices where the echo is on, or None (CW)
     """
-    df = spec.df_hz
-    nb = spec.power.size
-    # a Doppler line must lie outside the skirt of the lines: with a laser incoherent at the
-    # echo's delay every line is a Lorentzian whose wings carry random bumps that would pass for
-    # Doppler pairs; a coherent line is ~2.3 bins wide here
-    # (a coherent line: clear its main lobe; a Lorentzian: its wings' random bumps reach ~2.5
-    # FWHM at -15 dB, so keep ~5 FWHM, 4 equivalent widths, away)
-    w = line_width_bins(spec, tones_hz)
-    min_bins = max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
+    xs = x
+    if windows:
+        a, b = max(windows, key=lambda w: w[1] - w[0])
+        xs = x[a:b]
+    n = max(256, int(xs.size * fraction))
+    return power_spectrum(xs, fs_hz, ("kaiser", beta), n, single)
 
-    def wander(fd: float) -> float:
-        """The Doppler line's own wander (Hz) from the width of its lines (baseband, f_i +- f_d).
-
-        A Lorentzian's equivalent width is pi/2 FWHM on top of the window's ~2.3 bins; a
-        coherent line measures 2.3-3 bins (scalloping), so only wider lines count.
-        """
-        t = np.asarray(tones_hz, float)
-        centres = np.concatenate([[fd], fd + t, fd - t]) if spec.complex_input else np.abs(
-            np.concatenate([[fd], t + fd, t - fd]))
-        wd = widths_at(spec, [float(c) for c in centres], half_span=16)
-        fwhm_hz = (wd - 2.3) * df * 2 / math.pi if wd > 3.2 else 0.0
-        return math.sqrt(fwhm_hz * df / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # over T ~ 1/df
-    # two bins beyond the limit, so that a line exactly at it is still a local maximum
-    bmax = int(min(np.floor(fd_max_hz / df) + 2, nb // 2 - 1))
-    tones = np.asarray(tones_hz, dtype=float)
-    if bmax <= min_bins + 1:
-        return [DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)]
-    floor = local_floor(spec.power, mirror_dc=not spec.complex_input)
-
-    def power(f_hz: np.ndarray) -> np.ndarray:
-        idx = spec.bin_of(f_hz)
-        ok = (idx >= 0) & (idx < nb)
-        out = np.zeros(idx.size)
-        out[ok] = spec.power[idx[ok]]
-        return out
-
-    def line(f_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Power at f, and power over the local floor (the search's hot path: one lookup each)."""
-        p = power(f_hz)
-        return p, p / floor[np.clip(spec.bin_of(f_hz), 0, nb - 1)]
-
-    signs = (1, -1) if spec.complex_input else (1,)
-    n_lines = 2 * tones.size + (1 if use_baseband else 0)
-    results = {}
-    fd_all = {}
-    for s in signs:
-        b = np.arange(0, bmax + 1)
-        fd = s * b * df
-        fd_all[s] = fd
-        score = np.zeros(b.size)
-        f_base = fd if spec.complex_input else np.abs(fd)
-        base_p, base = line(f_base)
-        if use_baseband:
-            score += base
-        strongest_pair = np.zeros(b.size)  # raw power of the strongest sideband pair
-        n_pairs = np.zeros(b.size, int)  # sideband pairs above the threshold
-        for f in tones:
-            up_p, up = line(fd + f)
-            # the lower line: signed for IQ, folded through 0 Hz for a real detector
-            down_p, down = line(fd - f if spec.complex_input else np.abs(f - fd))
-            # a Doppler pair is symmetric; a spur (IMD product) usually sits on one side only
-            pair = np.minimum(up, down)
-            score += 2 * pair
-            n_pairs += pair > threshold_factor
-            strongest_pair = np.maximum(strongest_pair, np.minimum(up_p, down_p))
-        valid = np.ones(b.size, bool)
-        valid[:min_bins] = False
-        if use_baseband:
-            # the LO x echo-carrier beat is the strongest line of a moving target: require it,
-            # and ignore candidates sitting on a static intermodulation product
-            valid &= (base > threshold_factor) & (base_p > strongest_pair)
-            # one cached enumeration per tone plan and search range (min_bins varies per frame)
-            spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
-            spurs = spurs[spurs <= (bmax + min_bins) * df]
-            if spurs.size:
-                # on a static intermodulation product, a candidate counts only when its line is
-                # stronger than every static first-order line (a product never is; a moving
-                # target's carrier beat is stronger than its own sidebands)
-                near = _near(np.abs(fd), spurs, min_bins * df)
-                static_max = float(np.max(power(tones)))
-                valid &= ~near | (base_p > static_max)
-        results[s] = (score, valid, n_pairs)
-    threshold = threshold_factor * n_lines
-    found: list[DopplerEstimate] = []
-    ghost_base = np.concatenate([[0.0], tones, -tones, intermod_frequencies(tuple(float(f) for f in tones),
-                                                                            float(np.max(tones)) + fd_max_hz)])
-    ghost_base = np.concatenate([ghost_base, -ghost_base])
-    taken: list[tuple[int, int]] = []  # (sign, bin)
-    for _ in range(max_targets):
-        best = None
-        for s, (score, valid, n_pairs) in results.items():
-            ok = valid.copy()
-            for ts, tb in taken:
-                if ts == s or not spec.complex_input:
-                    ok[max(tb - 2 * min_bins, 0): tb + 2 * min_bins + 1] = False
-            if found:
-                ok &= n_pairs >= 2
-                # not a ghost of a target already found: its lines and intermodulation products
-                # (tones, IMD, 0 Hz) shifted by that target's Doppler
-                # -- and the beat of two targets found (one acts as the other's LO: lines at
-                # the difference and the sum of their Dopplers)
-                base_f = np.abs(fd_all[s])
-                shifts = [d.fd_hz for d in found]
-                shifts += [a.fd_hz + sgn * b.fd_hz for i, a in enumerate(found) for b in found[i + 1:]
-                           for sgn in (1, -1)]
-                for sh in shifts:
-                    ghosts = np.abs(np.concatenate([ghost_base + sh, ghost_base - sh]))
-                    near = _near(base_f, ghosts, min_bins * df)
-                    ok &= ~near
-            if not ok.any():
-                continue
-            k = int(np.flatnonzero(ok)[np.argmax(score[ok])])
-            if best is None or score[k] > best[0]:
-                best = (float(score[k]), k, s)
-        if best is None:
-            break
-        peak, k, s = best
-        score = results[s][0]
-        is_local = 0 < k < score.size - 1 and score[k] >= score[k - 1] and score[k] >= score[k + 1]
-        if peak < threshold or not is_local:
-            break
-        y0, y1, y2 = np.log(np.maximum(score[k - 1 : k + 2], 1e-300))
-        den = y0 - 2 * y1 + y2
-        delta = 0.5 * (y0 - y2) / den if den < 0 else 0.0
-        delta = float(np.clip(delta, -0.5, 0.5))
-        fd = s * (k + delta) * df
-        found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, wander(fd)))
-        taken.append((s, k))
-    return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]

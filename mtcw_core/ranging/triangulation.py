@@ -19,7 +19,7 @@ from functools import reduce
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from ..phase import C
+from ..phase import C, wrap_pi
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ def _newton_polish(obs: Observations, tau0_s: float, l_m: float, iterations: int
 
 
 def _residual(obs: Observations, tau0_s: float, l_m: float) -> float:
-    r = np.angle(np.exp(1j * (obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C))))
+    r = wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C))
     return float(np.sqrt(np.sum(obs.weight * r**2) / np.sum(obs.weight)))
 
 

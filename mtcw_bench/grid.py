@@ -1,7 +1,9 @@
 """The speed–accuracy benchmark: a grid of scenes x echo losses x profiles x cycle-resolution
 methods, with the machine's reference costs measured in the same run.
 
-Pure computation: returns records (dicts); ``mtcw bench`` writes them and the report.
+Pure computation: returns records (dicts); ``mtcw bench`` writes them and the report
+(:mod:`mtcw_bench.report`). Errors against truth and the bounds come from
+:mod:`mtcw_core.evaluate`, as for ``mtcw process``.
 """
 
 from __future__ import annotations
@@ -15,11 +17,11 @@ from typing import Callable
 import numpy as np
 import scipy.fft
 
-from .bounds import range_bound
-from .chain import get_profile, match_truth, process_frame
-from .ranging.triangulation import C
-from .scene import Scene, load_scene
-from .simulate import Simulator
+from mtcw_core.chain import get_profile, process_frame
+from mtcw_core.evaluate import ErrorLog, range_bound
+from mtcw_core.phase import C
+from mtcw_core.scene import Scene, load_scene, scene_from_dict, scene_variant
+from mtcw_core.simulate import Simulator
 
 
 @dataclass
@@ -55,12 +57,12 @@ def reference_costs(n: int, seed: int = 0) -> dict[str, float]:
 
 def _scene_variant(name: str, loss_db: float | None, samples: int | None) -> Scene:
     sc = load_scene(name)
-    upd = {}
+    upd: dict = {}
     if loss_db is not None:
-        upd["targets"] = [sc.targets[0].model_copy(update={"loss_db": float(loss_db)})] + list(sc.targets[1:])
+        upd["targets"] = [{"loss_db": float(loss_db)}]
     if samples is not None:
-        upd["digitizer"] = sc.digitizer.model_copy(update={"samples": int(samples)})
-    return sc.model_copy(update=upd) if upd else sc
+        upd["digitizer"] = {"samples": int(samples)}
+    return scene_variant(sc, **upd) if upd else sc
 
 
 def _finest_wavelength(tones) -> float:
@@ -74,8 +76,8 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
     if profile == "seed" and spec.seed_points:
         over["seed_points"] = spec.seed_points
     settings = get_profile(profile, **over)
-    times, errs, sigmas, verr, out, status = [], [], [], [], 0, {}
-    lam_min = _finest_wavelength(scene.modulator.tones_hz)
+    times, status = [], {}
+    log = ErrorLog(outlier_m=_finest_wavelength(scene.modulator.tones_hz) / 4)
     peak = 0
     for i, fr in enumerate(frames):
         if i == 0:
@@ -87,29 +89,18 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
             peak = tracemalloc.get_traced_memory()[1]
             tracemalloc.stop()
         status[res.status] = status.get(res.status, 0) + 1
-        if res.status != "ok" or not fr.truth:
-            continue
-        truth = fr.truth[0]
-        p, e = match_truth(res, truth)
-        if abs(e) > lam_min / 4:
-            out += 1
-            continue
-        errs.append(e)
-        sigmas.append(p.range_sigma_m)
-        verr.append(abs(p.velocity_mps) - abs(truth.velocity_mps))
+        if fr.truth:
+            log.add(res, fr.truth[0])
     n_ok = status.get("ok", 0)
-    e = np.asarray(errs)
-    ve = np.asarray(verr)
+    err = log.summary()
     rec = {
         "profile": profile, "method": method, "frames": len(frames), "status": status,
         "median_time_s": statistics.median(times) if times else None,
         "frames_per_s": 1 / statistics.median(times) if times else None,
-        "range_bias_m": float(np.mean(e)) if e.size else None,
-        "range_sigma_m": float(np.std(e, ddof=1)) if e.size > 1 else None,
-        "reported_sigma_m": float(np.median(sigmas)) if sigmas else None,
-        "outlier_rate": out / n_ok if n_ok else None,
-        "speed_bias_mps": float(np.mean(ve)) if ve.size else None,
-        "speed_sigma_mps": float(np.std(ve, ddof=1)) if ve.size > 1 else None,
+        "range_bias_m": err["range_bias_m"], "range_sigma_m": err["range_std_m"],
+        "reported_sigma_m": err["median_reported_sigma_m"],
+        "outlier_rate": log.outliers / n_ok if n_ok else None,
+        "speed_bias_mps": err["speed_bias_mps"], "speed_sigma_mps": err["speed_std_mps"],
         "peak_memory_mb": peak / 2**20,
     }
     if bound is not None:
@@ -160,15 +151,12 @@ def simulation_costs(samples: int, repeat: int = 3, seed: int = 1) -> list[dict]
         "modulator": {"tones": [{"frequency_hz": f} for f in (500e6, 700e6, 950e6)]},
         "targets": [{"range_m": 1.2, "loss_db": 20.0}], "digitizer": {"sample_rate_hz": 5e9, "samples": samples},
     }
-    from .scene import scene_from_dict
+    ladder = scene_from_dict(base)
 
-    def variant(**over) -> dict:
-        d = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
-        for k, v in over.items():
-            d[k] = {**d.get(k, {}), **v} if isinstance(v, dict) and isinstance(d.get(k), dict) else v
-        return d
+    def variant(**over) -> Scene:
+        return scene_variant(ladder, **over)
 
-    steps: list[tuple[str, dict]] = [
+    steps: list[tuple[str, Scene]] = [
         ("static coherent 3-tone, noiseless", variant()),
         ("+ shot & thermal noise", variant(noise={"shot": True, "thermal": True})),
         ("+ 12-bit ADC", variant(noise={"shot": True, "thermal": True}, digitizer={"adc_bits": 12})),
@@ -189,8 +177,7 @@ def simulation_costs(samples: int, repeat: int = 3, seed: int = 1) -> list[dict]
                                   receiver={"kind": "iq"})),
     ]
     out = []
-    for label, d in steps:
-        sc = scene_from_dict(d)
+    for label, sc in steps:
         sim = Simulator(sc, seed)
         sim.frame(0)
         t = _median_time(lambda: sim.frame(1), repeat)

@@ -1,4 +1,4 @@
-"""Quasi-CW coarse gating: find the echo pulse, a coarse round-trip delay, and where the echo is on.
+"""Stage ``gate``: quasi-CW coarse gating: find the echo pulse, a coarse round-trip delay, and where the echo is on.
 
 The laser is gated with period ``P`` and duty ``D`` (on for ``W = D*P``); the echo is the same
 gate delayed by the round trip ``tau``. The echo's presence is seen in the power of the beat
@@ -30,6 +30,9 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import signal as sps
 from scipy.optimize import minimize_scalar
+
+from ..frame import Frame
+from ..profiles import ChainSettings
 
 
 @dataclass(frozen=True)
@@ -300,6 +303,70 @@ def _edge_loglik(y: np.ndarray, te: np.ndarray, step, stats: _EchoStats, dec: in
     return ll
 
 
+def _gate_starts(t_start_s: float, width_s: float, period_s: float, t_end_s: float):
+    """Start (s) of every echo gate, ``t_start + m*P``, that may touch a record ending at ``t_end_s``."""
+    m = math.floor(-t_start_s / period_s) - 1
+    while t_start_s + m * period_s - width_s < t_end_s:
+        yield t_start_s + m * period_s
+        m += 1
+
+
+class _Bands:
+    """Band signals of ``x - off_level`` over sample ranges, computed with a margin (the band
+    filters are circular FFT filters: compute wider, keep the middle)."""
+
+    def __init__(self, x: np.ndarray, off_level: float | complex, fs_hz: float, tones_hz: list[float],
+                 half_band_hz: float, pad: int) -> None:
+        self.x, self.off, self.fs, self.tones, self.half, self.pad = x, off_level, fs_hz, tones_hz, half_band_hz, pad
+
+    def __call__(self, a: int, b: int) -> np.ndarray | None:
+        p = self.pad
+        if a - p < 0 or b + p > self.x.size or b <= a:
+            return None
+        return band_signals(self.x[a - p:b + p] - self.off, self.fs, self.tones, self.half)[:, p:-p]
+
+
+def _stretches(starts, width_s: float, period_s: float, fs_hz: float, hw: int, pad: int, n: int,
+               seg: int) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """A few sample ranges where the echo is surely on (up to 12) and surely off (up to 4).
+
+    Spread over the echo: its wander (cos(psi) over microseconds) is averaged over many states
+    of psi, not taken from the few it had in one place.
+    """
+    on: list[tuple[int, int]] = []
+    off: list[tuple[int, int]] = []
+    for t0 in starts:
+        a_on = int(t0 * fs_hz) + hw + pad
+        b_on = int((t0 + width_s) * fs_hz) - hw - pad
+        a_off = int((t0 + width_s) * fs_hz) + hw + pad
+        b_off = int((t0 + period_s) * fs_hz) - hw - pad
+        for lo, hi, dst, count, size in ((a_on, b_on, on, 6, 8192), (a_off, b_off, off, 2, 4096)):
+            lo, hi = max(lo, pad), min(hi, n - pad)
+            size = min(size, hi - lo)
+            if size >= seg:
+                k = min(count, (hi - lo) // size)
+                dst.extend((int(c), int(c) + size) for c in np.linspace(lo, hi - size, k))
+    return on[:12], off[:4]
+
+
+def _centre_posterior(rising: np.ndarray, falling: np.ndarray, grid: np.ndarray, gstep: float,
+                      width_sigma: float) -> np.ndarray | None:
+    """Log-posterior of the gate centre's offset on ``grid`` (samples), the width integrated out.
+
+    Rising edges sit at ``dc - dW/2``, falling ones at ``dc + dW/2``, with ``dW = 2*j*gstep``
+    Gaussian of sigma ``width_sigma`` (samples). None when no offset is possible.
+    """
+    sw = max(width_sigma, gstep)
+    jmax = min(int(math.ceil(4 * sw / (2 * gstep))), grid.size // 4)
+    js = np.arange(-jmax, jmax + 1)
+    joint = np.full((js.size, grid.size), -np.inf)
+    for row, j in enumerate(js):
+        i = np.arange(abs(j), grid.size - abs(j))  # both shifted offsets inside the grid
+        joint[row, i] = rising[i - j] + falling[i + j] - 0.5 * (2 * j * gstep / sw) ** 2
+    post = np.logaddexp.reduce(joint, axis=0)
+    return post if np.isfinite(post).any() else None
+
+
 def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, period_s: float,
                  off_level: float | complex, half_window_s: float, tones_hz, width_sigma_s: float,
                  ramp_s: float = 0.0, min_gain: float = 12.5) -> tuple[float, float] | None:
@@ -315,45 +382,24 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     candidate beats "no edge in this window" by ``min_gain`` in log-likelihood. A faded edge
     has a flat, wide likelihood, so it neither pulls the centre nor makes the sigma small; edges
     that disagree give a wide or two-humped result, so a large sigma. None when no edge counts.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), detector signal (V), real or complex
+    t_start_s, width_s, period_s : the predicted echo gate (s)
+    off_level : the signal's mean where the echo is off (V)
+    half_window_s : how far (s) around each predicted edge to look
     """
     n = x.size
-    cx = np.iscomplexobj(x)
     t = sorted(float(f) for f in tones_hz)
     half_band = 0.5 * min([b - a for a, b in zip(t, t[1:])] + [t[0]])
     ramp = max(fs_hz / half_band, 2.0)  # the band filter's rise, in samples
-    pad = int(2 * ramp)  # the band filters are circular (FFT): compute wider, keep the middle
-
-    def bands(a: int, b: int) -> np.ndarray | None:
-        if a - pad < 0 or b + pad > n or b <= a:
-            return None
-        return band_signals(x[a - pad:b + pad] - off_level, fs_hz, t, half_band)[:, pad:-pad]
-
-    def gate_starts():
-        """Start (s) of every echo gate that may touch the record."""
-        m = math.floor(-t_start_s / period_s) - 1
-        while t_start_s + m * period_s - width_s < n / fs_hz:
-            yield t_start_s + m * period_s
-            m += 1
-
-    # where the echo is surely on and surely off, a few stretches of each
+    pad = int(2 * ramp)
+    bands = _Bands(x, off_level, fs_hz, t, half_band, pad)
     hw = int(math.ceil(half_window_s * fs_hz))
-    seg = int(24 * ramp)
-    on, off = [], []
-    for t0 in gate_starts():
-        a_on = int(t0 * fs_hz) + hw + pad
-        b_on = int((t0 + width_s) * fs_hz) - hw - pad
-        a_off = int((t0 + width_s) * fs_hz) + hw + pad
-        b_off = int((t0 + period_s) * fs_hz) - hw - pad
-        # stretches spread over the echo: its wander (cos(psi) over microseconds) is averaged
-        # over many states of psi, not taken from the few it had in one place
-        for lo, hi, dst, count, size in ((a_on, b_on, on, 6, 8192), (a_off, b_off, off, 2, 4096)):
-            lo, hi = max(lo, pad), min(hi, n - pad)
-            size = min(size, hi - lo)
-            if size >= seg:
-                k = min(count, (hi - lo) // size)
-                dst.extend((int(c), int(c) + size) for c in np.linspace(lo, hi - size, k))
-    on, off = on[: 12], off[: 4]
-    stats = _echo_stats(on, off, bands, ramp, 2 if cx else 1)
+    on, off = _stretches(_gate_starts(t_start_s, width_s, period_s, n / fs_hz), width_s, period_s, fs_hz, hw,
+                         pad, n, int(24 * ramp))
+    stats = _echo_stats(on, off, bands, ramp, 2 if np.iscomplexobj(x) else 1)
     if stats is None:
         return None
     step = _step_response(half_band, fs_hz, ramp_s)
@@ -363,7 +409,7 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     grid = np.arange(-hw + ramp, hw - ramp, gstep)  # offsets from the prediction, samples
     total = {True: np.zeros(grid.size), False: np.zeros(grid.size)}  # rising, falling
     used = 0
-    for t0 in gate_starts():
+    for t0 in _gate_starts(t_start_s, width_s, period_s, n / fs_hz):
         for rising, t_pred in ((True, t0), (False, t0 + width_s)):
             i0 = int(round(t_pred * fs_hz)) - hw
             z = bands(i0, i0 + 2 * hw)
@@ -378,18 +424,8 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
             if ll.max() - none.max() >= min_gain:
                 total[rising] += ll
                 used += 1
-    if not used:
-        return None
-    # integrate out the width: rising offset = dc - dW/2, falling = dc + dW/2, dW = 2*j*gstep
-    sw = max(width_sigma_s * fs_hz, gstep)
-    jmax = min(int(math.ceil(4 * sw / (2 * gstep))), grid.size // 4)
-    js = np.arange(-jmax, jmax + 1)
-    joint = np.full((js.size, grid.size), -np.inf)
-    for row, j in enumerate(js):
-        i = np.arange(abs(j), grid.size - abs(j))  # both shifted offsets inside the grid
-        joint[row, i] = total[True][i - j] + total[False][i + j] - 0.5 * (2 * j * gstep / sw) ** 2
-    post = np.logaddexp.reduce(joint, axis=0)
-    if not np.isfinite(post).any():
+    post = _centre_posterior(total[True], total[False], grid, gstep, width_sigma_s * fs_hz) if used else None
+    if post is None:
         return None
     w = np.exp(post - post.max())
     w /= w.sum()
@@ -417,6 +453,66 @@ def _correlation_time(res: np.ndarray) -> float:
     return float(max(1.0, 1.0 + 2.0 * np.sum(rho[:stop])))
 
 
+def _block_fit(e: np.ndarray, bs: float, t_tx: float, width: float, period_s: float) -> tuple[float, float, float, float]:
+    """Steps 1-2: the echo gate's delay from the block envelope ``e`` (blocks of ``bs`` s).
+
+    Returns
+    -------
+    (tau_s, sigma_s, snr, amplitude): the delay modulo the period, its sigma, the envelope
+    amplitude over its standard error, and that amplitude
+    """
+    nb = e.size
+    starts = np.arange(nb) * bs
+    # 1. coarse: correlation over every lag in one period, block resolution
+    nlag = max(int(math.ceil(period_s / bs)), 1)
+    ext_starts = (np.arange(-nlag + 1, nb)) * bs
+    g_ext = _coverage(ext_starts, bs, t_tx, width, period_s)
+    corr = sps.correlate(e - e.mean(), g_ext - g_ext.mean(), mode="valid", method="fft")
+    lags = (nlag - 1 - np.arange(corr.size)) * bs
+    tau = float(-lags[int(np.argmax(corr))] % period_s)
+
+    # 2. below one block: least squares of the envelope on the exact block coverage
+    def fit(t: float):
+        g = _coverage(starts, bs, t_tx + t, width, period_s)
+        a = np.column_stack([g, np.ones(nb)])
+        coef, *_ = np.linalg.lstsq(a, e, rcond=None)
+        res = e - a @ coef
+        return float(res @ res), coef, g
+
+    r = minimize_scalar(lambda t: fit(t)[0], bounds=(tau - 1.5 * bs, tau + 1.5 * bs), method="bounded",
+                        options={"xatol": 1e-4 * bs})
+    tau = float(r.x) % period_s
+    sse, (amp, floor), g = fit(tau)
+    s2 = sse / max(nb - 3, 1)
+    a = np.column_stack([g, np.ones(nb)])
+    cov = s2 * np.linalg.pinv(a.T @ a)
+    snr = float(amp / math.sqrt(cov[0, 0])) if cov[0, 0] > 0 else math.inf
+    h = 0.05 * bs
+    dg = (_coverage(starts, bs, t_tx + tau + h, width, period_s)
+          - _coverage(starts, bs, t_tx + tau - h, width, period_s)) / (2 * h)
+    # the residuals are not independent from block to block: the echo fades with cos(psi(t)) over
+    # microseconds, many blocks; the timing information counts independent stretches only
+    info = amp**2 * float(dg @ dg) / (s2 * _correlation_time(e - a @ np.array([amp, floor]))) if s2 > 0 else math.inf
+    # a rectangle's coverage is not the envelope's exact shape (fading, the gate's ramps): a
+    # quarter block is the floor of what the block fit can tell
+    sigma = math.hypot(1 / math.sqrt(info) if info > 0 else math.inf, 0.25 * bs)
+    return tau, sigma, snr, float(amp)
+
+
+def _echo_windows(on_start: float, on_len: float, period_s: float, fs_hz: float, n: int) -> list[tuple[int, int]]:
+    """Sample ranges ``[a, b)`` (at least 16 samples) of every echo-on stretch in the record."""
+    windows: list[tuple[int, int]] = []
+    t_end = n / fs_hz
+    m = math.floor(-on_start / period_s)
+    while on_len > 0 and on_start + m * period_s < t_end:
+        a_i = int(math.ceil(max(on_start + m * period_s, 0.0) * fs_hz))
+        b_i = int(math.floor(min(on_start + m * period_s + on_len, t_end) * fs_hz))
+        if b_i - a_i >= 16:
+            windows.append((a_i, b_i))
+        m += 1
+    return windows
+
+
 def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay_s: float,
                 tones_hz, ref: np.ndarray | None = None, block: int = 256, margin_s: float = 10e-9,
                 min_snr: float = 8.0, nominal_width_sigma_s: float = 10e-9) -> GateEstimate:
@@ -438,7 +534,6 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     block = int(min(block, max(16, n // 64)))
     bs = block / fs_hz
     e = envelope(x - np.mean(x), block, 2 * len(tones_hz) + 1)
-    nb = e.size
     levels = ref_levels(ref) if ref is not None else None
     c_tx, width = transmit_centre(ref, fs_hz, period_s, duty, delay_s, levels)
     # the echo gate's width between half maxima: measured on the reference (to about a tenth of
@@ -446,64 +541,38 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     width_sigma_s = 0.1 / fs_hz if ref is not None else nominal_width_sigma_s
     ramp_s = ramp_duration(ref, fs_hz, levels)
     t_tx = c_tx - width / 2  # transmitted gate start (s), modulo P
-    starts = np.arange(nb) * bs
-    # 1. coarse: correlation over every lag in one period, block resolution
-    nlag = max(int(math.ceil(period_s / bs)), 1)
-    ext_starts = (np.arange(-nlag + 1, nb)) * bs
-    g_ext = _coverage(ext_starts, bs, t_tx, width, period_s)
-    corr = sps.correlate(e - e.mean(), g_ext - g_ext.mean(), mode="valid", method="fft")
-    lags = (nlag - 1 - np.arange(corr.size)) * bs
-    tau = float(-lags[int(np.argmax(corr))] % period_s)
-
-    # 2. below one block: least squares of the envelope on the exact block coverage
-    def fit(t: float):
-        g = _coverage(starts, bs, t_tx + t, width, period_s)
-        a = np.column_stack([g, np.ones(nb)])
-        coef, *_ = np.linalg.lstsq(a, e, rcond=None)
-        res = e - a @ coef
-        return float(res @ res), coef, g
-
-    r = minimize_scalar(lambda t: fit(t)[0], bounds=(tau - 1.5 * bs, tau + 1.5 * bs), method="bounded",
-                        options={"xatol": 1e-4 * bs})
-    tau = float(r.x) % period_s
-    sse, (amp, _floor), g = fit(tau)
-    s2 = sse / max(nb - 3, 1)
-    a = np.column_stack([g, np.ones(nb)])
-    cov = s2 * np.linalg.pinv(a.T @ a)
-    snr = float(amp / math.sqrt(cov[0, 0])) if cov[0, 0] > 0 else math.inf
-    h = 0.05 * bs
-    dg = (_coverage(starts, bs, t_tx + tau + h, width, period_s)
-          - _coverage(starts, bs, t_tx + tau - h, width, period_s)) / (2 * h)
-    # the residuals are not independent from block to block: the echo fades with cos(psi(t)) over
-    # microseconds, many blocks; the timing information counts independent stretches only
-    info = amp**2 * float(dg @ dg) / (s2 * _correlation_time(e - a @ np.array([amp, _floor]))) if s2 > 0 else math.inf
-    # a rectangle's coverage is not the envelope's exact shape (fading, the gate's ramps): a
-    # quarter block is the floor of what the block fit can tell
-    sigma = math.hypot(1 / math.sqrt(info) if info > 0 else math.inf, 0.25 * bs)
+    tau, sigma, snr, amp = _block_fit(e, bs, t_tx, width, period_s)
     detected = bool(amp > 0 and snr >= min_snr)
-    if detected:
-        # 3. the edges themselves, on the band envelope about the echo-off level
-        gs = _coverage(np.arange(n // 16) * 16 / fs_hz, 16 / fs_hz, t_tx + tau, width, period_s)
-        off = x[: gs.size * 16].reshape(gs.size, 16)[gs == 0]
-        if off.size:
-            off_level = np.mean(off)  # complex for an IQ receiver
-            fine = refine_edges(x, fs_hz, t_tx + tau, width, period_s, off_level.item(),
-                                half_window_s=max(6 * sigma, 2 * bs), tones_hz=tones_hz,
-                                width_sigma_s=width_sigma_s, ramp_s=ramp_s)
-            if fine is not None and fine[1] < sigma:
-                tau = float((fine[0] - c_tx) % period_s)
-                sigma = fine[1]
-    windows: list[tuple[int, int]] = []
-    if detected:
-        cut = margin_s + 3 * sigma
-        on_start = t_tx + tau + cut
-        on_len = width - 2 * cut
-        t_end = n / fs_hz
-        m = math.floor(-on_start / period_s)
-        while on_len > 0 and on_start + m * period_s < t_end:
-            a_i = int(math.ceil(max(on_start + m * period_s, 0.0) * fs_hz))
-            b_i = int(math.floor(min(on_start + m * period_s + on_len, t_end) * fs_hz))
-            if b_i - a_i >= 16:
-                windows.append((a_i, b_i))
-            m += 1
+    if not detected:
+        return GateEstimate(tau, sigma, [], snr, detected, width)
+    # 3. the edges themselves, on the band envelope about the echo-off level
+    gs = _coverage(np.arange(n // 16) * 16 / fs_hz, 16 / fs_hz, t_tx + tau, width, period_s)
+    off = x[: gs.size * 16].reshape(gs.size, 16)[gs == 0]
+    if off.size:
+        off_level = np.mean(off)  # complex for an IQ receiver
+        fine = refine_edges(x, fs_hz, t_tx + tau, width, period_s, off_level.item(),
+                            half_window_s=max(6 * sigma, 2 * bs), tones_hz=tones_hz,
+                            width_sigma_s=width_sigma_s, ramp_s=ramp_s)
+        if fine is not None and fine[1] < sigma:
+            tau = float((fine[0] - c_tx) % period_s)
+            sigma = fine[1]
+    cut = margin_s + 3 * sigma
+    windows = _echo_windows(t_tx + tau + cut, width - 2 * cut, period_s, fs_hz, n)
     return GateEstimate(tau, sigma, windows, snr, detected, width)
+
+
+def gate_frame(x: np.ndarray, frame: Frame, settings: ChainSettings) -> GateEstimate | None:
+    """The stage: coarse gating of a pulsed frame (None for CW frames or with gating off).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), the validated detector signal (V)
+    frame : its frame, for the gate timing (``frame.pulse``) and the ``pulse_ref`` channel
+    """
+    if frame.pulse is None or settings.gate == "off":
+        return None
+    p = frame.pulse
+    ref = frame.volts("pulse_ref") if "pulse_ref" in frame.channels else None
+    return coarse_gate(x, frame.fs_hz, p.period_s, p.duty, p.delay_s, frame.tones_hz, ref,
+                       min_snr=settings.gate_min_snr)
+

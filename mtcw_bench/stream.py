@@ -1,6 +1,6 @@
 """Sustained frames/s and trigger-to-point latency of the streaming services.
 
-    .venv/bin/python bench/stream.py [--workers 1 2] [--seconds 20] [--scene cw-bench]
+    mtcw-bench-stream [--workers 1 2] [--seconds 20] [--scene cw-bench]
 
 Replays a recording of the scene (1e6-sample frames for cw-bench) through acquisition ->
 worker(s) -> API on loopback, each a separate process:
@@ -23,10 +23,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from services.supervisor import Supervisor, free_ports  # noqa: E402
+from services.supervisor import Supervisor, free_ports
 
 
 def deploy(recording: Path, workers: int, rate: float, policy: str, profile: str) -> tuple[Supervisor, str]:
@@ -88,12 +85,12 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--scene", default="cw-bench")
     ap.add_argument("--profile", default="balanced")
-    ap.add_argument("--out", type=Path, default=ROOT / "out" / "stream")
+    ap.add_argument("--out", type=Path, default=Path("out") / "stream")
     args = ap.parse_args()
     rec = args.out / f"{args.scene}"
     if not Path(str(rec) + ".sigmf-meta").exists():
         subprocess.run([sys.executable, "-m", "services.cli", "simulate", args.scene, "-o", str(rec), "-n", "8"],
-                       cwd=ROOT, check=True)
+                       check=True)
     rows = []
     for w in args.workers:
         thr = measure(rec, w, args.seconds, 0.0, "block", args.profile)
@@ -102,7 +99,7 @@ def main() -> None:
         print(json.dumps(rows[-1], indent=1), file=sys.stderr)
     print(json.dumps(rows, indent=1))
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "stream.json").write_text(json.dumps({"command": "python bench/stream.py " + " ".join(sys.argv[1:]),
+    (args.out / "stream.json").write_text(json.dumps({"command": "mtcw-bench-stream " + " ".join(sys.argv[1:]),
                                                       "rows": rows}, indent=1))
     print(f"\n| workers | frames/s (block) | chain median (ms) | rate for latency (/s) | p50 latency (ms) | "
           f"p99 latency (ms) | dropped |\n|---|---|---|---|---|---|---|")

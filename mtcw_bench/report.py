@@ -190,7 +190,7 @@ def write_report(result: dict, out: Path, command: str) -> Path:
     lines += ["", "## Targets", "", "| target | measured |", "| --- | --- |"]
     lines += [f"| {a} | {b} |" for a, b in _targets(cells, refs, sim) + _stream_targets(result.get("stream"))]
     if result.get("stream"):
-        lines += ["", f"Streaming figures: `{result['stream'].get('command', 'bench/stream.py')}` (1e6-sample frames "
+        lines += ["", f"Streaming figures: `{result['stream'].get('command', 'mtcw-bench-stream')}` (1e6-sample frames "
                       "replayed through acquisition -> workers -> API on loopback)."]
     lines += ["", "## Reading the bound", "",
               "The Cramér–Rao bound here is computed from the truth with white (shot + thermal) noise only. "

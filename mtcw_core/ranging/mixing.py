@@ -1,6 +1,6 @@
-"""Line extraction per family and IF mixing into pair observations.
+"""Stage ``mix``: IF mixing of the extracted lines into pair observations.
 
-A *family* is a set of lines, one per tone, that share the same nuisance phase:
+A *family* (:class:`~mtcw_core.dsp.extract.LineFamily`) is a set of lines, one per tone, that share the same nuisance phase:
 
 - ``S`` (static / self-beat): lines at ``f_i``. For a static target the two LO x sideband
   beats fall here with the common factor ``2*cos(psi)``; the echo self-beat always does and
@@ -14,49 +14,11 @@ laser phase noise, the sign of ``cos(psi)``), leaving ``(phi_i - phi_j) - 2*pi*(
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from ..ranging.triangulation import Observations
-
-
-@dataclass
-class LineFamily:
-    """Extracted lines of one family.
-
-    Attributes
-    ----------
-    name : str
-        ``"S"``, ``"U"`` or ``"L"``.
-    tone_hz : ndarray, shape (T,)
-        The tone each line belongs to (Hz).
-    line_hz : ndarray, shape (T,)
-        Where the line was measured (Hz, signed for IQ).
-    z : ndarray, shape (S, T), complex
-        Complex amplitude per segment, referred to each segment's centre, conjugated where the
-        line is a mirror image so that every line carries ``+ (phi_i - 2*pi*f_i*tau)``.
-    seg_centre_s : ndarray, shape (S,)
-        Segment centres relative to the record's first sample (s).
-    phase_var : ndarray, shape (T,)
-        Variance of each line's whole-record phase (rad^2) from the local noise floor.
-    target : int
-        Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
-        k-th Doppler line.
-    """
-
-    name: str
-    tone_hz: np.ndarray
-    line_hz: np.ndarray
-    z: np.ndarray
-    seg_centre_s: np.ndarray
-    phase_var: np.ndarray
-    target: int = 0
-
-    @property
-    def snr_db(self) -> np.ndarray:
-        """Post-integration line SNR, ``1/phase_var`` in dB (``N*A^2/(2*sigma^2)`` for a real tone)."""
-        return -10 * np.log10(self.phase_var)
+from ..dsp.extract import LineFamily
+from ..phase import wrap_pi
+from .triangulation import Observations
 
 
 def pair_observations(
@@ -84,7 +46,7 @@ def pair_observations(
                 prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, j]) * np.exp(-2j * np.pi * d * fam.seg_centre_s))
                 phase = np.angle(prod) - (tone_phases_rad[fi] - tone_phases_rad[fj])
                 df.append(d)
-                ph.append(float(np.angle(np.exp(1j * phase))))
+                ph.append(float(wrap_pi(phase)))
                 w.append(1.0 / (fam.phase_var[i] * fam.phase_var[j]))
     return Observations(np.asarray(df, float), np.asarray(ph, float), np.asarray(w, float))
 
@@ -125,3 +87,17 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
         chi2 += float(res @ np.linalg.solve(cov, res))
         dof += others.size
     return chi2, dof
+
+
+def mix(families: list[LineFamily], tone_phases_rad: dict[float, float], min_snr_db: float) -> dict[int, Observations]:
+    """The stage: pair observations of every target candidate (key: ``LineFamily.target``).
+
+    A candidate with no pair of lines above ``min_snr_db`` gets no entry.
+    """
+    out: dict[int, Observations] = {}
+    for k in sorted({f.target for f in families}):
+        obs = pair_observations([f for f in families if f.target == k], tone_phases_rad, min_snr_db)
+        if obs.df_hz.size:
+            out[k] = obs
+    return out
+

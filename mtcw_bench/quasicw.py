@@ -1,6 +1,6 @@
 """Cycle slips and coarse-gate honesty of the quasi-CW bench over many frames.
 
-    .venv/bin/python bench/quasicw.py --range 930 --frames 1000 [--profile balanced] [--out out/quasicw]
+    mtcw-bench-quasicw --range 930 --frames 1000 [--profile balanced] [--out out/quasicw]
 
 Simulates the bundled ``quasi-cw-long-range`` scene (130/510/710/950 MHz, 200 us period,
 20 % duty, 1e6 samples, 100 kHz linewidth, 40 dB loss) with the target moved to ``--range``,
@@ -23,13 +23,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from mtcw_core.chain import get_profile, process_frame  # noqa: E402
-from mtcw_core.ranging.triangulation import C  # noqa: E402
-from mtcw_core.scene import load_scene  # noqa: E402
-from mtcw_core.simulate import Simulator  # noqa: E402
+from mtcw_core.chain import get_profile, process_frame
+from mtcw_core.phase import C
+from mtcw_core.scene import load_scene, scene_variant
+from mtcw_core.simulate import Simulator
 
 
 def scene_at(range_m: float, loss_db: float | None = None):
@@ -37,7 +34,7 @@ def scene_at(range_m: float, loss_db: float | None = None):
     upd = {"range_m": range_m}
     if loss_db is not None:
         upd["loss_db"] = loss_db
-    return sc.model_copy(update={"targets": [sc.targets[0].model_copy(update=upd)]})
+    return scene_variant(sc, targets=[upd])
 
 
 def slips(range_m: float, frames: int, profile: str, seed: int) -> dict:
@@ -103,7 +100,7 @@ def main() -> None:
     ap.add_argument("--profile", default="balanced")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--loss-sweep", type=float, nargs="*", default=None, help="echo losses (dB) to sweep")
-    ap.add_argument("--out", type=Path, default=ROOT / "out" / "quasicw")
+    ap.add_argument("--out", type=Path, default=Path("out") / "quasicw")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.loss_sweep:

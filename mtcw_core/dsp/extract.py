@@ -1,0 +1,223 @@
+"""Stage ``extract``: the complex amplitude of every line the targets put in the record.
+
+The *line plan* (:func:`plan_lines`) lays out, per target candidate, the lines its physics
+predicts -- the static candidate's at ``f_i``, each Doppler line's at ``f_i +- f_d`` -- and
+marks those that cannot be told apart from another line. Extraction fits them all jointly by
+least squares at their exact frequencies (:mod:`.tones`), on the whole record, on segments
+(``settings.segments``), or on the echo windows of a quasi-CW record cut into segments short
+enough for the laser to stay coherent; or, for the ``seed`` profile, by the dissertation's
+resample + band-pass ``filtfilt`` + correlation path (:func:`seed_extract`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal as sps
+
+from ..frame import Frame
+from ..profiles import ChainSettings
+from ..results import Rejected
+from .doppler import DopplerEstimate, doppler_families
+from .spectrum import Spectrum
+from .tones import exact_dft, fit_lines, fit_lines_segments
+
+
+@dataclass
+class LineFamily:
+    """Extracted lines of one family.
+
+    Attributes
+    ----------
+    name : str
+        ``"S"``, ``"U"`` or ``"L"``.
+    tone_hz : ndarray, shape (T,)
+        The tone each line belongs to (Hz).
+    line_hz : ndarray, shape (T,)
+        Where the line was measured (Hz, signed for IQ).
+    z : ndarray, shape (S, T), complex
+        Complex amplitude per segment, referred to each segment's centre, conjugated where the
+        line is a mirror image so that every line carries ``+ (phi_i - 2*pi*f_i*tau)``.
+    seg_centre_s : ndarray, shape (S,)
+        Segment centres relative to the record's first sample (s).
+    phase_var : ndarray, shape (T,)
+        Variance of each line's whole-record phase (rad^2) from the local noise floor.
+    target : int
+        Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
+        k-th Doppler line.
+    """
+
+    name: str
+    tone_hz: np.ndarray
+    line_hz: np.ndarray
+    z: np.ndarray
+    seg_centre_s: np.ndarray
+    phase_var: np.ndarray
+    target: int = 0
+
+    @property
+    def snr_db(self) -> np.ndarray:
+        """Post-integration line SNR, ``1/phase_var`` in dB (``N*A^2/(2*sigma^2)`` for a real tone)."""
+        return -10 * np.log10(self.phase_var)
+
+
+
+def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings, fit_samples: int | None = None
+               ) -> tuple[list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
+    """Line families per target candidate, and every frequency to fit.
+
+    Candidate 0 is static (Doppler 0: the S lines of a real detector, the +-f_i lines of an IQ
+    one); candidate k >= 1 is the k-th Doppler line (U and L families). Lines that fall within
+    2 record-bins of lines already planned (or of each other) cannot be separated: they are
+    marked unusable and not fitted. ``fit_samples``: the length of the records the lines are
+    fitted on (a segment's, when extraction is segmented), which sets the resolution.
+
+    Returns
+    -------
+    families : list of (target, name, line freqs (Hz), conjugate mask, unusable mask), each (T,)
+    freqs : ndarray, every frequency to fit (Hz): the usable lines, then the extra lines modelled
+        (baseband Doppler lines, the IQ LO's 0 Hz, the MZM's products with ``model_products``)
+    """
+    t = np.asarray(frame.tones_hz, float)
+    res = 2 * frame.fs_hz / (fit_samples or frame.n)
+    none = np.zeros(t.size, bool)
+    # (target, name, line freqs, conj mask, unusable mask)
+    fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = []
+    if iq:  # a static target is the Doppler-0 case of the U/L layout
+        fams += [(0, name, f, conj, none) for name, f, conj in doppler_families(t, 0.0, True)]
+    else:
+        fams.append((0, "S", t.copy(), none, none))
+    used = np.concatenate([f for _, _, f, _, _ in fams])
+    extra: list[float] = []
+    for k, fd in enumerate(fds, start=1):
+        cand = [(k, name, f, conj) for name, f, conj in doppler_families(t, fd, iq)]
+        new = np.concatenate([f for _, _, f, _ in cand])
+        # a line within 2 bins of another (e.g. f_i + f_d = f_j - f_d at half the tone spacing,
+        # or another target's line) cannot be told apart: it is left out of this target
+        clash = np.abs(new[:, None] - used[None, :]).min(axis=1) <= res
+        d = np.where(np.eye(new.size, dtype=bool), np.inf, np.abs(new[:, None] - new[None, :]))
+        clash |= d.min(axis=1) <= res
+        for j, (kk, name, f, conj) in enumerate(cand):
+            bad = clash[j * t.size:(j + 1) * t.size]
+            fams.append((kk, name, f, conj, bad))
+            used = np.concatenate([used, f[~bad]])
+        extra.append(fd if iq else abs(fd))
+    if iq:
+        extra.append(0.0)  # the complex fit has no DC column: the LO's DC is a line at 0 Hz
+    if settings.model_products and not iq:
+        prods = [2 * a for a in t] + [a + b for i, a in enumerate(t) for b in t[i + 1:]] + \
+                [abs(a - b) for i, a in enumerate(t) for b in t[i + 1:]]
+        extra += [p for p in prods if p < frame.fs_hz / 2]
+    # a product line too close to a used line cannot be told apart: keep the used ones
+    keep = []
+    for f in extra:
+        if np.all(np.abs(used - f) > 1.5 * res) and all(abs(f - k) > 1.5 * res for k in keep) and (
+                abs(f) > 1.5 * res or (iq and f == 0.0)):
+            keep.append(f)
+    return fams, np.concatenate([used, np.asarray(keep, float)])
+
+
+def segment_starts(n: int, fs: float, settings: ChainSettings, windows: list[tuple[int, int]] | None,
+              fds: list[float] = ()) -> tuple[np.ndarray, int]:
+    """Segment starts and common length: the whole record in ``settings.segments`` parts, or
+    each echo window cut into pieces of ``gate_segment_s`` -- longer when a Doppler line ``fds``
+    (Hz) is found, so that a mover's lines ``f_i +- f_d`` lie 3 segment-bins from ``f_i`` and
+    are told apart from a static target's (the IF products cancel the laser's phase noise
+    whatever the length; a longer segment only spreads an incoherent line over more bins)."""
+    if not windows:
+        length = n // settings.segments
+        return np.arange(settings.segments) * length, length
+    span = sum(b - a for a, b in windows)
+    longest = max(b - a for a, b in windows)
+    want = max(64, round(settings.gate_segment_s * fs))
+    moving = [abs(f) for f in fds if f != 0.0]
+    if moving:
+        want = max(want, int(math.ceil(3 * fs / min(moving))))
+    length = int(min(want, longest, span))
+    starts = [a + k * length for a, b in windows for k in range((b - a) // length)]
+    if not starts:
+        raise Rejected("gate", f"echo windows ({span} samples) shorter than one segment")
+    return np.asarray(starts, dtype=np.int64), length
+
+
+def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
+                  settings: ChainSettings, windows: list[tuple[int, int]] | None = None) -> list[LineFamily]:
+    """The stage: complex amplitude of every used line, per segment, with its phase variance.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V
+    dops : the Doppler lines found (stage ``doppler``)
+    spec : the search spectrum, for the lines' local noise floors
+    windows : sample ranges ``[a, b)`` where a quasi-CW echo is on; extraction is restricted to them
+
+    Returns
+    -------
+    list of LineFamily, the static candidate's first (target 0), then each Doppler line's U and L
+    """
+    iq = np.iscomplexobj(x)
+    n = x.size
+    fs = frame.fs_hz
+    segmented = settings.extraction != "filter" and (windows or settings.segments > 1)
+    if segmented:
+        starts, length = segment_starts(n, fs, settings, windows, [d.fd_hz for d in dops if d.detected])
+    fams, all_f = plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
+                              length if segmented else None)
+    uniq = np.unique(np.round(all_f, 6))
+    if settings.extraction == "filter":
+        if windows:
+            raise Rejected("unsupported", "the seed's filter extraction has no quasi-CW gating")
+        z_all, centre = seed_extract(x, fs, uniq, settings)
+        z_all, centres = z_all[None, :], np.array([centre])
+    elif not windows and settings.segments == 1:
+        z_all, centres = fit_lines(x, uniq, fs)[None, :], np.array([(n - 1) / (2 * fs)])
+    else:
+        z_all = fit_lines_segments(x, starts, length, uniq, fs)
+        centres = (starts + (length - 1) / 2) / fs
+        n = int(starts.size * length)  # samples the amplitudes rest on
+    kappa = 0.5 if iq else 2.0
+    out = []
+    for target, name, freqs, conj, bad in fams:
+        idx = np.clip(np.searchsorted(uniq, np.round(freqs, 6)), 0, uniq.size - 1)
+        z = z_all[:, idx].copy()
+        z[:, conj] = np.conj(z[:, conj])
+        z[:, bad] = 0.0
+        amp2 = np.mean(np.abs(z) ** 2, axis=0)
+        s2 = np.array([spec.noise_variance(f, list(uniq)) for f in freqs])
+        var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
+        var[bad] = np.inf
+        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
+    return out
+
+
+def seed_extract(x: np.ndarray, fs: float, freqs: np.ndarray, settings: ChainSettings) -> tuple[np.ndarray, float]:
+    """The dissertation's path: resample, 1 MHz band-pass filtfilt, correlate with cosines.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64, V (single/balanced receivers only)
+    freqs : ndarray, shape (K,), the lines (Hz)
+
+    Returns
+    -------
+    (z, centre_s): complex amplitudes, shape (K,), referred to the resampled grid's centre,
+    which lies ``centre_s`` seconds after the record's first sample
+    """
+    if np.iscomplexobj(x):
+        raise Rejected("unsupported", "the seed profile handles single/balanced receivers only")
+    npts = settings.seed_points
+    y = sps.resample(x - x.mean(), npts)
+    fs2 = fs * npts / x.size
+    out = np.empty(freqs.size, complex)
+    bw = settings.seed_bandwidth_hz
+    for i, f in enumerate(freqs):
+        lo, hi = max(f - bw / 2, 1.0), min(f + bw / 2, fs2 / 2 * 0.999)
+        sos = sps.butter(2, [lo, hi], btype="bandpass", fs=fs2, output="sos")
+        # forward-backward (zero-phase) filtering; sosfiltfilt's initial-state solve is singular
+        # for a 1 MHz band at hundreds of GSa/s, so start both passes from rest instead
+        yf = sps.sosfilt(sos, sps.sosfilt(sos, y)[::-1])[::-1]
+        out[i] = exact_dft(yf, [f], fs2)[0] * 2 / npts
+    # amplitudes refer to the centre of the resampled grid, (npts-1)/(2*fs2) after the start
+    return out, (npts - 1) / (2 * fs2)

@@ -1,0 +1,100 @@
+"""The chain's settings, grouped by stage, and the named profiles users pick from.
+
+A profile is a named :class:`ChainSettings`: the speed–accuracy knob (``mtcw bench`` measures
+the trade). Sections follow the stage order of :data:`mtcw_core.chain.STAGES`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+
+class ChainSettings(BaseModel):
+    """Choices of every stage. A profile is a named ChainSettings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    profile: str = "custom"
+    # -- validate
+    max_clip_fraction: float = Field(1e-3, ge=0, le=1)
+    expected_tones_hz: tuple[float, ...] | None = None
+    expected_samples: int | None = None
+    # -- gate (quasi-CW frames only)
+    gate: Literal["auto", "off"] = "auto"
+    gate_k_sigma: float = Field(3.0, gt=0, description="the period is certain when k coarse sigmas stay within "
+                                                       "half the unambiguous range")
+    gate_min_snr: float = Field(8.0, gt=0)
+    # -- spectrum
+    doppler_fraction: float = Field(0.25, gt=0, le=1, description="part of the record used for the Doppler FFT")
+    window_beta: float = Field(14.0, ge=0)
+    spectrum_single: bool = Field(False, description="Doppler-search spectrum in single precision (~2x faster; "
+                                                     "line phases are fitted in float64 regardless)")
+    # -- doppler
+    doppler_min_bins: int = Field(4, ge=1)
+    doppler_threshold: float = Field(8.0, gt=0)
+    fd_max_hz: float | None = Field(None, gt=0, description="default: half the smallest tone spacing")
+    doppler_phase_lines: int | None = Field(None, ge=1, description="phase refinement: the strongest lines only")
+    doppler_refine: Literal["parabolic", "phase", "exact"] = Field(
+        "parabolic", description="below one Doppler-spectrum bin: parabola through the search scores, then "
+                                 "(phase) the phase advance of the lines across record quarters, or (exact) "
+                                 "maximising the exact line power")
+    max_targets: int = Field(3, ge=1, le=8, description="Doppler lines (moving targets) looked for")
+    # -- extract
+    extraction: Literal["ls", "filter"] = "ls"
+    model_products: bool = False
+    segments: int = Field(1, ge=1)
+    gate_segment_s: float = Field(100e-9, gt=0, description="segment length in quasi-CW echo windows; short "
+                                                          "enough for the laser to stay coherent")
+    seed_points: int = Field(2**23, ge=2**10, description="the seed's extraction path: resampled length")
+    seed_bandwidth_hz: float = Field(1e6, gt=0, description="the seed's extraction path: band-pass width")
+    # -- mix
+    min_line_snr_db: float = Field(10.0, description="post-integration SNR for a line to be used")
+    # -- resolve
+    method: Literal["ml", "seed"] = "ml"
+    points_per_cycle: int = Field(16, ge=4)
+    range_min_m: float = -0.05
+    range_max_m: float | None = None
+    blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
+                                                        "cannot explain them: flagged blended")
+    # -- select
+    self_beat_margin_db: float = Field(15.0, ge=0, description="a static candidate this far below the movers' "
+                                                               "lines is taken for their self-beat")
+    incoherent_residual_rad: float = Field(0.25, gt=0, description="a moving candidate whose line phases miss one "
+                                                                   "range by this much (rms) at > 25 dB is noise")
+
+
+PROFILES: dict[str, ChainSettings] = {
+    # Doppler from 1/8 of the record, plain LS at known lines, coarse ML grid.
+    "fast": ChainSettings(profile="fast", doppler_fraction=1 / 8, points_per_cycle=8, spectrum_single=True,
+                          doppler_refine="phase", doppler_phase_lines=3),
+    # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
+    "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0, spectrum_single=True, doppler_refine="phase"),
+    # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
+    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="exact",
+                              model_products=True, points_per_cycle=32),
+    # The dissertation: resample to 2^23, 1 MHz 2nd-order Butterworth filtfilt per line,
+    # correlation with zero-phase cosines, candidate-matrix triangulation.
+    "seed": ChainSettings(profile="seed", doppler_fraction=1.0, extraction="filter", method="seed"),
+}
+
+
+def get_profile(name: str, **overrides) -> ChainSettings:
+    """A named profile, with ``overrides`` validated like the profile itself.
+
+    Raises
+    ------
+    ValueError
+        Unknown profile, or an override that is not a valid setting (the message names it).
+    """
+    if name not in PROFILES:
+        raise ValueError(f"profile: unknown {name!r} (one of {', '.join(PROFILES)})")
+    base = PROFILES[name]
+    if not overrides:
+        return base
+    try:
+        return ChainSettings.model_validate({**base.model_dump(), **overrides})
+    except ValidationError as err:
+        e = err.errors()[0]
+        raise ValueError(f"profile {name}: {'.'.join(map(str, e['loc']))}: {e['msg']}") from None

@@ -1,0 +1,180 @@
+"""Stages ``resolve`` and ``select``: each candidate's range, speed and sigma; which candidates are targets.
+
+``resolve`` (:func:`resolve_targets`) turns every target candidate's pair observations into a
+:class:`~mtcw_core.results.TargetPoint`: cycle resolution (``ml`` or the dissertation's
+``seed``), the Fisher sigma of the used lines, scaled by the Birge ratio when the line phases
+disagree with one range beyond their noise, and the velocity from the Doppler line.
+
+``select`` (:func:`select_targets`) is the policy that decides which candidates are real
+targets: the static candidate beside movers is often their own self-beat, a weak "mover" at a
+static target's range is its phase-noise sidebands, and a "mover" with random line phases at
+high SNR is the skirt of an incoherent line.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..dsp.doppler import DopplerEstimate
+from ..dsp.extract import LineFamily
+from ..frame import Frame
+from ..phase import C
+from ..profiles import ChainSettings
+from ..results import TargetPoint
+from .mixing import consistency
+from .triangulation import Observations, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What the calibration (or the frame) says of the instrument: each tone's RF phase (rad)
+    and the internal delay ``tau0_s`` (s)."""
+
+    tone_phases_rad: dict[float, float]
+    tau0_s: float
+
+
+def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool) -> tuple[float, float, str]:
+    """Radial speed (m/s), its sigma (m/s) and direction from a target's Doppler line.
+
+    The sigma combines the frequency Cramér–Rao bound of the target's Doppler-shifted lines, the
+    refinement's own error and the line's wander (incoherent laser), with a floor of 0.001 bin.
+    A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma.
+    """
+    lam = frame.wavelength_m
+    n, fs = frame.n, frame.fs_hz
+    if not dop.detected:
+        return 0.0, dop.min_detectable_hz * lam / 2, "static"
+    inv_var = 0.0
+    for fam in families:
+        if fam.name == "S":
+            continue
+        # CRB of a sinusoid's frequency: var_f = 3*s2*fs^2/(pi^2*A^2*N^3) (real), 1.5 (complex)
+        # expressed with the phase variance 2*s2/(N*A^2) (real) or s2/(2*N*A^2) (complex)
+        c = 1.5 if not iq else 3.0
+        var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
+        inv_var += float(np.sum(1 / var_f))
+    sig_f = 1 / math.sqrt(inv_var) if inv_var > 0 else math.inf
+    sig_f = max(math.hypot(sig_f, dop.refine_error_hz, dop.wander_hz), 1e-3 * fs / n)
+    if iq:
+        v = -dop.fd_hz * lam / 2
+        return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"
+    return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown"
+
+
+def median_snr(p: TargetPoint) -> float:
+    """Median SNR of a point's lines (dB): one strong line does not make a target strong."""
+    return float(np.median(list(p.tone_snr_db.values())))
+
+
+def _search_interval(settings: ChainSettings, l_unamb: float, coarse: tuple[float, float] | None
+                     ) -> tuple[float, float, bool]:
+    """The range interval searched (m), and whether the coarse range leaves the period in doubt.
+
+    The phases fix the range modulo ``l_unamb``; a quasi-CW coarse range interval picks the
+    period centred on it.
+    """
+    if coarse is None:
+        lo = settings.range_min_m
+        hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
+        return lo, hi, False
+    centre, half = 0.5 * (coarse[0] + coarse[1]), 0.5 * (coarse[1] - coarse[0])
+    return centre - 0.5 * l_unamb, centre + 0.5 * l_unamb, half >= 0.5 * l_unamb
+
+
+def _tone_snr(fams: list[LineFamily]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for f in fams:
+        for tone, snr in zip(f.tone_hz, f.snr_db):
+            key = f"{tone:.0f}"
+            out[key] = max(out.get(key, -np.inf), float(snr))
+    return out
+
+
+def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate, frame: Frame,
+                 settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None) -> TargetPoint:
+    """One candidate's point: cycle resolution, sigma, consistency, velocity.
+
+    Parameters
+    ----------
+    fams : the candidate's line families; obs : their pair observations (stage ``mix``)
+    dop : the candidate's Doppler line (not detected for the static candidate)
+    coarse : the quasi-CW coarse range interval (m), or None
+    """
+    l_unamb = unambiguous_range(obs.df_hz)
+    lo, hi, ambiguous = _search_interval(settings, l_unamb, coarse)
+    if settings.method == "seed":
+        sol = resolve_seed(obs, ref.tau0_s, hi, lo)
+    else:
+        sol = resolve_ml(obs, ref.tau0_s, (lo, hi), settings.points_per_cycle)
+    ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
+    used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
+    sigma = fisher_sigma([f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used])
+    # do the line phases agree with one range within their noise? (Birge ratio)
+    chi2, dof = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
+    ratio = chi2 / dof if dof > 0 else 1.0
+    if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
+        sigma *= math.sqrt(ratio)
+    v, vs, direction = velocity(dop, frame, fams, frame.receiver == "iq")
+    return TargetPoint(
+        range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
+        snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
+        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
+        blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
+        tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m,
+    )
+
+
+def resolve_targets(families: list[LineFamily], observations: dict[int, Observations], dops: list[DopplerEstimate],
+                    frame: Frame, settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None
+                    ) -> tuple[list[tuple[int, TargetPoint]], float | None]:
+    """The stage: a point per candidate that has observations, and the largest unambiguous range (m).
+
+    Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line.
+    """
+    static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, dops[0].min_detectable_hz)
+    moving = [d for d in dops if d.detected]
+    points: list[tuple[int, TargetPoint]] = []
+    l_unamb = None
+    for k, obs in sorted(observations.items()):
+        fam_k = [f for f in families if f.target == k]
+        points.append((k, solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse)))
+        lu = unambiguous_range(obs.df_hz)
+        l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+    return points, l_unamb
+
+
+def _same_range(a: TargetPoint, b: TargetPoint) -> bool:
+    return abs(a.range_m - b.range_m) < max(5 * math.hypot(a.range_sigma_m, b.range_sigma_m), 1e-3)
+
+
+def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings) -> list[TargetPoint]:
+    """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
+
+    - A "moving target" whose line phases are random at high SNR is the wings of the static
+      lines (a laser incoherent at the echo's delay), not a target: dropped when a static
+      target is there.
+    - The static candidate of a frame with moving targets is often their own self-beat
+      (``|E_echo|^2`` has no Doppler): at a mover's range, or far weaker than the movers' LO
+      beats (a self-beat is ``sqrt(P_echo/P_lo)`` below them), it is not a second target.
+    - A weak "mover" at the static target's range is that target's own phase-noise sidebands
+      (they carry its tone phases): of two candidates at one range, the stronger is the target.
+    """
+    if any(k == 0 for k, _ in points):
+        points = [(k, p) for k, p in points if k == 0 or not (
+            p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0)]
+    static = next((p for k, p in points if k == 0), None)
+    movers = [p for k, p in points if k > 0]
+    if static is not None and movers:
+        loudest = max(median_snr(m) for m in movers)
+        twins = [m for m in movers if _same_range(static, m)]
+        if median_snr(static) < loudest - settings.self_beat_margin_db or any(
+                median_snr(m) >= median_snr(static) for m in twins):
+            points = [(k, p) for k, p in points if k > 0]
+        else:
+            points = [(k, p) for k, p in points if not any(p is m for m in twins)]
+    return [p for _, p in sorted(points, key=lambda kp: -median_snr(kp[1]))]

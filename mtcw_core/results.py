@@ -1,0 +1,108 @@
+"""What the chain returns for a frame, and the two ways a frame ends early.
+
+A leaf module: every stage may raise :class:`Rejected` or :class:`NoTarget`, and the runner
+(:mod:`mtcw_core.chain`) turns them into a :class:`FrameResult`; nothing imports back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+#: ``ok``: at least one target; ``no_target``: a valid frame with nothing rangeable in it;
+#: ``rejected``: the frame itself is bad (``reason`` says why).
+Status = Literal["ok", "no_target", "rejected"]
+
+#: ``receding``/``approaching`` need the sign of the Doppler (IQ receiver); a single or balanced
+#: detector sees ``|f_d|`` only (``unknown``); ``static`` when no Doppler line was found.
+Direction = Literal["receding", "approaching", "unknown", "static"]
+
+
+class Rejected(Exception):
+    """A frame that cannot be processed; ``reason`` is a short machine-readable key."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+class NoTarget(Exception):
+    """A valid frame in which nothing can be ranged (no echo pulse, too few lines); the message says why."""
+
+
+@dataclass
+class TargetPoint:
+    """One target's range and speed with their one-sigma uncertainties.
+
+    Attributes
+    ----------
+    range_m, range_sigma_m : float
+        Range (m, from the calibration's zero) and its standard deviation (m).
+    velocity_mps, velocity_sigma_mps : float
+        Radial speed (m/s; signed only for an IQ receiver, positive receding) and its sigma. A
+        static target reports 0 with the smallest detectable speed as its sigma.
+    direction : Direction
+    snr_db : float
+        Post-integration SNR of the target's strongest line (dB).
+    margin : float
+        ``1 - J(second peak)/J(best)`` of the cycle-resolution cost, in [0, 1].
+    residual_rms_rad : float
+        RMS of the pair-phase residuals at the solution (rad).
+    near_edge, cycle_ambiguous, blended : bool
+        The solution lies near the search interval's edge; the coarse range could not pick one
+        cycle; the line phases are not those of one target (sigma Birge-scaled).
+    doppler_hz : float
+        The target's Doppler line (Hz; signed for IQ; 0 for the static target).
+    chi2_per_dof : float
+        Line-phase consistency; the sigma is scaled by its root when significant.
+    tone_snr_db : dict
+        Best line SNR per tone (key: tone frequency in Hz, formatted ``%.0f``).
+    seed_sigma_k_m : float or None
+        The dissertation's candidate-matrix row spread (m), ``seed`` method only.
+    """
+
+    range_m: float
+    range_sigma_m: float
+    velocity_mps: float
+    velocity_sigma_mps: float
+    direction: Direction
+    snr_db: float
+    margin: float
+    residual_rms_rad: float = 0.0
+    near_edge: bool = False
+    cycle_ambiguous: bool = False
+    blended: bool = False
+    doppler_hz: float = 0.0
+    chi2_per_dof: float = 1.0
+    tone_snr_db: dict[str, float] = field(default_factory=dict)
+    seed_sigma_k_m: float | None = None
+
+
+@dataclass
+class FrameResult:
+    """The chain's answer for one frame.
+
+    ``targets`` are sorted strongest first. ``stage_seconds`` holds the wall time of every stage
+    that ran, keyed by the stage names of :data:`mtcw_core.chain.STAGES`, in their order.
+    ``coarse_range_m``/``coarse_sigma_m`` (m) come from quasi-CW gating; ``doppler_hz`` is the
+    strongest target's Doppler line (Hz).
+    """
+
+    status: Status
+    profile: str
+    seq: int = 0
+    t_ns: int = 0
+    source: str = ""
+    reason: str | None = None
+    targets: list[TargetPoint] = field(default_factory=list)
+    unambiguous_range_m: float | None = None
+    coarse_range_m: float | None = None
+    coarse_sigma_m: float | None = None
+    doppler_hz: float | None = None
+    calibrated: bool = False
+    clip_fraction: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
