@@ -114,7 +114,7 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
 
 def run_grid(spec: GridSpec, progress: Callable[[str], None] | None = None) -> dict:
     """Every cell of the grid, plus reference costs per record length. Returns a JSON-able dict."""
-    cells, refs, sims = [], {}, []
+    cells, refs = [], {}
     for name in spec.scenes:
         for loss in spec.losses_db:
             sc = _scene_variant(name, loss, spec.samples)

@@ -11,47 +11,72 @@ delay, searched over ``[0, tau0_max]``) and per-tone residual phases; applying
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 FORMAT_VERSION = 1
 
 
 class CalibrationError(ValueError):
-    pass
+    """A calibration file that cannot be used; the message names the file and the field."""
 
 
-@dataclass(frozen=True)
-class Calibration:
-    tones_hz: tuple[float, ...]
+class Calibration(BaseModel):
+    """Tone phase offsets and the internal delay, as measured on a reflector at a known range.
+
+    Attributes
+    ----------
+    tones_hz : tuple of float, the tone plan it was measured with (Hz); frames with another plan
+        are rejected (``calibration_mismatch``)
+    tone_phases_rad : tuple of float, each tone's residual RF phase (rad), same length
+    tau0_s : float, the internal round-trip delay (s)
+    known_range_m, frames_used, phase_std_rad, source, created : provenance
+    version : the file format's version
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    tones_hz: tuple[float, ...] = Field(min_length=2)
     tone_phases_rad: tuple[float, ...]
     tau0_s: float
     known_range_m: float = 0.0
-    frames_used: int = 0
+    frames_used: int = Field(0, ge=0)
     phase_std_rad: tuple[float, ...] = ()
     source: str = ""
     created: str = ""
-    version: int = FORMAT_VERSION
+    version: Literal[1] = FORMAT_VERSION
+
+    @model_validator(mode="after")
+    def _same_length(self) -> "Calibration":
+        if len(self.tones_hz) != len(self.tone_phases_rad):
+            raise ValueError("tones_hz and tone_phases_rad differ in length")
+        if any(f <= 0 for f in self.tones_hz) or len(set(self.tones_hz)) != len(self.tones_hz):
+            raise ValueError("tones_hz must be positive and distinct")
+        return self
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(asdict(self), indent=2) + "\n")
+        Path(path).write_text(self.model_dump_json(indent=2) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":
+        """Read and validate a calibration file (JSON).
+
+        Raises
+        ------
+        CalibrationError
+            Unreadable file, not JSON, not an object, unknown or missing keys, wrong types,
+            non-finite numbers, mismatched lengths; the message names the field.
+        """
         try:
-            d = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as err:
+            text = Path(path).read_bytes()
+        except OSError as err:
             raise CalibrationError(f"cannot read calibration {path}: {err}") from None
-        for key in ("tones_hz", "tone_phases_rad", "tau0_s"):
-            if key not in d:
-                raise CalibrationError(f"calibration {path}: missing key {key!r}")
-        if d.get("version", 1) != FORMAT_VERSION:
-            raise CalibrationError(f"calibration {path}: version {d.get('version')} unsupported")
-        if len(d["tones_hz"]) != len(d["tone_phases_rad"]):
-            raise CalibrationError(f"calibration {path}: tones_hz and tone_phases_rad differ in length")
-        d["tones_hz"] = tuple(d["tones_hz"])
-        d["tone_phases_rad"] = tuple(d["tone_phases_rad"])
-        d["phase_std_rad"] = tuple(d.get("phase_std_rad", ()))
-        return cls(**d)
+        try:
+            return cls.model_validate_json(text)
+        except ValidationError as err:
+            e = err.errors()[0]
+            loc = ".".join(str(x) for x in e["loc"]) or "(file)"
+            raise CalibrationError(f"calibration {path}: {loc}: {e['msg']}") from None

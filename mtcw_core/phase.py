@@ -8,6 +8,7 @@ loses the phase; see ``tests/test_phase.py`` for the hazard measured.
 from __future__ import annotations
 
 import math
+from functools import reduce
 
 import numpy as np
 
@@ -58,3 +59,12 @@ def tone_cycles(f_hz: float, fs_hz: float, n: int, offset_cycles: float = 0.0, s
 def wrap_pi(x: np.ndarray | float) -> np.ndarray | float:
     """Wrap a phase (rad) into [-pi, pi)."""
     return (np.asarray(x) + np.pi) % (2 * np.pi) - np.pi
+
+
+def unambiguous_range(df_hz, resolution_hz: float = 1.0) -> float:
+    """``c / (2*g)`` (m) with g the gcd of the frequency differences ``df_hz`` (Hz), on a
+    ``resolution_hz`` grid: the range over which pair phases at those differences repeat."""
+    ints = [int(round(d / resolution_hz)) for d in np.atleast_1d(df_hz)]
+    g = reduce(math.gcd, ints) * resolution_hz
+    return C / (2 * g)
+

@@ -21,6 +21,14 @@ class ChainSettings(BaseModel):
     max_clip_fraction: float = Field(1e-3, ge=0, le=1)
     expected_tones_hz: tuple[float, ...] | None = None
     expected_samples: int | None = None
+    # limits on what a frame may ask of a worker, checked before any work (a frame's header sets
+    # the tone plan and the record length; one hostile frame must not hold a worker for minutes)
+    max_tones: int = Field(16, ge=2, description="tones in a frame's plan")
+    max_samples: int = Field(2**25, ge=256, description="samples per channel")
+    max_grid_points: int = Field(2**22, ge=1024, description="cycle-search grid: the searched range span over "
+                                                              "the grid step (finest synthetic wavelength / "
+                                                              "points_per_cycle); a tone plan whose gcd is a few Hz "
+                                                              "spans millions of km")
     # -- gate (quasi-CW frames only)
     gate: Literal["auto", "off"] = "auto"
     gate_k_sigma: float = Field(3.0, gt=0, description="the period is certain when k coarse sigmas stay within "

@@ -11,7 +11,6 @@ phase advance across the record (:func:`refine_by_phase`) or the exact line powe
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -87,19 +86,34 @@ def fd_max(tones: tuple[float, ...], settings: ChainSettings) -> float:
     return 0.5 * min(b - a for a, b in zip(t, t[1:]))
 
 
+def _l1_ball(dims: int, radius: int):
+    """Every integer vector of length ``dims`` with ``sum|n_i| <= radius`` (a few thousand for 10
+    tones at radius 4, where the cube ``(2*radius + 1)**dims`` holds 3.5e9)."""
+    if dims == 0:
+        yield ()
+        return
+    for n0 in range(-radius, radius + 1):
+        for rest in _l1_ball(dims - 1, radius - abs(n0)):
+            yield (n0, *rest)
+
+
 @lru_cache(maxsize=64)
 def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: int | None = None) -> np.ndarray:
     """|sum_i n_i*f_i| for integer n with sum|n_i| <= order (5 for up to 4 tones, else 4), below f_max.
 
     These static lines (MZM harmonics and intermodulation) sit at fixed frequencies; a Doppler
     candidate whose baseband line falls on one of them is a blind speed of the tone plan.
+
+    Returns
+    -------
+    ndarray, sorted unique frequencies (Hz) in ``(0, f_max_hz]``
     """
     t = np.asarray(tones_hz, float)
     if order is None:
         order = 5 if t.size <= 4 else 4
     out = set()
-    for n in itertools.product(range(-order, order + 1), repeat=t.size):
-        if 0 < sum(map(abs, n)) <= order:
+    for n in _l1_ball(t.size, order):
+        if any(n):
             f = abs(float(np.dot(n, t)))
             if 0 < f <= f_max_hz:
                 out.add(f)

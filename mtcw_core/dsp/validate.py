@@ -1,8 +1,10 @@
 """Stage ``validate``: digitizer codes to volts, and the checks a frame must pass first.
 
 A frame that fails raises :class:`~mtcw_core.results.Rejected` with a short reason key
-(``bad_fs``, ``bad_shape``, ``too_short``, ``length_mismatch``, ``tone_plan``,
-``calibration_mismatch``, ``bad_channels``, ``non_finite``, ``flat``, ``clipped``).
+(``bad_fs``, ``bad_shape``, ``too_short``, ``too_long``, ``length_mismatch``, ``tone_plan``,
+``calibration_mismatch``, ``bad_channels``, ``non_finite``, ``flat``, ``clipped``). The limits on
+what a frame may ask for (tones, record length, cycle-search grid) are checked first, before any
+work that grows with them.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..frame import Frame
+from ..phase import C, unambiguous_range
 from ..profiles import ChainSettings
 from ..results import Rejected
 
@@ -39,12 +42,46 @@ def rail_fraction(r: np.ndarray, rail) -> float:
     return float(np.count_nonzero(stuck)) / r.size
 
 
+def search_grid_points(tones_hz, settings: ChainSettings, pulsed: bool) -> float:
+    """Points of the cycle-resolution grid a tone plan asks for: the searched span (the
+    configured range interval for CW frames when set, else the plan's unambiguous range) over
+    the grid step (the finest synthetic wavelength over ``points_per_cycle``)."""
+    t = sorted(float(f) for f in tones_hz)
+    diffs = [b - a for a, b in zip(t, t[1:])]
+    span = unambiguous_range(diffs)
+    if settings.range_max_m is not None and not pulsed:
+        span = min(span, settings.range_max_m - settings.range_min_m)
+    step = C / (2 * (t[-1] - t[0])) / settings.points_per_cycle
+    return span / step
+
+
+def _check_limits(frame: Frame, settings: ChainSettings) -> None:
+    """What a frame may ask of a worker, before anything is computed."""
+    if frame.n > settings.max_samples:
+        raise Rejected("too_long", f"{frame.n} samples per channel (limit {settings.max_samples})")
+    tones = frame.tones_hz
+    if len(tones) > settings.max_tones:
+        raise Rejected("tone_plan", f"{len(tones)} tones (limit {settings.max_tones})")
+    if not all(isinstance(f, (int, float)) and math.isfinite(f) for f in tones) or len(set(tones)) != len(tones):
+        raise Rejected("tone_plan", f"tones {list(tones)} must be finite and distinct")
+    if len(tones) >= 2 and all(0 < f < frame.fs_hz / 2 for f in tones):
+        pts = search_grid_points(tones, settings, frame.pulse is not None)
+        if pts > settings.max_grid_points:
+            t = sorted(tones)
+            l_unamb = unambiguous_range([b - a for a, b in zip(t, t[1:])])
+            raise Rejected("tone_plan", f"tones {list(tones)} repeat only every {l_unamb:.3g} m: "
+                                        f"the cycle search would need {pts:.3g} grid points "
+                                        f"(limit {settings.max_grid_points}; put the tones on a coarser grid, "
+                                        f"or set range_max_m)")
+
+
 def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration | None) -> None:
     """Sample rate, shape, length, tone plan and channels against the frame and the settings."""
     if not (frame.fs_hz > 0 and math.isfinite(frame.fs_hz)):
         raise Rejected("bad_fs", f"fs_hz={frame.fs_hz!r}")
     if frame.samples.ndim != 2 or frame.samples.shape[0] != len(frame.channels):
         raise Rejected("bad_shape", f"samples shape {frame.samples.shape} vs channels {list(frame.channels)}")
+    _check_limits(frame, settings)
     if frame.n < 256:
         raise Rejected("too_short", f"{frame.n} samples (need >= 256)")
     if settings.expected_samples is not None and frame.n != settings.expected_samples:

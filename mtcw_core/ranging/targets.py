@@ -152,8 +152,15 @@ def _same_range(a: TargetPoint, b: TargetPoint) -> bool:
     return abs(a.range_m - b.range_m) < max(5 * math.hypot(a.range_sigma_m, b.range_sigma_m), 1e-3)
 
 
+def is_finite(p: TargetPoint) -> bool:
+    """Range, speed and both sigmas are finite numbers (a sigma of inf is no measurement)."""
+    return all(math.isfinite(v) for v in (p.range_m, p.range_sigma_m, p.velocity_mps, p.velocity_sigma_mps))
+
+
 def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings) -> list[TargetPoint]:
     """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
+
+    - A candidate without a finite range, speed and sigmas is no measurement: never reported.
 
     - A "moving target" whose line phases are random at high SNR is the wings of the static
       lines (a laser incoherent at the echo's delay), not a target: dropped when a static
@@ -164,6 +171,7 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     - A weak "mover" at the static target's range is that target's own phase-noise sidebands
       (they carry its tone phases): of two candidates at one range, the stronger is the target.
     """
+    points = [(k, p) for k, p in points if is_finite(p)]
     if any(k == 0 for k, _ in points):
         points = [(k, p) for k, p in points if k == 0 or not (
             p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0)]

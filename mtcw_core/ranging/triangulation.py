@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import reduce
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from ..phase import C, wrap_pi
+from ..phase import C, unambiguous_range, wrap_pi
 
 
 @dataclass(frozen=True)
@@ -43,13 +42,6 @@ class Observations:
     @property
     def synthetic_wavelengths_m(self) -> np.ndarray:
         return C / (2 * self.df_hz)
-
-
-def unambiguous_range(df_hz, resolution_hz: float = 1.0) -> float:
-    """``c / (2*g)`` with g the gcd of the frequency differences, on a ``resolution_hz`` grid."""
-    ints = [int(round(d / resolution_hz)) for d in np.atleast_1d(df_hz)]
-    g = reduce(math.gcd, ints) * resolution_hz
-    return C / (2 * g)
 
 
 @dataclass(frozen=True)
