@@ -174,11 +174,12 @@ def scene_from_dict(data: dict, origin: str = "<dict>") -> Scene:
 
 
 def _merge(base, change):
-    """``change`` laid over ``base``: mappings merge key by key, a list of mappings merges item by
-    item (extra items appended), anything else replaces."""
+    """``change`` laid over ``base``: mappings merge key by key, a non-empty list of mappings
+    merges item by item (extra items appended, the base's remaining items kept), anything else
+    -- an empty list too -- replaces."""
     if isinstance(base, dict) and isinstance(change, dict):
         return {**base, **{k: _merge(base.get(k), v) for k, v in change.items()}}
-    if isinstance(base, list) and isinstance(change, list) and all(isinstance(c, dict) for c in change):
+    if isinstance(base, list) and isinstance(change, list) and change and all(isinstance(c, dict) for c in change):
         merged = [_merge(b, c) for b, c in zip(base, change)]
         return merged + list(change[len(base):]) + list(base[len(change):])
     return change

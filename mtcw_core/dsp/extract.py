@@ -136,7 +136,7 @@ def segment_starts(n: int, fs: float, settings: ChainSettings, windows: list[tup
     if moving:
         want = max(want, int(math.ceil(3 * fs / min(moving))))
     length = int(min(want, longest, span))
-    starts = [a + k * length for a, b in windows for k in range((b - a) // length)]
+    starts = [a + k * length for a, b in windows for k in range((b - a) // length)] if length > 0 else []
     if not starts:
         raise Rejected("gate", f"echo windows ({span} samples) shorter than one segment")
     return np.asarray(starts, dtype=np.int64), length

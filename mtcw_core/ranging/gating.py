@@ -407,6 +407,8 @@ def refine_edges(x: np.ndarray, fs_hz: float, t_start_s: float, width_s: float, 
     info_spacing = ramp / 0.75  # noise-equivalent spacing of independent samples of a Hann band
     gstep = max(ramp / 16, 0.5)
     grid = np.arange(-hw + ramp, hw - ramp, gstep)  # offsets from the prediction, samples
+    if grid.size < 3:
+        return None  # a window shorter than the band filters' rise holds no edge to fit
     total = {True: np.zeros(grid.size), False: np.zeros(grid.size)}  # rising, falling
     used = 0
     for t0 in _gate_starts(t_start_s, width_s, period_s, n / fs_hz):

@@ -1,0 +1,255 @@
+"""mtcw_core.dsp.doppler: line layout, blind speeds, the Doppler search and its refinements.
+
+Records are built by hand: a baseband line at f_d, the pair f_i +- f_d around every tone and the
+static lines at f_i, in white noise; the Doppler search must find f_d and nothing else.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mtcw_core.dsp.doppler import (DopplerEstimate, doppler_families, estimate_doppler, fd_max,
+                                   intermod_frequencies, refine_by_phase, refine_exact, search_doppler,
+                                   sideband_freqs, target_lines)
+from mtcw_core.dsp.spectrum import power_spectrum
+from mtcw_core.frame import Frame
+from mtcw_core.profiles import ChainSettings, get_profile
+
+FS = 1.0e9
+N = 2**14
+DF = FS / N  # 61 kHz
+TONES = (100e6, 170e6, 260e6)  # spacing 70 and 90 MHz: f_d up to 35 MHz searched
+FDMAX = 35e6
+LAM = 1.064e-6
+
+
+def cyc(f, n=N):
+    return np.mod(np.arange(n) * (f / FS), 1.0)
+
+
+def real_record(targets=((5.3e6 + 0.37 * DF, 1.0, 0.3),), static=0.5, noise=1e-3, seed=0, extra=(), n=N):
+    """targets: (fd, baseband amplitude, sideband amplitude); extra: (f, amplitude) spurs."""
+    rng = np.random.default_rng(seed)
+    x = noise * rng.standard_normal(n)
+    for f in TONES:
+        x += static * np.cos(2 * np.pi * cyc(f, n) + 0.1 * f / 1e6)
+    for fd, a0, a1 in targets:
+        x += a0 * np.cos(2 * np.pi * cyc(fd, n) + 0.3)
+        for i, f in enumerate(TONES):
+            x += a1 * np.cos(2 * np.pi * cyc(f + fd, n) + 0.7 * i)
+            x += a1 * np.cos(2 * np.pi * cyc(f - fd, n) - 0.4 * i)
+    for f, a in extra:
+        x += a * np.cos(2 * np.pi * cyc(f, n) + 1.1)
+    return x
+
+
+def iq_record(fd, a0=1.0, a1=0.3, static=0.5, noise=1e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    x = noise * (rng.standard_normal(N) + 1j * rng.standard_normal(N)) / np.sqrt(2)
+    e = lambda f, p=0.0: np.exp(1j * (2 * np.pi * cyc(f) + p))  # noqa: E731
+    for i, f in enumerate(TONES):
+        x += static * (e(f, 0.2 * i) + e(-f, -0.2 * i))
+        x += a1 * (e(fd + f, 0.5 * i) + e(fd - f, -0.3 * i))
+    x += a0 * e(fd, 0.9)
+    return x
+
+
+def frame_of(x):
+    if np.iscomplexobj(x):
+        return Frame(np.stack([x.real, x.imag]), FS, TONES, LAM, receiver="iq", channels=("i", "q"))
+    return Frame(x[None, :], FS, TONES, LAM)
+
+
+class TestLineLayout:
+    def test_doppler_families_real(self):
+        fams = doppler_families([100.0, 20.0], 30.0, iq=False)
+        (nu, fu, cu), (nl, fl, cl) = fams
+        assert (nu, nl) == ("U", "L")
+        np.testing.assert_array_equal(fu, [130.0, 50.0])
+        np.testing.assert_array_equal(fl, [70.0, 10.0])  # |20 - 30| folds through 0 Hz
+        np.testing.assert_array_equal(cu, [False, False])
+        np.testing.assert_array_equal(cl, [False, True])
+
+    def test_doppler_families_iq_signed(self):
+        (_, fu, cu), (_, fl, cl) = doppler_families([100.0, 20.0], -30.0, iq=True)
+        np.testing.assert_array_equal(fu, [70.0, -10.0])
+        np.testing.assert_array_equal(fl, [-130.0, -50.0])
+        assert not cu.any() and cl.all()
+
+    def test_target_lines_real_slopes(self):
+        f, s = target_lines([100.0, 20.0], 30.0, iq=False)
+        np.testing.assert_array_equal(f, [30.0, 130.0, 50.0, 70.0, 10.0])
+        # d(line)/d(fd): baseband +1, U +1, L -1 unless folded (|f - fd| grows with fd)
+        np.testing.assert_array_equal(s, [1, 1, 1, -1, 1])
+        # numerically: (f(fd + h) - f(fd))/h
+        h = 1e-3
+        f2, _ = target_lines([100.0, 20.0], 30.0 + h, iq=False)
+        np.testing.assert_allclose((f2 - f) / h, s, atol=1e-6)
+
+    def test_target_lines_negative_fd_real(self):
+        f, s = target_lines([100.0], -5.0, iq=False)
+        assert f[0] == 5.0 and s[0] == -1.0
+
+    def test_target_lines_iq(self):
+        f, s = target_lines([100.0], -5.0, iq=True)
+        np.testing.assert_array_equal(f, [-5.0, 95.0, -105.0])
+        np.testing.assert_array_equal(s, [1, 1, 1])
+
+    def test_sideband_freqs(self):
+        np.testing.assert_array_equal(sideband_freqs([100.0, 200.0], 7.0, False), [107, 207, 93, 193])
+        assert sideband_freqs([100.0, 200.0, 300.0], 7.0, True).shape == (6,)
+
+    def test_fd_max_default_is_half_the_smallest_spacing(self):
+        assert fd_max((260e6, 100e6, 170e6), ChainSettings()) == 35e6
+
+    def test_fd_max_setting_wins(self):
+        assert fd_max(TONES, ChainSettings(fd_max_hz=1e6)) == 1e6
+
+
+class TestIntermodFrequencies:
+    def test_two_tones_hand_enumerated(self):
+        # |n1*100 + n2*170| MHz, 0 < |n1| + |n2| <= 5, listed by n2 = 0..5
+        want = {100, 200, 300, 400, 500,                    # n2 = 0
+                30, 70, 130, 170, 230, 270, 370, 470, 570,  # n2 = 1, n1 = -4..4
+                40, 140, 240, 340, 440, 540, 640,           # n2 = 2, n1 = -3..3
+                310, 410, 510, 610, 710,                    # n2 = 3
+                580, 680, 780,                              # n2 = 4
+                850}                                        # n2 = 5
+        got = intermod_frequencies((100e6, 170e6), 1e12)
+        np.testing.assert_allclose(got, np.array(sorted(want)) * 1e6)
+
+    def test_limit_and_order(self):
+        np.testing.assert_allclose(intermod_frequencies((100e6, 170e6), 300e6, 2),
+                                   np.array([70, 100, 170, 200, 270]) * 1e6)
+
+    def test_order_four_beyond_four_tones(self):
+        t = (101e6, 173e6, 263e6, 337e6, 419e6)
+        got = intermod_frequencies(t, 1e12)
+        assert np.any(np.isclose(got, 4 * 101e6))
+        assert not np.any(np.isclose(got, 5 * 101e6))
+
+    def test_sorted_positive(self):
+        got = intermod_frequencies(TONES, 100e6)
+        assert np.all(got > 0) and np.all(np.diff(got) > 0) and got[-1] <= 100e6
+
+
+class TestSearchDoppler:
+    def search(self, x, **kw):
+        return search_doppler(power_spectrum(x, FS), list(TONES), FDMAX, **kw)
+
+    def test_planted_pair_found_below_a_bin(self):
+        fd = 5.3e6 + 0.37 * DF
+        (est,) = self.search(real_record(((fd, 1.0, 0.3),)))
+        assert est.detected
+        assert abs(est.fd_hz - fd) < 0.25 * DF
+        assert est.score > est.threshold
+        assert est.refine_error_hz == pytest.approx(0.1 * DF)
+
+    @pytest.mark.parametrize("fd", [1.0e6 + 0.2 * DF, 13.37e6, 33.9e6])
+    def test_planted_pair_across_the_band(self, fd):
+        (est,) = self.search(real_record(((fd, 1.0, 0.3),)))
+        assert est.detected and abs(est.fd_hz - fd) < 0.25 * DF
+
+    def test_no_line_is_not_detected(self):
+        (est,) = self.search(real_record(()))
+        assert not est.detected and est.fd_hz == 0.0 and est.score == 0.0
+        assert est.min_detectable_hz > 0
+
+    def test_pure_noise_is_not_detected(self):
+        x = np.random.default_rng(3).standard_normal(N)
+        (est,) = self.search(x)
+        assert not est.detected
+
+    def test_one_sided_spur_is_not_a_doppler_pair(self):
+        """Lines at f_i + 7.3 MHz only (no f_i - 7.3 MHz, no baseband line): not a target."""
+        spur = [(f + 7.3e6, 0.3) for f in TONES]
+        (est,) = self.search(real_record((), extra=spur), use_baseband=False)
+        assert not est.detected
+
+    def test_one_sided_spur_does_not_steal_a_real_pair(self):
+        fd = 5.3e6 + 0.37 * DF
+        spur = [(f + 17.3e6, 0.9) for f in TONES]  # stronger than the pair, one side only
+        ests = self.search(real_record(((fd, 1.0, 0.3),), extra=spur), max_targets=2)
+        assert abs(ests[0].fd_hz - fd) < 0.25 * DF
+        assert all(abs(e.fd_hz - 17.3e6) > 10 * DF for e in ests)
+
+    def test_two_targets_strongest_first(self):
+        fd1, fd2 = 5.3e6 + 0.37 * DF, 12.7e6 + 0.6 * DF
+        x = real_record(((fd2, 0.1, 0.03), (fd1, 1.0, 0.3)))
+        ests = self.search(x, max_targets=2)
+        assert len(ests) == 2 and all(e.detected for e in ests)
+        assert abs(ests[0].fd_hz - fd1) < 0.25 * DF
+        assert abs(ests[1].fd_hz - fd2) < 0.25 * DF
+        assert ests[0].score > ests[1].score
+
+    def test_max_targets_one_returns_the_strongest(self):
+        fd1, fd2 = 5.3e6, 12.7e6
+        ests = self.search(real_record(((fd2, 1.0, 0.3), (fd1, 0.1, 0.03))), max_targets=1)
+        assert len(ests) == 1 and abs(ests[0].fd_hz - fd2) < 0.25 * DF
+
+    @pytest.mark.parametrize("fd", [5.3e6 + 0.37 * DF, -(5.3e6 + 0.37 * DF), -21.1e6])
+    def test_iq_signed_doppler(self, fd):
+        (est,) = self.search(iq_record(fd))
+        assert est.detected
+        assert np.sign(est.fd_hz) == np.sign(fd)
+        assert abs(est.fd_hz - fd) < 0.25 * DF
+
+    def test_search_range_too_small(self):
+        (est,) = search_doppler(power_spectrum(real_record(), FS), list(TONES), 2 * DF)
+        assert not est.detected
+
+
+class TestRefine:
+    FD = 5.3e6 + 0.37 * DF
+
+    def est(self, fd):
+        return DopplerEstimate(fd, True, 100.0, 56.0, 4 * DF)
+
+    @pytest.mark.parametrize("offset_bins", [0.45, -0.3])
+    def test_refine_by_phase_real(self, offset_bins):
+        x = real_record(((self.FD, 1.0, 0.3),), noise=0.0)
+        spec = power_spectrum(x, FS)
+        out = refine_by_phase(x, frame_of(x), self.est(self.FD + offset_bins * DF), False, [], spec)
+        assert abs(out.fd_hz - self.FD) < 0.02 * DF
+        assert out.detected and out.refine_error_hz >= 0
+
+    def test_refine_by_phase_iq_negative(self):
+        fd = -self.FD
+        x = iq_record(fd, noise=0.0)
+        out = refine_by_phase(x, frame_of(x), self.est(fd + 0.4 * DF), True, [], power_spectrum(x, FS))
+        assert abs(out.fd_hz - fd) < 0.02 * DF
+
+    def test_refine_by_phase_too_short_returns_input(self):
+        x = real_record(n=200)
+        e = self.est(self.FD + 0.3 * DF)
+        assert refine_by_phase(x, Frame(x[None, :], FS, TONES, LAM), e, False, [], power_spectrum(x, FS)) is e
+
+    @pytest.mark.parametrize("offset_bins", [0.45, -0.7])
+    def test_refine_exact_real(self, offset_bins):
+        x = real_record(((self.FD, 1.0, 0.3),), noise=0.0)
+        out = refine_exact(x, frame_of(x), self.est(self.FD + offset_bins * DF), False, DF)
+        assert abs(out.fd_hz - self.FD) < 0.01 * DF
+        assert out.refine_error_hz == pytest.approx(0.01 * DF)
+
+    def test_refine_exact_iq(self):
+        fd = -self.FD
+        x = iq_record(fd, noise=0.0)
+        out = refine_exact(x, frame_of(x), self.est(fd - 0.5 * DF), True, DF)
+        assert abs(out.fd_hz - fd) < 0.01 * DF
+
+
+class TestEstimateDoppler:
+    @pytest.mark.parametrize("refine", ["parabolic", "phase", "exact"])
+    def test_stage(self, refine):
+        fd = 5.3e6 + 0.37 * DF
+        x = real_record(((fd, 1.0, 0.3),))
+        st = get_profile("balanced", doppler_refine=refine, max_targets=1)
+        ests = estimate_doppler(x, frame_of(x), power_spectrum(x, FS), st)
+        tol = 0.25 if refine == "parabolic" else 0.05
+        assert ests[0].detected and abs(ests[0].fd_hz - fd) < tol * DF
+
+    def test_static_record_zero_doppler(self):
+        x = real_record(())
+        (est,) = estimate_doppler(x, frame_of(x), power_spectrum(x, FS), get_profile("accurate"))
+        assert not est.detected and est.fd_hz == 0.0

@@ -1,0 +1,218 @@
+"""mtcw_core.dsp.extract: the line plan, segments, extraction and the seed's filter path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mtcw_core.dsp.doppler import DopplerEstimate
+from mtcw_core.dsp.extract import LineFamily, extract_lines, plan_lines, seed_extract, segment_starts
+from mtcw_core.dsp.spectrum import power_spectrum
+from mtcw_core.frame import Frame
+from mtcw_core.phase import C
+from mtcw_core.profiles import ChainSettings, get_profile
+from mtcw_core.results import Rejected
+
+FS = 1.0e9
+N = 2**14
+LAM = 1.064e-6
+TONES = (100e6, 170e6, 260e6)
+
+
+def frame(n=N, tones=TONES, receiver="single", x=None):
+    if receiver == "iq":
+        s = np.zeros((2, n)) if x is None else np.stack([x.real, x.imag])
+        return Frame(s, FS, tones, LAM, receiver="iq", channels=("i", "q"))
+    return Frame(np.zeros((1, n)) if x is None else x[None, :], FS, tones, LAM)
+
+
+def by_target(fams):
+    out = {}
+    for t, name, f, conj, bad in fams:
+        out[(t, name)] = (f, conj, bad)
+    return out
+
+
+class TestPlanLines:
+    def test_static_only_real(self):
+        fams, freqs = plan_lines(frame(), [], False, ChainSettings())
+        assert len(fams) == 1
+        t, name, f, conj, bad = fams[0]
+        assert (t, name) == (0, "S")
+        np.testing.assert_array_equal(f, TONES)
+        assert not conj.any() and not bad.any()
+        np.testing.assert_array_equal(freqs, TONES)
+
+    def test_one_mover_real(self):
+        fd = 5e6
+        fams, freqs = plan_lines(frame(), [fd], False, ChainSettings())
+        d = by_target(fams)
+        np.testing.assert_array_equal(d[(1, "U")][0], np.add(TONES, fd))
+        np.testing.assert_array_equal(d[(1, "L")][0], np.subtract(TONES, fd))
+        assert not d[(1, "U")][2].any() and not d[(1, "L")][2].any()
+        # static, U, L lines, then the baseband Doppler line
+        want = np.concatenate([TONES, np.add(TONES, fd), np.subtract(TONES, fd), [fd]])
+        np.testing.assert_array_equal(freqs, want)
+
+    def test_half_the_tone_spacing_collides(self):
+        """f_d at half the spacing of two tones: f_1 + f_d = f_2 - f_d, both unusable."""
+        tones = (100e6, 200e6, 350e6)
+        fd = 50e6
+        fams, freqs = plan_lines(frame(tones=tones), [fd], False, ChainSettings())
+        d = by_target(fams)
+        bad_u, bad_l = d[(1, "U")][2], d[(1, "L")][2]
+        np.testing.assert_array_equal(bad_u, [True, False, False])   # 150 MHz = 200 - 50
+        np.testing.assert_array_equal(bad_l, [False, True, False])
+        assert not np.any(np.isclose(freqs, 150e6))
+        # f_3 - f_d = 300 MHz and f_3 + f_d = 400 MHz collide with nothing
+        assert np.any(np.isclose(freqs, 300e6)) and np.any(np.isclose(freqs, 400e6))
+
+    def test_resolution_follows_fit_samples(self):
+        """Two lines 50 kHz apart: separable on 2^16 samples (2 bins = 30.5 kHz), not on 2^12."""
+        fd = 5e6
+        fds = [fd, fd + 50e3]
+        long_ = by_target(plan_lines(frame(n=2**16), fds, False, ChainSettings())[0])
+        short = by_target(plan_lines(frame(n=2**16), fds, False, ChainSettings(), fit_samples=2**12)[0])
+        assert not long_[(2, "U")][2].any()
+        assert short[(2, "U")][2].all() and short[(2, "L")][2].all()
+
+    def test_line_on_a_static_tone_is_unusable(self):
+        # f_d = 70 MHz: f_1 + f_d = f_2 (a static line)
+        d = by_target(plan_lines(frame(), [70e6], False, ChainSettings())[0])
+        assert d[(1, "U")][2][0] and d[(1, "L")][2][1]
+
+    def test_iq_static_is_two_families(self):
+        fams, freqs = plan_lines(frame(receiver="iq"), [], True, ChainSettings())
+        d = by_target(fams)
+        np.testing.assert_array_equal(d[(0, "U")][0], TONES)
+        np.testing.assert_array_equal(d[(0, "L")][0], -np.asarray(TONES))
+        assert d[(0, "L")][1].all()
+        assert 0.0 in freqs  # the LO's DC, modelled as a line
+
+    def test_model_products(self):
+        _, freqs = plan_lines(frame(), [], False, ChainSettings(model_products=True))
+        for p in (200e6, 340e6, 270e6, 360e6, 430e6, 70e6, 90e6, 160e6):  # 2f_i, f_i+f_j, |f_i-f_j|
+            assert np.any(np.isclose(freqs, p)), p
+        assert not np.any(freqs >= FS / 2)
+
+
+class TestSegmentStarts:
+    def test_whole_record_in_parts(self):
+        starts, length = segment_starts(1000, FS, ChainSettings(segments=4), None)
+        assert length == 250
+        np.testing.assert_array_equal(starts, [0, 250, 500, 750])
+
+    def test_one_segment(self):
+        starts, length = segment_starts(4096, FS, ChainSettings(), None)
+        assert length == 4096 and list(starts) == [0]
+
+    def test_windows_cut_into_gate_segments(self):
+        st = ChainSettings(gate_segment_s=100e-9)  # 100 samples at 1 GS/s
+        wins = [(10, 360), (1000, 1250)]
+        starts, length = segment_starts(4096, FS, st, wins)
+        assert length == 100
+        np.testing.assert_array_equal(starts, [10, 110, 210, 1000, 1100])
+        # every segment inside its window
+        for s in starts:
+            assert any(a <= s and s + length <= b for a, b in wins)
+
+    def test_segment_not_longer_than_the_longest_window(self):
+        st = ChainSettings(gate_segment_s=1e-6)
+        starts, length = segment_starts(8192, FS, st, [(0, 300), (500, 700)])
+        assert length == 300 and list(starts) == [0]
+
+    def test_mover_lengthens_segments(self):
+        st = ChainSettings(gate_segment_s=100e-9)
+        _, length = segment_starts(8192, FS, st, [(0, 5000)], fds=[2e6])
+        assert length == int(np.ceil(3 * FS / 2e6))  # f_d is 3 segment bins
+
+    def test_short_windows_give_the_longest_window_as_length(self):
+        st = ChainSettings(gate_segment_s=1e-6)
+        starts, length = segment_starts(8192, FS, st, [(0, 40), (100, 130)])
+        assert length == 40 and list(starts) == [0]
+
+    def test_empty_windows_rejected(self):
+        with pytest.raises(Rejected) as e:
+            segment_starts(8192, FS, ChainSettings(), [(100, 100)])
+        assert e.value.reason == "gate"
+
+
+def static_record(range_m, amps=(1.0, 0.6, 0.3), phases=(0.2, -1.0, 2.0), noise=1e-3, n=N, seed=0):
+    """Self-beat lines A_i cos(2 pi f_i t + phi_i - 2 pi f_i tau): the phases the physics predicts."""
+    tau = 2 * range_m / C
+    k = np.arange(n)
+    x = noise * np.random.default_rng(seed).standard_normal(n) + 0.1
+    for f, a, p in zip(TONES, amps, phases):
+        x += a * np.cos(2 * np.pi * np.mod(k * f / FS, 1.0) + p - 2 * np.pi * np.mod(f * tau, 1.0))
+    return x
+
+
+class TestExtractLines:
+    @pytest.mark.parametrize("segments", [1, 4])
+    def test_static_lines_carry_phi_minus_2pi_f_tau(self, segments):
+        rng_m, phases = 1.234, (0.2, -1.0, 2.0)
+        x = static_record(rng_m, phases=phases, noise=0.0)
+        fr = frame(x=x)
+        st = ChainSettings(segments=segments)
+        none = [DopplerEstimate(0.0, False, 0.0, 1.0, 1.0)]
+        fams = extract_lines(x, fr, none, power_spectrum(x, FS), st)
+        assert len(fams) == 1
+        fam = fams[0]
+        assert isinstance(fam, LineFamily) and fam.name == "S" and fam.target == 0
+        assert fam.z.shape == (segments, 3)
+        tau = 2 * rng_m / C
+        for s, tc in enumerate(fam.seg_centre_s):
+            want = np.array([p - 2 * np.pi * f * tau + 2 * np.pi * f * tc for f, p in zip(TONES, phases)])
+            np.testing.assert_allclose(np.angle(fam.z[s] * np.exp(-1j * want)), 0.0, atol=1e-9)
+            np.testing.assert_allclose(np.abs(fam.z[s]), [1.0, 0.6, 0.3], rtol=1e-9)
+
+    def test_phase_variance_from_the_noise_floor(self):
+        s = 0.01
+        x = static_record(0.5, noise=s)
+        fams = extract_lines(x, frame(x=x), [DopplerEstimate(0.0, False, 0.0, 1.0, 1.0)], power_spectrum(x, FS),
+                             ChainSettings())
+        want = 2 * s**2 / (N * np.array([1.0, 0.6, 0.3]) ** 2)  # CRB of a real tone's phase
+        np.testing.assert_allclose(fams[0].phase_var, want, rtol=0.25)
+        np.testing.assert_allclose(fams[0].snr_db, -10 * np.log10(fams[0].phase_var))
+
+    def test_mover_families_and_unusable_lines(self):
+        tones = (100e6, 200e6, 350e6)
+        fd = 50e6  # half the first spacing: 150 MHz is both f_1 + f_d and f_2 - f_d
+        k = np.arange(N)
+        x = sum(np.cos(2 * np.pi * np.mod(k * f / FS, 1.0)) for f in (150e6, 250e6, 300e6, 400e6, 50e6))
+        x = x + 1e-3 * np.random.default_rng(1).standard_normal(N)
+        fr = frame(tones=tones, x=x)
+        dop = [DopplerEstimate(fd, True, 100.0, 10.0, 1.0)]
+        fams = extract_lines(x, fr, dop, power_spectrum(x, FS), ChainSettings())
+        assert [(f.target, f.name) for f in fams] == [(0, "S"), (1, "U"), (1, "L")]
+        u = fams[1]
+        assert np.isinf(u.phase_var[0]) and np.all(u.z[:, 0] == 0)
+        assert np.all(np.isfinite(u.phase_var[1:]))
+
+    def test_filter_path_rejects_windows(self):
+        x = static_record(0.5)
+        with pytest.raises(Rejected) as e:
+            extract_lines(x, frame(x=x), [DopplerEstimate(0.0, False, 0.0, 1.0, 1.0)], power_spectrum(x, FS),
+                          get_profile("seed"), windows=[(0, 4000)])
+        assert e.value.reason == "unsupported"
+
+
+class TestSeedExtract:
+    def test_amplitude_and_phase_of_an_on_grid_line(self):
+        n = 4096
+        fs = 1e9
+        f = 200 * fs / n
+        k = np.arange(n)
+        x = 0.8 * np.cos(2 * np.pi * f * k / fs + 0.5)
+        st = ChainSettings(seed_points=2**13, seed_bandwidth_hz=20e6)
+        z, centre = seed_extract(x, fs, np.array([f]), st)
+        assert centre == pytest.approx((2**13 - 1) / (2 * fs * 2**13 / n))
+        # at the resampled grid's centre the phase is 0.5 + 2 pi f * centre
+        want = 0.5 + 2 * np.pi * f * centre
+        assert abs(z[0]) == pytest.approx(0.8, rel=0.05)
+        assert np.angle(z[0] * np.exp(-1j * want)) == pytest.approx(0.0, abs=0.05)
+
+    def test_complex_rejected(self):
+        with pytest.raises(Rejected) as e:
+            seed_extract(np.ones(1024, complex), FS, np.array([1e6]), ChainSettings(seed_points=2**10))
+        assert e.value.reason == "unsupported"

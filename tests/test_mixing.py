@@ -1,0 +1,127 @@
+"""mtcw_core.ranging.mixing: IF mixing of hand-built line families into pair observations."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from mtcw_core.dsp.extract import LineFamily
+from mtcw_core.phase import C, wrap_pi
+from mtcw_core.ranging.mixing import consistency, mix, pair_observations
+
+TONES = np.array([100e6, 170e6, 260e6])
+PHI = {100e6: 0.3, 170e6: -1.2, 260e6: 2.5}  # RF drive phases (calibration)
+L_M = 3.7
+TAU = 2 * L_M / C
+
+
+def family(tau=TAU, var=(1e-4, 2e-4, 4e-4), name="S", target=0, segments=4, fd=0.0, extra_phase=(0.0, 0.0, 0.0),
+           seed=0, amps=(1.0, 0.5, 0.25)):
+    """Lines at f_i + fd with phase phi_i - 2*pi*f_i*tau (+ a nuisance psi per segment), each
+    referred to its segment's centre (so it advances by 2*pi*line*t_c)."""
+    rng = np.random.default_rng(seed)
+    centres = (np.arange(segments) + 0.5) * 1e-6
+    psi = rng.uniform(-np.pi, np.pi, segments)  # carrier / laser phase: common to the family
+    line = TONES + fd
+    ph = np.array([PHI[f] for f in TONES]) - 2 * np.pi * np.mod(TONES * tau, 1.0) + np.asarray(extra_phase)
+    z = np.asarray(amps)[None, :] * np.exp(1j * (ph[None, :] + psi[:, None]
+                                                 + 2 * np.pi * np.mod(np.outer(centres, line), 1.0)))
+    return LineFamily(name, TONES.copy(), line, z, centres, np.asarray(var, float), target)
+
+
+class TestPairObservations:
+    def test_wrapped_phases_and_weights(self):
+        fam = family()
+        obs = pair_observations([fam], PHI)
+        assert obs.df_hz.size == 3
+        got = {round(d): (p, w) for d, p, w in zip(obs.df_hz, obs.phase_rad, obs.weight)}
+        for i, j in itertools.combinations(range(3), 2):
+            hi, lo = max(i, j), min(i, j)
+            d = TONES[hi] - TONES[lo]
+            p, w = got[round(d)]
+            assert wrap_pi(p + 2 * np.pi * d * TAU) == pytest.approx(0.0, abs=1e-9)
+            assert -np.pi <= p < np.pi
+            assert w == pytest.approx(1 / (fam.phase_var[hi] * fam.phase_var[lo]), rel=1e-12)
+        assert np.all(obs.df_hz > 0)
+
+    def test_doppler_shifted_family_same_phases(self):
+        """U lines at f_i + f_d, each referred to its segment's centre: the pair phase still
+        carries -2*pi*(f_i - f_j)*tau (the common f_d and psi cancel)."""
+        fam = family(name="U", fd=5.3e6, target=1, seed=3)
+        obs = pair_observations([fam], PHI)
+        np.testing.assert_allclose(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * TAU), 0.0, atol=1e-9)
+
+    def test_families_concatenate(self):
+        obs = pair_observations([family(name="U", seed=1), family(name="L", seed=2)], PHI)
+        assert obs.df_hz.size == 6
+
+    def test_snr_threshold_drops_weak_lines(self):
+        fam = family(var=(1e-4, 1e-4, 1.0))  # third line at 0 dB
+        obs = pair_observations([fam], PHI, min_snr_db=10.0)
+        np.testing.assert_allclose(obs.df_hz, [70e6])
+
+    def test_calibration_phases_removed(self):
+        fam = family()
+        wrong = {f: 0.0 for f in TONES}
+        obs = pair_observations([fam], wrong)
+        # without the calibration the drive phase difference stays in
+        d = obs.df_hz
+        i = np.searchsorted(TONES, 170e6)
+        k = int(np.argmin(np.abs(d - 70e6)))
+        want = wrap_pi(-2 * np.pi * 70e6 * TAU + PHI[170e6] - PHI[100e6])
+        assert wrap_pi(obs.phase_rad[k] - want) == pytest.approx(0.0, abs=1e-9)
+        assert i == 1
+
+    def test_empty(self):
+        obs = pair_observations([], PHI)
+        assert obs.df_hz.size == obs.phase_rad.size == obs.weight.size == 0
+
+
+class TestConsistency:
+    def test_consistent_family_chi2_zero(self):
+        chi2, dof = consistency([family()], PHI, TAU)
+        assert chi2 == pytest.approx(0.0, abs=1e-12)
+        assert dof == 1  # 3 lines -> 2 pair phases, minus the range
+
+    def test_two_families_dof(self):
+        chi2, dof = consistency([family(seed=1), family(name="U", fd=4e6, seed=2)], PHI, TAU)
+        assert chi2 == pytest.approx(0.0, abs=1e-12) and dof == 3
+
+    def test_inconsistent_family_analytic_chi2(self):
+        """Line 3 off by delta, equal variances v, reference line 1: residuals (0, delta) with
+        covariance v*(I + 11^T), whose inverse is (I - 11^T/3)/v: chi2 = 2*delta^2/(3v)."""
+        v, delta = 1e-4, 0.2
+        fam = family(var=(v, v, v), extra_phase=(0.0, 0.0, delta))
+        chi2, dof = consistency([fam], PHI, TAU)
+        assert chi2 == pytest.approx(2 * delta**2 / (3 * v), rel=1e-9)
+        assert chi2 > 100
+
+    def test_wrong_range_is_inconsistent(self):
+        chi2, _ = consistency([family()], PHI, TAU + 2 * 0.1 / C)  # 0.3-0.5 rad off
+        assert chi2 > 300
+
+    def test_family_with_one_usable_line_skipped(self):
+        chi2, dof = consistency([family(var=(1e-4, 1.0, 1.0))], PHI, TAU, min_snr_db=10.0)
+        assert (chi2, dof) == (0.0, -1)
+
+
+class TestMix:
+    def test_candidates_keyed_by_target(self):
+        fams = [family(target=0), family(name="U", target=1, fd=5e6, seed=4), family(name="L", target=1, fd=-5e6,
+                                                                                       seed=5)]
+        out = mix(fams, PHI, 10.0)
+        assert sorted(out) == [0, 1]
+        assert out[0].df_hz.size == 3 and out[1].df_hz.size == 6
+        for obs in out.values():
+            np.testing.assert_allclose(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * TAU), 0.0, atol=1e-9)
+
+    def test_candidate_with_fewer_than_two_lines_left_out(self):
+        weak = (1e-4, 1.0, 1.0)  # one line at 40 dB, two at 0 dB
+        fams = [family(target=0), family(name="U", target=1, var=weak), family(name="L", target=1, var=weak)]
+        out = mix(fams, PHI, 10.0)
+        assert list(out) == [0]
+
+    def test_nothing_above_threshold(self):
+        assert mix([family(var=(1.0, 1.0, 1.0))], PHI, 10.0) == {}

@@ -1,0 +1,238 @@
+"""mtcw_core.dsp.spectrum: windowed periodogram, local noise floor, line widths, the stage."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import get_window
+
+from mtcw_core.dsp.spectrum import (Spectrum, line_width_bins, local_floor, power_spectrum, search_spectrum,
+                                    widths_at)
+
+FS = 1.0e9
+
+
+def tone(n, f, a=1.0, p=0.0):
+    return a * np.cos(2 * np.pi * np.mod(np.arange(n) * (f / FS), 1.0) + p)
+
+
+class TestPowerSpectrum:
+    def test_impulse_is_flat_boxcar(self):
+        n = 1024
+        x = np.zeros(n)
+        x[100] = 1.0
+        sp = power_spectrum(x, FS, "boxcar")
+        # (delta - 1/N): |X|^2 = 1 at every bin but DC, which the mean removal empties
+        np.testing.assert_allclose(sp.power[1:], 1.0, rtol=1e-12)
+        assert sp.power[0] == pytest.approx(0.0, abs=1e-24)
+
+    def test_impulse_is_flat_kaiser_away_from_dc(self):
+        n = 1024
+        x = np.zeros(n)
+        k0 = 300
+        x[k0] = 1.0
+        sp = power_spectrum(x, FS)  # Kaiser(14)
+        w = get_window(("kaiser", 14.0), n, fftbins=False)
+        # the window's weight at the impulse, everywhere past the DC main lobe (the mean's notch)
+        np.testing.assert_allclose(sp.power[10:], w[k0] ** 2, rtol=1e-6)
+
+    def test_attributes_real(self):
+        n = 2048
+        sp = power_spectrum(np.random.default_rng(0).standard_normal(n), FS)
+        w = get_window(("kaiser", 14.0), n, fftbins=False)
+        assert sp.power.shape == (n // 2 + 1,)
+        assert sp.df_hz == FS / n and sp.f0_hz == 0.0 and sp.n == n and not sp.complex_input
+        assert sp.window_power == pytest.approx(np.sum(w**2), rel=1e-12)
+
+    @pytest.mark.parametrize("n", [1024, 1025])
+    def test_attributes_complex(self, n):
+        rng = np.random.default_rng(1)
+        sp = power_spectrum(rng.standard_normal(n) + 1j * rng.standard_normal(n), FS)
+        assert sp.power.shape == (n,) and sp.complex_input
+        # fftshifted: bin 0 is the most negative frequency of the fft grid
+        assert sp.f0_hz == pytest.approx(np.fft.fftshift(np.fft.fftfreq(n, 1 / FS))[0], rel=1e-12)
+
+    def test_real_tone_lands_in_its_bin(self):
+        n = 4096
+        f = 777 * FS / n
+        sp = power_spectrum(tone(n, f, 0.5), FS)
+        assert int(np.argmax(sp.power)) == 777 == int(sp.bin_of(f))
+        # a coherent on-grid tone: |X|^2 = (A/2 * sum w)^2 at its bin
+        w = get_window(("kaiser", 14.0), n, fftbins=False)
+        assert sp.power[777] == pytest.approx((0.25 * w.sum()) ** 2, rel=1e-9)
+
+    def test_complex_negative_tone_lands_in_its_bin(self):
+        n = 4096
+        f = -1234 * FS / n
+        x = np.exp(2j * np.pi * np.mod(np.arange(n) * f / FS, 1.0))
+        sp = power_spectrum(x, FS)
+        k = int(np.argmax(sp.power))
+        assert k == int(sp.bin_of(f))
+        assert sp.f0_hz + k * sp.df_hz == pytest.approx(f)
+
+    def test_first_n_samples_only(self):
+        x = np.random.default_rng(2).standard_normal(4096)
+        a = power_spectrum(x, FS, n=1024)
+        b = power_spectrum(x[:1024], FS)
+        assert a.n == 1024
+        np.testing.assert_array_equal(a.power, b.power)
+
+    @pytest.mark.parametrize("cplx", [False, True])
+    def test_single_precision(self, cplx):
+        rng = np.random.default_rng(3)
+        x = rng.standard_normal(2048) + (1j * rng.standard_normal(2048) if cplx else 0)
+        a = power_spectrum(x, FS, single=True)
+        b = power_spectrum(x, FS)
+        assert a.power.dtype == np.float32
+        np.testing.assert_allclose(a.power, b.power, rtol=1e-3, atol=1e-5 * b.power.max())
+
+    def test_float32_input(self):
+        x = tone(1024, 100 * FS / 1024).astype(np.float32)
+        assert int(np.argmax(power_spectrum(x, FS).power)) == 100
+
+    def test_unknown_window(self):
+        with pytest.raises(ValueError):
+            power_spectrum(np.ones(256), FS, "no-such-window")
+
+
+class TestSpectrumMethods:
+    def test_bin_of(self):
+        sp = Spectrum(np.zeros(513), 1e6, 0.0, 1.0, 1024, False)
+        np.testing.assert_array_equal(sp.bin_of(np.array([0.0, 1.4e6, 1.6e6, 512e6])), [0, 1, 2, 512])
+        sc = Spectrum(np.zeros(1024), 1e6, -512e6, 1.0, 1024, True)
+        assert int(sc.bin_of(0.0)) == 512 and int(sc.bin_of(-512e6)) == 0
+
+    @pytest.mark.parametrize("s2", [1e-4, 2.5])
+    def test_noise_variance_real(self, s2):
+        x = np.sqrt(s2) * np.random.default_rng(4).standard_normal(2**14)
+        sp = power_spectrum(x, FS)
+        est = sp.noise_variance(200e6, [], half_width=2048)
+        assert est == pytest.approx(s2, rel=0.08)
+
+    def test_noise_variance_complex_is_total_per_sample_variance(self):
+        rng = np.random.default_rng(5)
+        s2 = 0.3  # E|x|^2, s2/2 per quadrature
+        x = np.sqrt(s2 / 2) * (rng.standard_normal(2**14) + 1j * rng.standard_normal(2**14))
+        sp = power_spectrum(x, FS)
+        assert sp.noise_variance(-100e6, [], half_width=2048) == pytest.approx(s2, rel=0.08)
+
+    def test_noise_variance_excludes_lines(self):
+        n = 2**14
+        f = 3001 * FS / n
+        x = tone(n, f, 1.0) + 0.01 * np.random.default_rng(6).standard_normal(n)
+        sp = power_spectrum(x, FS)
+        est = sp.noise_variance(f, [f], half_width=1024)
+        assert est == pytest.approx(1e-4, rel=0.1)
+
+    def test_noise_variance_nan_when_nothing_left(self):
+        sp = Spectrum(np.ones(8), 1.0, 0.0, 1.0, 14, False)
+        # the whole neighbourhood excluded: falls back to all bins (finite), never raises
+        assert np.isfinite(sp.noise_variance(4.0, [4.0], half_width=2, guard=5))
+
+
+class TestLocalFloor:
+    @pytest.mark.parametrize("window", ["boxcar", ("kaiser", 14.0)])
+    def test_white_noise_floor_is_its_mean_power(self, window):
+        n = 2**15
+        s2 = 0.7
+        x = np.sqrt(s2) * np.random.default_rng(7).standard_normal(n)
+        sp = power_spectrum(x, FS, window)
+        fl = local_floor(sp.power, mirror_dc=True)
+        assert fl.shape == sp.power.shape
+        expected = s2 * sp.window_power  # E|X|^2 of white noise
+        assert np.mean(fl) == pytest.approx(expected, rel=0.04)
+        assert np.mean(fl) == pytest.approx(np.mean(sp.power[2:]), rel=0.05)
+
+    def test_complex_white_noise(self):
+        rng = np.random.default_rng(8)
+        n = 2**14
+        x = rng.standard_normal(n) + 1j * rng.standard_normal(n)
+        sp = power_spectrum(x, FS)
+        fl = local_floor(sp.power)
+        assert np.mean(fl) == pytest.approx(2.0 * sp.window_power, rel=0.04)
+
+    def test_a_line_does_not_raise_its_own_floor(self):
+        n = 2**14
+        k = 4000
+        x = tone(n, k * FS / n, 1.0) + 1e-3 * np.random.default_rng(9).standard_normal(n)
+        sp = power_spectrum(x, FS)
+        fl = local_floor(sp.power, mirror_dc=True)
+        # the ring skips the line's main lobe: its floor is the noise's, not the line's
+        assert fl[k] == pytest.approx(1e-6 * sp.window_power, rel=0.35)
+        assert sp.power[k] / fl[k] > 1e6
+
+    def test_follows_a_coloured_floor(self):
+        # a floor that steps by 100x: the local estimate follows it away from the step
+        rng = np.random.default_rng(10)
+        p = rng.exponential(1.0, 4000)
+        p[2000:] *= 100.0
+        fl = local_floor(p)
+        assert np.median(fl[200:1800]) == pytest.approx(1.0, rel=0.1)
+        assert np.median(fl[2200:3800]) == pytest.approx(100.0, rel=0.1)
+
+    def test_float32_power(self):
+        p = np.random.default_rng(11).exponential(2.0, 4096).astype(np.float32)
+        fl = local_floor(p)
+        assert np.all(np.isfinite(fl))
+        assert np.mean(fl) == pytest.approx(2.0, rel=0.05)
+
+    def test_zeros_do_not_give_nan(self):
+        fl = local_floor(np.zeros(512))
+        assert np.all(np.isfinite(fl)) and np.all(fl >= 0)
+
+
+class TestLineWidths:
+    def test_coherent_line_is_narrow(self):
+        n = 2**14
+        sp = power_spectrum(tone(n, (3000 + 0.37) * FS / n), FS)
+        w = widths_at(sp, [(3000 + 0.37) * FS / n])
+        assert 1.0 <= w <= 3.0
+
+    def test_incoherent_line_is_wide(self):
+        n = 2**14
+        df = FS / n
+        fwhm = 20 * df
+        rng = np.random.default_rng(12)
+        phase = np.cumsum(rng.standard_normal(n) * np.sqrt(2 * np.pi * fwhm / FS))
+        f = 4000 * df
+        x = np.cos(2 * np.pi * np.mod(np.arange(n) * f / FS, 1.0) + phase)
+        sp = power_spectrum(x, FS)
+        assert widths_at(sp, [f]) > 8.0
+
+    def test_line_width_bins_median_over_tones(self):
+        n = 2**14
+        df = FS / n
+        t = [2000 * df, 3000 * df, 5000 * df]
+        x = sum(tone(n, f) for f in t)
+        sp = power_spectrum(x, FS)
+        assert 1.0 <= line_width_bins(sp, t) <= 3.0
+
+    def test_no_line_gives_default(self):
+        sp = Spectrum(np.zeros(513), 1e6, 0.0, 1.0, 1024, False)
+        assert widths_at(sp, [100e6]) == 1.0
+
+
+class TestSearchSpectrum:
+    def test_whole_record_fraction_one(self):
+        x = np.random.default_rng(13).standard_normal(4096)
+        a = search_spectrum(x, FS, 14.0, 1.0, False)
+        b = power_spectrum(x, FS, ("kaiser", 14.0))
+        np.testing.assert_array_equal(a.power, b.power)
+
+    def test_fraction_of_record(self):
+        x = np.random.default_rng(14).standard_normal(4096)
+        assert search_spectrum(x, FS, 14.0, 0.25, False).n == 1024
+        assert search_spectrum(x, FS, 14.0, 0.01, False).n == 256  # never fewer than 256
+
+    def test_windows_use_the_longest(self):
+        x = np.random.default_rng(15).standard_normal(8192)
+        wins = [(0, 1000), (2000, 5000), (6000, 7000)]
+        sp = search_spectrum(x, FS, 8.0, 1.0, False, wins)
+        ref = power_spectrum(x[2000:5000], FS, ("kaiser", 8.0))
+        assert sp.n == 3000
+        np.testing.assert_array_equal(sp.power, ref.power)
+
+    def test_beta_sets_the_window(self):
+        x = np.random.default_rng(16).standard_normal(1024)
+        sp = search_spectrum(x, FS, 0.0, 1.0, False)  # Kaiser(0) is the rectangular window
+        np.testing.assert_allclose(sp.power, power_spectrum(x, FS, "boxcar").power, rtol=1e-12)

@@ -1,0 +1,207 @@
+"""mtcw_core.ranging.targets: velocity, one candidate's solution, and the selection policy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mtcw_core.dsp.doppler import DopplerEstimate
+from mtcw_core.dsp.extract import LineFamily
+from mtcw_core.frame import Frame
+from mtcw_core.phase import C
+from mtcw_core.profiles import ChainSettings
+from mtcw_core.ranging.mixing import mix
+from mtcw_core.ranging.targets import Reference, median_snr, resolve_targets, select_targets, solve_target, velocity
+from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
+from mtcw_core.results import TargetPoint
+
+LAM = 1.064e-6
+FS = 1e9
+N = 2**14
+TONES = np.array([100e6, 170e6, 260e6])
+PHI = {100e6: 0.3, 170e6: -1.2, 260e6: 2.5}
+
+
+def frame(receiver="single"):
+    if receiver == "iq":
+        return Frame(np.zeros((2, N)), FS, tuple(TONES), LAM, receiver="iq", channels=("i", "q"))
+    return Frame(np.zeros((1, N)), FS, tuple(TONES), LAM)
+
+
+def dop(fd, detected=True, refine=0.0, wander=0.0):
+    return DopplerEstimate(fd, detected, 100.0 if detected else 0.0, 50.0, 4 * FS / N, refine, wander)
+
+
+def fam(name="S", target=0, var=(1e-4, 2e-4, 4e-4), range_m=3.7, fd=0.0, extra=(0.0, 0.0, 0.0), tau0=0.0):
+    tau = tau0 + 2 * range_m / C
+    centre = np.array([(N - 1) / (2 * FS)])
+    line = TONES + fd
+    ph = np.array([PHI[f] for f in TONES]) - 2 * np.pi * np.mod(TONES * tau, 1.0) + np.asarray(extra)
+    z = np.exp(1j * (ph + 0.77 + 2 * np.pi * np.mod(line * centre[0], 1.0)))[None, :]
+    return LineFamily(name, TONES.copy(), line, z, centre, np.asarray(var, float), target)
+
+
+def point(range_m, snrs, sigma=1e-4, residual=0.01, snr_db=None):
+    tone = {f"{f:.0f}": s for f, s in zip(TONES, snrs)}
+    return TargetPoint(range_m=range_m, range_sigma_m=sigma, velocity_mps=0.0, velocity_sigma_mps=1e-3,
+                       direction="static", snr_db=max(snrs) if snr_db is None else snr_db, margin=0.5,
+                       residual_rms_rad=residual, tone_snr_db=tone)
+
+
+class TestVelocity:
+    def test_static_is_zero_with_min_detectable_speed(self):
+        d = dop(0.0, detected=False)
+        v, s, direction = velocity(d, frame(), [fam()], False)
+        assert v == 0.0 and direction == "static"
+        assert s == pytest.approx(d.min_detectable_hz * LAM / 2)
+
+    def test_real_doppler_is_2v_over_lambda(self):
+        fd = 7.5e6
+        v, s, direction = velocity(dop(fd), frame(), [fam("U", 1, fd=fd), fam("L", 1, fd=-fd)], False)
+        assert v == pytest.approx(fd * LAM / 2, rel=1e-15)  # f_d = 2v/lambda
+        assert direction == "unknown" and s > 0
+
+    @pytest.mark.parametrize("fd,direction", [(7.5e6, "approaching"), (-7.5e6, "receding")])
+    def test_iq_sign_gives_direction(self, fd, direction):
+        """f_d = -2v/lambda: a positive Doppler is an approaching target (v < 0)."""
+        v, _, d = velocity(dop(fd), frame("iq"), [fam("U", 1, fd=fd)], True)
+        assert d == direction
+        assert v == pytest.approx(-fd * LAM / 2)
+
+    def test_sigma_from_the_frequency_crb(self):
+        """Real lines: var_f = 3*s2*fs^2/(pi^2*A^2*N^3) = 1.5*var_phase*fs^2/(pi^2*N^2) per line,
+        combined by inverse variance over the Doppler-shifted lines (S lines do not count)."""
+        var = np.array([1e-4, 2e-4, 4e-4])
+        fams = [fam("S", 1, var=(1e-9,) * 3), fam("U", 1, var=var), fam("L", 1, var=var)]
+        _, s, _ = velocity(dop(7.5e6), frame(), fams, False)
+        var_f = 1.5 * var * FS**2 / (np.pi**2 * N**2)
+        sig_f = 1 / math.sqrt(2 * np.sum(1 / var_f))
+        assert s == pytest.approx(sig_f * LAM / 2, rel=1e-12)
+
+    def test_sigma_includes_refinement_and_wander(self):
+        var = np.full(3, 1e-8)
+        sig_f = 1 / math.sqrt(np.sum(1 / (1.5 * var * FS**2 / (np.pi**2 * N**2))))
+        d = dop(7.5e6, refine=3e3, wander=4e3)
+        s = velocity(d, frame(), [fam("U", 1, var=var)], False)[1]
+        assert s == pytest.approx(math.hypot(sig_f, 3e3, 4e3) * LAM / 2, rel=1e-12)
+
+    def test_sigma_floor(self):
+        _, s, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)
+        assert s == pytest.approx(1e-3 * FS / N * LAM / 2)
+
+
+class TestMedianSnr:
+    def test_median_of_tone_snrs(self):
+        assert median_snr(point(1.0, [10.0, 50.0, 20.0], snr_db=50.0)) == 20.0
+
+
+class TestSolveTarget:
+    def test_static_family_range_and_fisher_sigma(self):
+        f = fam(range_m=3.7)
+        obs = mix([f], PHI, 10.0)[0]
+        p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        assert p.range_m == pytest.approx(3.7, abs=1e-9)
+        assert p.range_sigma_m == pytest.approx(fisher_sigma([TONES], [f.phase_var]), rel=1e-12)
+        assert p.direction == "static" and p.velocity_mps == 0.0
+        assert not p.blended and not p.cycle_ambiguous
+        assert p.tone_snr_db == {"100000000": pytest.approx(40.0), "170000000": pytest.approx(-10 * np.log10(2e-4)),
+                                 "260000000": pytest.approx(-10 * np.log10(4e-4))}
+
+    def test_internal_delay(self):
+        tau0 = 7e-9
+        f = fam(range_m=2.2, tau0=tau0)
+        obs = mix([f], PHI, 10.0)[0]
+        p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, tau0), None)
+        assert p.range_m == pytest.approx(2.2, abs=1e-9)
+
+    def test_inconsistent_phases_flag_blended_and_widen_sigma(self):
+        f = fam(range_m=3.7, var=(1e-4,) * 3, extra=(0.0, 0.0, 0.5))
+        obs = mix([f], PHI, 10.0)[0]
+        p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        assert p.blended and p.chi2_per_dof > 10
+        assert p.range_sigma_m == pytest.approx(fisher_sigma([TONES], [f.phase_var]) * math.sqrt(p.chi2_per_dof),
+                                                rel=1e-9)
+
+    def test_seed_method(self):
+        f = fam(range_m=5.5)
+        obs = mix([f], PHI, 10.0)[0]
+        p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(method="seed"), Reference(PHI, 0.0), None)
+        assert p.range_m == pytest.approx(5.5, abs=1e-9)
+        assert p.seed_sigma_k_m == pytest.approx(0.0, abs=1e-9)
+
+    def test_coarse_interval_picks_the_period(self):
+        lu = unambiguous_range([70e6, 90e6])
+        truth = 3.7 + 40 * lu
+        f = fam(range_m=truth)
+        obs = mix([f], PHI, 10.0)[0]
+        coarse = (truth - 1.0, truth + 1.5)
+        p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), coarse)
+        assert p.range_m == pytest.approx(truth, abs=1e-7)
+        assert not p.cycle_ambiguous
+        wide = (truth - lu, truth + lu)
+        assert solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0),
+                            wide).cycle_ambiguous
+
+
+class TestResolveTargets:
+    def test_static_and_mover(self):
+        fd = 7.5e6
+        fams = [fam(range_m=3.7), fam("U", 1, range_m=9.1, fd=fd), fam("L", 1, range_m=9.1, fd=-fd)]
+        obs = mix(fams, PHI, 10.0)
+        pts, lu = resolve_targets(fams, obs, [dop(fd)], frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        assert [k for k, _ in pts] == [0, 1]
+        assert pts[0][1].range_m == pytest.approx(3.7, abs=1e-9)
+        assert pts[1][1].range_m == pytest.approx(9.1, abs=1e-9)
+        assert pts[1][1].velocity_mps == pytest.approx(fd * LAM / 2)
+        assert pts[1][1].doppler_hz == fd
+        assert lu == pytest.approx(C / (2 * 10e6))
+
+
+class TestSelectTargets:
+    ST = ChainSettings()  # self_beat_margin_db 15, incoherent_residual_rad 0.25
+
+    def test_self_beat_static_dropped_beside_a_loud_mover(self):
+        static = point(4.0, [20.0, 21.0, 19.0])
+        mover = point(9.0, [50.0, 52.0, 48.0])
+        assert select_targets([(0, static), (1, mover)], self.ST) == [mover]
+
+    def test_static_at_a_stronger_movers_range_dropped(self):
+        static = point(9.0, [40.0, 40.0, 40.0])
+        mover = point(9.0, [45.0, 45.0, 45.0])
+        assert select_targets([(0, static), (1, mover)], self.ST) == [mover]
+
+    def test_weak_mover_at_the_static_range_dropped(self):
+        static = point(5.0, [40.0, 42.0, 38.0])
+        ghost = point(5.0 + 1e-4, [30.0, 31.0, 29.0])
+        other = point(12.0, [35.0, 36.0, 34.0])
+        assert select_targets([(0, static), (1, ghost), (2, other)], self.ST) == [static, other]
+
+    def test_same_range_uses_the_sigmas(self):
+        static = point(5.0, [40.0] * 3, sigma=1e-3)
+        mover = point(5.02, [30.0] * 3, sigma=1e-3)  # 20 mm apart, 5 sigma = 7 mm: another range
+        assert select_targets([(0, static), (1, mover)], self.ST) == [static, mover]
+
+    def test_static_and_mover_both_kept_strongest_first(self):
+        static = point(5.0, [30.0] * 3)
+        mover = point(11.0, [35.0] * 3)
+        assert select_targets([(0, static), (1, mover)], self.ST) == [mover, static]
+
+    def test_order_by_median_tone_snr_not_the_strongest_line(self):
+        a = point(2.0, [60.0, 20.0, 20.0])  # one loud line, median 20
+        b = point(7.0, [30.0, 30.0, 30.0])
+        c = point(11.0, [25.0, 25.0, 25.0])
+        assert select_targets([(1, a), (2, b), (3, c)], self.ST) == [b, c, a]
+
+    def test_incoherent_mover_dropped_beside_a_static_target(self):
+        static = point(5.0, [40.0] * 3)
+        skirt = point(8.0, [38.0] * 3, residual=1.0)
+        assert select_targets([(0, static), (1, skirt)], self.ST) == [static]
+
+    def test_incoherent_residual_kept_without_static(self):
+        mover = point(8.0, [38.0] * 3, residual=1.0)
+        assert select_targets([(1, mover)], self.ST) == [mover]
+
+    def test_empty(self):
+        assert select_targets([], self.ST) == []

@@ -1,0 +1,192 @@
+"""mtcw_core.dsp.tones: exact DFT at arbitrary frequencies and joint least-squares line fits."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mtcw_core.dsp.tones import exact_dft, fit_lines, fit_lines_segments
+
+FS = 1.0e9
+
+
+def centred(n: int) -> np.ndarray:
+    return np.arange(n) - (n - 1) / 2.0
+
+
+def real_tones(n, freqs, amps, phases, dc=0.0, ref=None):
+    """sum A cos(2*pi*f*(k - ref)/fs + p) + dc, ref the record's centre by default."""
+    k = np.arange(n) - ((n - 1) / 2.0 if ref is None else ref)
+    x = np.full(n, dc, float)
+    for f, a, p in zip(freqs, amps, phases):
+        x += a * np.cos(2 * np.pi * np.mod(k * (f / FS), 1.0) + p)
+    return x
+
+
+def complex_tones(n, freqs, amps, phases):
+    k = centred(n)
+    x = np.zeros(n, complex)
+    for f, a, p in zip(freqs, amps, phases):
+        x += a * np.exp(1j * (2 * np.pi * np.mod(k * (f / FS), 1.0) + p))
+    return x
+
+
+def direct_dft(x, freqs):
+    k = centred(x.size)
+    return np.array([np.sum(x * np.exp(-2j * np.pi * np.mod(k * (f / FS), 1.0))) for f in freqs])
+
+
+class TestExactDft:
+    @pytest.mark.parametrize("n", [1000, 1024, 3001, 4096])
+    def test_matches_direct_sum(self, n):
+        rng = np.random.default_rng(n)
+        x = rng.standard_normal(n)
+        freqs = np.array([0.0, 12.3e6, -77.7e6, 250.000001e6, 499e6])
+        got = exact_dft(x, freqs, FS)
+        want = direct_dft(x, freqs)
+        assert got.shape == (freqs.size,) and got.dtype == np.complex128
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.sqrt(n))
+
+    def test_complex_input(self):
+        rng = np.random.default_rng(1)
+        x = rng.standard_normal(2000) + 1j * rng.standard_normal(2000)
+        freqs = [-300e6, 1.5e6, 333.3e6]
+        np.testing.assert_allclose(exact_dft(x, freqs, FS), direct_dft(x, freqs), atol=1e-9 * 50)
+
+    def test_scalar_frequency(self):
+        x = np.ones(256)
+        np.testing.assert_allclose(exact_dft(x, 0.0, FS), [256.0], rtol=1e-14)
+
+    def test_on_bin_tone_is_n_times_half_amplitude(self):
+        n = 1024
+        f = 37 * FS / n
+        x = real_tones(n, [f], [2.0], [0.4])
+        y = exact_dft(x, [f], FS)[0]
+        # sum_k 2 cos(w k' + p) e^{-j w k'} = N e^{jp} (the image sums to 0 on the grid)
+        assert y == pytest.approx(n * np.exp(0.4j), rel=1e-12)
+
+    def test_float32_input(self):
+        rng = np.random.default_rng(2)
+        x = rng.standard_normal(1024).astype(np.float32)
+        freqs = [10.1e6, 200.7e6]
+        np.testing.assert_allclose(exact_dft(x, freqs, FS), direct_dft(x.astype(float), freqs), atol=1e-4)
+
+
+class TestFitLines:
+    # two tones 0.3 and 0.71 of a bin off the grid, and 1.41 bins apart (their leakage overlaps)
+    N = 4096
+    DF = FS / N
+    F = np.array([(100 + 0.3) * DF, (101 + 0.71) * DF])
+    A = np.array([1.3, 0.45])
+    P = np.array([0.7, -2.4])
+
+    def check(self, z, amps, phases, rtol=1e-12):
+        np.testing.assert_allclose(np.abs(z), amps, rtol=rtol)
+        np.testing.assert_allclose(np.angle(z * np.exp(-1j * np.asarray(phases))), 0.0, atol=rtol)
+
+    def test_real_two_close_tones_off_grid(self):
+        x = real_tones(self.N, self.F, self.A, self.P, dc=0.37)
+        self.check(fit_lines(x, self.F, FS), self.A, self.P)
+
+    def test_real_tones_far_apart(self):
+        f = np.array([(211 + 0.3) * self.DF, (1500 + 0.71) * self.DF, 7.77 * self.DF])
+        a, p = np.array([1.0, 0.01, 3.0]), np.array([3.0, -3.0, 0.1])
+        x = real_tones(self.N, f, a, p, dc=-2.0)
+        self.check(fit_lines(x, f, FS), a, p)
+
+    def test_complex_signed_frequencies(self):
+        f = np.array([self.F[0], -self.F[1], 0.0])
+        a, p = np.array([1.3, 0.45, 0.2]), np.array([0.7, -2.4, 1.0])
+        x = complex_tones(self.N, f, a, p)
+        self.check(fit_lines(x, f, FS), a, p)
+
+    def test_odd_length(self):
+        n = 3001
+        f = np.array([(50 + 0.3) * FS / n, (52 + 0.71) * FS / n])
+        x = real_tones(n, f, self.A, self.P, dc=1.0)
+        self.check(fit_lines(x, f, FS), self.A, self.P)
+
+    def test_dft_argument_reused(self):
+        x = real_tones(self.N, self.F, self.A, self.P)
+        d = exact_dft(x, self.F, FS)
+        np.testing.assert_array_equal(fit_lines(x, self.F, FS, dft=d), fit_lines(x, self.F, FS))
+
+    def test_phase_referred_to_the_centre(self):
+        """A tone with phase p at sample 0 has phase p + 2*pi*f*(N-1)/(2*fs) at the centre."""
+        f, p0 = self.F[0], 0.3
+        x = real_tones(self.N, [f], [1.0], [p0], ref=0.0)
+        z = fit_lines(x, [f], FS)[0]
+        want = p0 + 2 * np.pi * np.mod(f / FS * (self.N - 1) / 2, 1.0)
+        assert np.angle(z * np.exp(-1j * want)) == pytest.approx(0.0, abs=1e-11)
+
+    @pytest.mark.parametrize("dtype", [np.float32, np.complex64])
+    def test_single_precision_input(self, dtype):
+        if dtype is np.float32:
+            x = real_tones(self.N, self.F, self.A, self.P)
+            f = self.F
+        else:
+            f = np.array([self.F[0], -self.F[1]])
+            x = complex_tones(self.N, f, self.A, self.P)
+        z = fit_lines(x.astype(dtype), f, FS)
+        assert z.dtype == np.complex128
+        self.check(z, self.A, self.P, rtol=2e-6)
+
+    def test_white_noise_phase_variance(self):
+        """Least squares in white noise: var(phase) ~ 2*s2/(N*A^2) for a real tone."""
+        rng = np.random.default_rng(5)
+        n, s, a = 1024, 0.5, 1.0
+        f = (40 + 0.3) * FS / n
+        clean = real_tones(n, [f], [a], [0.0])
+        ph = [np.angle(fit_lines(clean + s * rng.standard_normal(n), [f], FS)[0]) for _ in range(400)]
+        want = 2 * s**2 / (n * a**2)
+        assert np.var(ph) == pytest.approx(want, rel=0.2)
+
+    def test_duplicate_frequencies_are_singular(self):
+        x = real_tones(self.N, self.F, self.A, self.P)
+        with pytest.raises(np.linalg.LinAlgError):
+            fit_lines(x, [self.F[0], self.F[0]], FS)
+
+
+class TestFitLinesSegments:
+    N = 4096
+    F = np.array([(60 + 0.3) * FS / 1024, (75 + 0.71) * FS / 1024])
+    A = np.array([1.0, 0.25])
+    P = np.array([0.4, 2.9])
+
+    def expected(self, starts, length):
+        """Each segment's phasor: the record-centre phase advanced to the segment's centre."""
+        c_full = (self.N - 1) / 2
+        out = []
+        for s in starts:
+            dt = s + (length - 1) / 2 - c_full
+            out.append(self.A * np.exp(1j * (self.P + 2 * np.pi * np.mod(self.F / FS * dt, 1.0))))
+        return np.array(out)
+
+    def test_real_segments_referred_to_their_centres(self):
+        x = real_tones(self.N, self.F, self.A, self.P, dc=0.2)
+        starts, length = np.array([0, 1024, 2048, 3072, 100]), 1024
+        z = fit_lines_segments(x, starts, length, self.F, FS)
+        assert z.shape == (5, 2)
+        np.testing.assert_allclose(z, self.expected(starts, length), rtol=0, atol=1e-11)
+
+    def test_complex_segments(self):
+        f = np.array([self.F[0], -self.F[1]])
+        k = np.arange(self.N) - (self.N - 1) / 2
+        x = sum(a * np.exp(1j * (2 * np.pi * np.mod(k * fi / FS, 1.0) + p)) for fi, a, p in zip(f, self.A, self.P))
+        starts, length = np.array([7, 2000]), 2000
+        z = fit_lines_segments(x, starts, length, f, FS)
+        c_full = (self.N - 1) / 2
+        want = np.array([self.A * np.exp(1j * (self.P + 2 * np.pi * np.mod(f / FS * (s + (length - 1) / 2 - c_full),
+                                                                             1.0))) for s in starts])
+        np.testing.assert_allclose(z, want, atol=1e-11)
+
+    def test_one_whole_segment_equals_fit_lines(self):
+        x = real_tones(self.N, self.F, self.A, self.P, dc=0.2)
+        z1 = fit_lines_segments(x, np.array([0]), self.N, self.F, FS)[0]
+        np.testing.assert_allclose(z1, fit_lines(x, self.F, FS), atol=1e-12)
+
+    def test_float32_input(self):
+        x = real_tones(self.N, self.F, self.A, self.P).astype(np.float32)
+        starts = np.array([0, 2048])
+        z = fit_lines_segments(x, starts, 2048, self.F, FS)
+        np.testing.assert_allclose(z, self.expected(starts, 2048), atol=1e-5)

@@ -1,0 +1,139 @@
+"""mtcw_core.ranging.triangulation: unambiguous range, cycle resolution (ml, seed), Fisher sigma."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from mtcw_core.phase import C, wrap_pi
+from mtcw_core.ranging.triangulation import (Observations, fisher_sigma, resolve_ml, resolve_seed,
+                                             unambiguous_range)
+
+TONES = np.array([100e6, 170e6, 260e6])
+PAIRS = [(i, j) for i, j in itertools.combinations(range(3), 2)]
+DF = np.array([TONES[j] - TONES[i] for i, j in PAIRS])  # 70, 160, 90 MHz
+L_UNAMB = C / (2 * 10e6)  # gcd 10 MHz: 14.99 m
+
+
+def observations(range_m, tau0_s=0.0, line_noise=None, rng=None):
+    """Pair phases -2*pi*df*tau (wrapped) from line phases -2*pi*f_i*tau (+ noise of variance v_i)."""
+    tau = tau0_s + 2 * range_m / C
+    ph = -2 * np.pi * np.mod(TONES * tau, 1.0)
+    if line_noise is not None:
+        ph = ph + rng.standard_normal(3) * np.sqrt(line_noise)
+    v = np.ones(3) if line_noise is None else np.asarray(line_noise)
+    phase = np.array([wrap_pi(ph[j] - ph[i]) for i, j in PAIRS])
+    w = np.array([1 / (v[i] * v[j]) for i, j in PAIRS])
+    return Observations(DF.copy(), phase, w)
+
+
+class TestObservations:
+    def test_synthetic_wavelengths(self):
+        obs = observations(1.0)
+        np.testing.assert_allclose(obs.synthetic_wavelengths_m, C / (2 * DF))
+
+
+class TestUnambiguousRange:
+    @pytest.mark.parametrize("df,g", [([70e6, 90e6, 160e6], 10e6), ([200e6], 200e6), ([30e6, 45e6], 15e6),
+                                      ([410e6, 200e6], 10e6), ([7e6, 11e6], 1e6)])
+    def test_c_over_2_gcd(self, df, g):
+        assert unambiguous_range(df) == pytest.approx(C / (2 * g), rel=1e-15)
+
+    def test_resolution_grid(self):
+        assert unambiguous_range([1.5, 2.5], resolution_hz=0.5) == pytest.approx(C / (2 * 0.5))
+
+    def test_near_integers_rounded_to_the_grid(self):
+        assert unambiguous_range([70e6 + 1e-4, 90e6 - 1e-4]) == pytest.approx(C / (2 * 10e6))
+
+    def test_scalar(self):
+        assert unambiguous_range(150e6) == pytest.approx(C / 3e8)
+
+
+class TestResolveMl:
+    @pytest.mark.parametrize("range_m", [0.0123, 0.3, 3.7, 7.77, 11.111, 14.5])
+    def test_noiseless_exact(self, range_m):
+        sol = resolve_ml(observations(range_m), 0.0, (-0.05, L_UNAMB - 0.05))
+        assert sol.range_m == pytest.approx(range_m, abs=1e-9)
+        assert sol.residual_rms_rad == pytest.approx(0.0, abs=1e-8)
+        assert 0.0 < sol.margin <= 1.0
+
+    def test_internal_delay_removed(self):
+        tau0 = 12.345e-9
+        sol = resolve_ml(observations(4.2, tau0), tau0, (0.0, L_UNAMB))
+        assert sol.range_m == pytest.approx(4.2, abs=1e-9)
+
+    def test_periodic_in_the_unambiguous_range(self):
+        """A search interval one period further gives the same range plus one period."""
+        sol = resolve_ml(observations(3.7), 0.0, (L_UNAMB, 2 * L_UNAMB))
+        assert sol.range_m == pytest.approx(3.7 + L_UNAMB, abs=1e-9)
+
+    def test_slightly_negative_range(self):
+        sol = resolve_ml(observations(-0.02), 0.0, (-0.05, L_UNAMB - 0.05))
+        assert sol.range_m == pytest.approx(-0.02, abs=1e-9)
+        assert sol.near_edge  # within half the finest synthetic wavelength of the interval's end
+
+    def test_far_from_edge(self):
+        assert not resolve_ml(observations(7.0), 0.0, (0.0, L_UNAMB)).near_edge
+
+    def test_sigma_matches_fisher_bound(self):
+        """Monte Carlo: the spread of the ML range in line-phase noise is near the Fisher sigma."""
+        rng = np.random.default_rng(0)
+        v = np.array([1e-3, 2e-3, 1.5e-3])
+        est = [resolve_ml(observations(5.0, line_noise=v, rng=rng), 0.0, (0.0, L_UNAMB)).range_m
+               for _ in range(300)]
+        sig = fisher_sigma([TONES], [v])
+        assert np.std(est) / sig == pytest.approx(1.0, abs=0.2)
+        assert abs(np.mean(est) - 5.0) < 4 * sig / np.sqrt(300)
+
+
+class TestResolveSeed:
+    @pytest.mark.parametrize("range_m", [0.0123, 0.3, 3.7, 7.77, 11.111, 14.5])
+    def test_noiseless_exact(self, range_m):
+        sol = resolve_seed(observations(range_m), 0.0, L_UNAMB)
+        assert sol.range_m == pytest.approx(range_m, abs=1e-9)
+        assert sol.seed_sigma_k_m == pytest.approx(0.0, abs=1e-9)
+
+    def test_internal_delay_removed(self):
+        tau0 = 3.3e-9
+        sol = resolve_seed(observations(9.1, tau0), tau0, L_UNAMB)
+        assert sol.range_m == pytest.approx(9.1, abs=1e-9)
+
+    def test_row_spread_is_the_plain_std(self):
+        """With phase noise the quality figure is the published ddof=0 std of the chosen row."""
+        obs = observations(6.0, line_noise=np.full(3, 1e-3), rng=np.random.default_rng(1))
+        sol = resolve_seed(obs, 0.0, L_UNAMB)
+        lam = C / (2 * obs.df_hz)
+        r = lam * np.mod(-obs.phase_rad / (2 * np.pi), 1.0)
+        fine = int(np.argmin(lam))
+        row = [sol.range_m] + [r[i] + np.rint((sol.range_m - r[i]) / lam[i]) * lam[i]
+                               for i in range(3) if i != fine]
+        assert sol.seed_sigma_k_m == pytest.approx(np.std(row), rel=1e-9)
+        assert abs(sol.range_m - 6.0) < 0.05
+
+
+class TestFisherSigma:
+    def test_two_lines_is_the_phase_difference_bound(self):
+        """One family (one unknown common phase), lines f1, f2 with phase variances v1, v2: the
+        pair phase d = phi2 - phi1 has variance v1 + v2 and slope dd/dL = -2*pi*(f2 - f1)*2/c,
+        so sigma_L = sqrt(v1 + v2) / (2*pi*|f2 - f1|*2/c)."""
+        f = np.array([100e6, 270e6])
+        v1, v2 = 2e-4, 5e-4
+        want = math.sqrt(v1 + v2) / (2 * math.pi * 170e6 * 2 / C)
+        assert fisher_sigma([f], [np.array([v1, v2])]) == pytest.approx(want, rel=1e-12)
+
+    def test_families_add_information(self):
+        f, v = np.array([100e6, 270e6]), np.array([1e-4, 1e-4])
+        one = fisher_sigma([f], [v])
+        assert fisher_sigma([f, f], [v, v]) == pytest.approx(one / math.sqrt(2), rel=1e-12)
+
+    def test_single_line_family_carries_nothing(self):
+        assert fisher_sigma([np.array([100e6])], [np.array([1e-4])]) == math.inf
+        assert fisher_sigma([], []) == math.inf
+
+    def test_common_shift_of_frequencies_irrelevant(self):
+        """The common phase per family absorbs a common frequency shift (a Doppler family)."""
+        f, v = TONES, np.array([1e-4, 3e-4, 2e-4])
+        assert fisher_sigma([f + 5e6], [v]) == pytest.approx(fisher_sigma([f], [v]), rel=1e-9)
