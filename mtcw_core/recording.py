@@ -133,12 +133,12 @@ class RecordingWriter:
         datatype = (_COMPLEX if complex_ else _REAL)[dt]
         n_sigmf = (len(d["channels"]) + 1) // 2 if complex_ else len(d["channels"])
         glob = {
-            SigMFFile.DATATYPE_KEY: datatype,
-            SigMFFile.SAMPLE_RATE_KEY: d["fs_hz"],
-            SigMFFile.NUM_CHANNELS_KEY: n_sigmf,
-            SigMFFile.DESCRIPTION_KEY: self.description,
-            SigMFFile.RECORDER_KEY: "mtcw",
-            SigMFFile.EXTENSIONS_KEY: [EXTENSION],
+            "core:datatype": datatype,
+            "core:sample_rate": d["fs_hz"],
+            "core:num_channels": n_sigmf,
+            "core:description": self.description,
+            "core:recorder": "mtcw",
+            "core:extensions": [EXTENSION],
             "mtcw:frame_samples": d["n"],
         }
         glob |= {f"mtcw:{k}": d[k] for k in _GLOBAL_KEYS if k != "fs_hz" and d[k] is not None}

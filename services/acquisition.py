@@ -113,6 +113,8 @@ class Publisher:
         except zmq.ZMQError:
             self.push.close()
             raise
+        # watch for workers from the moment of binding, so that none connects unseen before wait_for_worker
+        self._monitor: zmq.Socket | None = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
         self.run = secrets.randbits(63)  # tells this run's frames from a previous run's
         self.seq = 0
         self.published = 0
@@ -132,7 +134,8 @@ class Publisher:
         """Wait until ``count`` workers have connected to the PUSH socket (True) or the timeout passes."""
         from zmq.utils.monitor import recv_monitor_message
 
-        mon = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        mon = self._monitor or self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._monitor = None
         try:
             deadline = time.monotonic() + timeout_s
             seen = 0
@@ -184,6 +187,10 @@ class Publisher:
         return ok
 
     def close(self) -> None:
+        if self._monitor is not None:
+            self.push.disable_monitor()
+            self._monitor.close()
+            self._monitor = None
         self.push.close()
         self.pub.close()
 
