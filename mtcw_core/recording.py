@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .frame import Frame, PulseInfo, TruthTarget
+from .frame import Frame, frame_from_dict, frame_to_dict
 
 EXTENSION = {"name": "mtcw", "version": "1.0.0", "optional": False}
 
@@ -32,6 +32,13 @@ _BY_NAME = {v: (k, False) for k, v in _REAL.items()} | {v: (k, True) for k, v in
 _BY_NAME["ri16_be"] = (np.dtype(">i2"), False)
 _BY_NAME["ci16_be"] = (np.dtype(">i2"), True)
 
+#: keys of :func:`~mtcw_core.frame.frame_to_dict` stored once per recording, as ``mtcw:<key>``
+#: (``fs_hz`` as ``core:sample_rate``); ``n`` is ``mtcw:frame_samples``, ``dtype`` the
+#: ``core:datatype``, ``scale``/``offset`` are stored for integer datatypes only; ``seq``,
+#: ``t_ns`` (as ``core:datetime``) and ``truth`` go on each frame's capture segment; a frame's
+#: ``run`` is not recorded (a replay is a new run of the publisher that replays it).
+_GLOBAL_KEYS = ("fs_hz", "tones_hz", "tone_phases_rad", "wavelength_m", "receiver", "architecture", "channels",
+                "pulse", "source")
 REQUIRED_GLOBAL = ("core:datatype", "core:sample_rate", "mtcw:tones_hz", "mtcw:wavelength_m", "mtcw:frame_samples")
 
 
@@ -83,7 +90,7 @@ class RecordingWriter:
         if not overwrite and (self.data_path.exists() or self.meta_path.exists()):
             raise RecordingError(f"{self.prefix}: recording exists")
         self._fh = open(self.data_path, "wb")
-        self._first: Frame | None = None
+        self._first: dict | None = None  # frame_to_dict of the first frame
         self._captures: list[dict] = []
         self._written = 0
         self.description = description
@@ -95,22 +102,17 @@ class RecordingWriter:
         self.close()
 
     def write(self, frame: Frame) -> None:
+        d = frame_to_dict(frame)
         if self._first is None:
-            self._first = frame
+            self._first = d
         else:
-            f0 = self._first
-            for key in ("fs_hz", "tones_hz", "channels", "receiver", "n", "wavelength_m"):
-                if getattr(frame, key) != getattr(f0, key):
-                    raise RecordingError(f"frame seq {frame.seq}: {key} differs from the recording's first frame")
-            if frame.samples.dtype != f0.samples.dtype or (frame.scale, frame.offset) != (f0.scale, f0.offset):
-                raise RecordingError(f"frame seq {frame.seq}: dtype/scale/offset differ from the first frame")
-        cap = {
-            "core:sample_start": self._written,
-            "core:datetime": _iso(frame.t_ns),
-            "mtcw:seq": int(frame.seq),
-        }
-        if frame.truth is not None:
-            cap["mtcw:truth"] = [t.to_dict() for t in frame.truth]
+            for key in (*_GLOBAL_KEYS, "n", "dtype", "scale", "offset"):
+                if d[key] != self._first[key]:
+                    raise RecordingError(f"frame seq {frame.seq}: {key} differs from the recording's first frame "
+                                         f"({d[key]!r}, was {self._first[key]!r})")
+        cap = {"core:sample_start": self._written, "core:datetime": _iso(d["t_ns"]), "mtcw:seq": d["seq"]}
+        if d["truth"] is not None:
+            cap["mtcw:truth"] = d["truth"]
         self._captures.append(cap)
         buf = _interleave(frame)
         self._fh.write(buf.astype(buf.dtype.newbyteorder("<"), copy=False).tobytes())
@@ -123,50 +125,31 @@ class RecordingWriter:
         if self._first is None:
             self.data_path.unlink(missing_ok=True)
             raise RecordingError("no frames written")
-        f = self._first
+        d = self._first
         from sigmf import SigMFFile  # the reference implementation writes and validates the metadata
 
-        complex_ = f.receiver == "iq"
-        dt = f.samples.dtype
-        datatype = (_COMPLEX if complex_ else _REAL).get(dt.newbyteorder("<") if dt.byteorder == ">" else dt)
-        if datatype is None:
-            raise RecordingError(f"unsupported sample dtype {dt}")
-        n_sigmf = (len(f.channels) + 1) // 2 if complex_ else len(f.channels)
+        complex_ = d["receiver"] == "iq"
+        dt = np.dtype(d["dtype"])
+        datatype = (_COMPLEX if complex_ else _REAL)[dt]
+        n_sigmf = (len(d["channels"]) + 1) // 2 if complex_ else len(d["channels"])
         glob = {
-            SigMFFile.DATATYPE_KEY: datatype,
-            SigMFFile.SAMPLE_RATE_KEY: float(f.fs_hz),
-            SigMFFile.NUM_CHANNELS_KEY: n_sigmf,
-            SigMFFile.DESCRIPTION_KEY: self.description,
-            SigMFFile.RECORDER_KEY: "mtcw",
-            SigMFFile.EXTENSIONS_KEY: [EXTENSION],
-            "mtcw:tones_hz": [float(x) for x in f.tones_hz],
-            "mtcw:wavelength_m": float(f.wavelength_m),
-            "mtcw:receiver": f.receiver,
-            "mtcw:architecture": f.architecture,
-            "mtcw:channels": list(f.channels),
-            "mtcw:frame_samples": int(f.n),
-            "mtcw:source": f.source,
+            "core:datatype": datatype,
+            "core:sample_rate": d["fs_hz"],
+            "core:num_channels": n_sigmf,
+            "core:description": self.description,
+            "core:recorder": "mtcw",
+            "core:extensions": [EXTENSION],
+            "mtcw:frame_samples": d["n"],
         }
-        if f.tone_phases_rad is not None:
-            glob["mtcw:tone_phases_rad"] = [float(x) for x in f.tone_phases_rad]
-        if f.pulse is not None:
-            glob["mtcw:pulse"] = f.pulse.to_dict()
+        glob |= {f"mtcw:{k}": d[k] for k in _GLOBAL_KEYS if k != "fs_hz" and d[k] is not None}
         if dt.kind == "i":
-            glob["mtcw:scale"] = float(f.scale)
-            glob["mtcw:offset"] = float(f.offset)
+            glob["mtcw:scale"] = d["scale"]
+            glob["mtcw:offset"] = d["offset"]
         meta = SigMFFile(data_file=str(self.data_path), global_info=glob)
         for cap in self._captures:
             start = cap.pop("core:sample_start")
             meta.add_capture(start, metadata=cap)
         meta.tofile(str(self.meta_path), overwrite=True)
-
-
-def write_recording(prefix: str | os.PathLike, frames, description: str = "mtcw recording") -> Path:
-    """Write an iterable of frames; returns the ``.sigmf-meta`` path."""
-    with RecordingWriter(prefix, description) as w:
-        for fr in frames:
-            w.write(fr)
-    return w.meta_path
 
 
 @dataclass
@@ -263,27 +246,14 @@ class Recording:
             samples = np.stack(rows)
         else:
             samples = np.ascontiguousarray(block.T)
-        truth = cap.get("mtcw:truth")
-        pulse = g.get("mtcw:pulse")
-        phases = g.get("mtcw:tone_phases_rad")
+        d = {k: g[f"mtcw:{k}"] for k in _GLOBAL_KEYS if f"mtcw:{k}" in g}
         dtm = cap.get("core:datetime")
-        return Frame(
-            samples=samples,
-            fs_hz=float(g["core:sample_rate"]),
-            tones_hz=tuple(float(x) for x in g["mtcw:tones_hz"]),
-            wavelength_m=float(g["mtcw:wavelength_m"]),
-            receiver=self.receiver,
-            channels=self.channels,
-            scale=float(g.get("mtcw:scale", 1.0)),
-            offset=float(g.get("mtcw:offset", 0.0)),
-            tone_phases_rad=None if phases is None else tuple(float(x) for x in phases),
-            pulse=None if pulse is None else PulseInfo(**pulse),
-            architecture=g.get("mtcw:architecture", "unmodulated_lo"),
-            seq=int(cap.get("mtcw:seq", i)),
-            t_ns=_parse_iso(dtm) if dtm else 0,
-            source=g.get("mtcw:source", self.meta_path.name.removesuffix(".sigmf-meta")),
-            truth=None if truth is None else tuple(TruthTarget(**t) for t in truth),
-        )
+        d |= {"fs_hz": g["core:sample_rate"], "receiver": self.receiver, "channels": self.channels,
+              "scale": g.get("mtcw:scale", 1.0), "offset": g.get("mtcw:offset", 0.0),
+              "seq": cap.get("mtcw:seq", i), "t_ns": _parse_iso(dtm) if dtm else 0,
+              "source": g.get("mtcw:source", self.meta_path.name.removesuffix(".sigmf-meta")),
+              "truth": cap.get("mtcw:truth")}
+        return frame_from_dict(d, samples)
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):

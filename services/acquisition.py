@@ -1,7 +1,8 @@
 """The acquisition node: a frame source and a publisher.
 
-Sources yield :class:`~mtcw_core.frame.Frame` objects; the node stamps ``source``, ``seq`` (+1
-per frame) and the trigger time ``t_ns``, then sends each frame on a PUSH socket (workers share
+Sources yield :class:`~mtcw_core.frame.Frame` objects; the node stamps their identity
+(``source``, ``seq`` +1 per frame, the trigger time ``t_ns``, ``run``), the one place that does
+on the wire, then sends each frame on a PUSH socket (workers share
 them) and a PUB socket (recorders and monitors, never slowing the workers). When no worker can
 take a frame the drop policy decides: ``drop`` counts it and goes on (the consumer sees the seq
 gap), ``block`` waits. A real digitizer plugs in as any class with a ``frames()`` iterator,
@@ -17,7 +18,7 @@ import logging
 import secrets
 import threading
 import time
-from typing import Iterator, Protocol
+from typing import Callable, Iterator, Protocol
 
 import zmq
 
@@ -27,7 +28,8 @@ from mtcw_core.scene import load_scene
 from mtcw_core.simulate import Simulator
 
 from .settings import AcquisitionSettings, log_settings
-from .wire import encode_end, encode_frame
+from .sockets import bound_endpoint, frames_push, monitor_pub, open_socket, report_endpoints
+from .wire import encode_end, encode_frame, end_message
 
 log = logging.getLogger("mtcw.acquisition")
 
@@ -84,32 +86,64 @@ def make_source(settings: AcquisitionSettings) -> FrameSource:
 
 
 class Publisher:
-    """Binds the PUSH (workers) and PUB (monitors) sockets and sends frames with the drop policy."""
+    """Binds the PUSH (workers) and PUB (monitors) sockets, stamps each frame's identity and sends it.
 
-    def __init__(self, settings: AcquisitionSettings, ctx: zmq.Context | None = None) -> None:
+    The publisher is the one place that stamps a frame's identity on the wire (see
+    :mod:`mtcw_core.frame`): ``source`` (``source_name``), ``seq`` (+1 per frame, from 0),
+    ``t_ns`` (its wall clock when it takes the frame, Unix ns) and ``run`` (random, per
+    publisher). When no worker can take a frame the drop policy (the PUSH socket's ``SNDTIMEO``,
+    :mod:`services.sockets`) decides: ``drop`` counts it and goes on, ``block`` waits.
+
+    Parameters
+    ----------
+    settings : AcquisitionSettings
+    ctx : zmq.Context, optional
+    clock_ns : callable, optional
+        Wall clock for ``t_ns`` (``time.time_ns``); for tests.
+    """
+
+    def __init__(self, settings: AcquisitionSettings, ctx: zmq.Context | None = None,
+                 clock_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
         self.ctx = ctx or zmq.Context.instance()
-        self.push = self.ctx.socket(zmq.PUSH)
-        self.pub = self.ctx.socket(zmq.PUB)
-        for s, ep in ((self.push, settings.frames_endpoint), (self.pub, settings.monitor_endpoint)):
-            s.setsockopt(zmq.SNDHWM, settings.hwm)
-            s.setsockopt(zmq.LINGER, settings.linger_ms)
-            s.bind(ep)
+        self.clock_ns = clock_ns
+        self.push = open_socket(self.ctx, frames_push(settings))
+        try:
+            self.pub = open_socket(self.ctx, monitor_pub(settings))
+        except zmq.ZMQError:
+            self.push.close()
+            raise
+        # watch for workers from the moment of binding, so that none connects unseen before wait_for_worker
+        self._monitor: zmq.Socket | None = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
         self.run = secrets.randbits(63)  # tells this run's frames from a previous run's
         self.seq = 0
         self.published = 0
         self.dropped = 0
 
-    def wait_for_worker(self, timeout_s: float) -> bool:
-        """Wait until a worker has connected to the PUSH socket (True) or the timeout passes."""
+    @property
+    def frames_endpoint(self) -> str:
+        """The bound endpoint of the PUSH socket (the port actually taken when bound to port 0)."""
+        return bound_endpoint(self.push)
+
+    @property
+    def monitor_endpoint(self) -> str:
+        """The bound endpoint of the PUB socket."""
+        return bound_endpoint(self.pub)
+
+    def wait_for_worker(self, timeout_s: float, count: int = 1) -> bool:
+        """Wait until ``count`` workers have connected to the PUSH socket (True) or the timeout passes."""
         from zmq.utils.monitor import recv_monitor_message
 
-        mon = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_ACCEPTED)
+        mon = self._monitor or self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._monitor = None
         try:
             deadline = time.monotonic() + timeout_s
+            seen = 0
             while (left := deadline - time.monotonic()) > 0:
                 if mon.poll(int(left * 1000)) and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
-                    return True
+                    seen += 1
+                    if seen >= count:
+                        return True
             return False
         finally:
             self.push.disable_monitor()
@@ -117,15 +151,13 @@ class Publisher:
 
     def send(self, frame: Frame) -> bool:
         """Stamp and send one frame; returns False when it was dropped (no worker free)."""
-        frame = frame.with_(seq=self.seq, t_ns=time.time_ns(), source=self.settings.source_name,
-                            extra={**frame.extra, "run": self.run})
+        frame = frame.with_(source=self.settings.source_name, seq=self.seq, t_ns=self.clock_ns(), run=self.run)
         self.seq += 1
         parts = encode_frame(frame)
         # PUB never blocks: a slow subscriber loses frames and sees the seq gap
         self.pub.send_multipart(parts, copy=False)
-        flags = zmq.NOBLOCK if self.settings.drop_policy == "drop" else 0
         try:
-            self.push.send_multipart(parts, flags=flags, copy=False)
+            self.push.send_multipart(parts, copy=False)  # the socket's SNDTIMEO is the drop policy
         except zmq.Again:
             self.dropped += 1
             return False
@@ -138,7 +170,7 @@ class Publisher:
         The PUSH socket then lingers up to ``timeout_s`` so that the notice and the frames still
         queued for workers are delivered rather than discarded on close.
         """
-        parts = encode_end(self.settings.source_name, self.run, self.seq, time.time_ns(), self.dropped)
+        parts = encode_end(end_message(self.settings.source_name, self.run, self.seq, self.clock_ns(), self.dropped))
         ok = bool(self.push.poll(int(timeout_s * 1000), zmq.POLLOUT))
         if ok:
             try:
@@ -146,12 +178,19 @@ class Publisher:
             except zmq.Again:  # the pipe filled between the poll and the send
                 ok = False
         if ok:
-            self.push.setsockopt(zmq.LINGER, max(self.settings.linger_ms, int(timeout_s * 1000)))
+            linger_ms = max(self.settings.linger_ms, int(timeout_s * 1000))
+            self.push.setsockopt(zmq.LINGER, linger_ms)
+            log.info("acquisition: end-of-run notice sent; frames socket lingers %d ms on close",
+                     self.push.getsockopt(zmq.LINGER))
         else:
             log.warning("acquisition: no worker took the end-of-run notice within %.1f s", timeout_s)
         return ok
 
     def close(self) -> None:
+        if self._monitor is not None:
+            self.push.disable_monitor()
+            self._monitor.close()
+            self._monitor = None
         self.push.close()
         self.pub.close()
 
@@ -163,14 +202,17 @@ def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None 
     log_settings("acquisition", settings)
     source = make_source(settings)
     pub = Publisher(settings)
+    report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
+                                               "monitor_endpoint": pub.monitor_endpoint})
     metrics = _exporter(settings.metrics_port, settings.metrics_host)
-    if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s):
-        log.warning("acquisition: no worker after %.1f s; frames are dropped (and counted) until one connects",
-                    settings.wait_for_worker_s)
+    if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s,
+                                                                   settings.wait_for_workers):
+        log.warning("acquisition: fewer than %d worker(s) after %.1f s; frames are dropped (and counted) while no "
+                    "worker is free", settings.wait_for_workers, settings.wait_for_worker_s)
     period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
     next_t = time.monotonic()
     log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
-             settings.frames_endpoint, settings.monitor_endpoint)
+             pub.frames_endpoint, pub.monitor_endpoint)
     try:
         for frame in source.frames():
             if stop.is_set():

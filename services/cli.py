@@ -367,8 +367,9 @@ def run(
     profile: str = typer.Option("balanced", help="chain profile of the workers"),
     workers: int = typer.Option(1, min=1, max=64, help="number of worker processes"),
     rate: float = typer.Option(5.0, help="frames/s from the simulator (0 = as fast as it goes)"),
-    port: int = typer.Option(8000, help="HTTP port of the API (127.0.0.1)"),
-    base_port: int = typer.Option(5555, help="first of three ZeroMQ ports (frames, monitor, points)"),
+    port: int = typer.Option(8000, min=0, max=65535, help="HTTP port of the API (127.0.0.1; 0 = a free one)"),
+    base_port: int = typer.Option(5555, min=0, max=65533, help="first of three ZeroMQ ports (frames, monitor, "
+                                                               "points); 0 = free ports, as the services report them"),
 ) -> None:
     """All-in-one: simulator + worker(s) + API on loopback. Ctrl-C or SIGTERM stops everything."""
     from services.settings import WorkerSettings
@@ -379,29 +380,32 @@ def run(
     except SceneError as err:
         _fail(str(err))
     _service_settings(WorkerSettings, profile=profile)  # a bad profile fails here, not in a child
-    env = {
-        "MTCW_FRAMES_ENDPOINT": f"tcp://127.0.0.1:{base_port}",
-        "MTCW_MONITOR_ENDPOINT": f"tcp://127.0.0.1:{base_port + 1}",
-        "MTCW_POINTS_ENDPOINT": f"tcp://127.0.0.1:{base_port + 2}",
-    }
+    ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, 0, 0)
+    env = {f"MTCW_{k}_ENDPOINT": f"tcp://127.0.0.1:{p}" for k, p in zip(("FRAMES", "MONITOR", "POINTS"), ports)}
     sup = Supervisor(env=env)
-    sup.add("api", "api", "--host", "127.0.0.1", "--port", str(port))
+    # the binding ends first, each reporting its endpoints; the workers connect to them
+    sup.add("api", "api", "--host", "127.0.0.1", "--port", str(port), reports=True)
+    sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate), reports=True,
+            env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
         sup.add(f"worker-{i}", "worker", "--profile", profile, "--name", f"worker-{i}")
-    sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate))
-    url = f"http://127.0.0.1:{port}"
-    typer.echo(f"mtcw run: scene {sc.name} ({sc.description}); {workers} worker(s), profile {profile}\n"
-               f"  latest point : curl {url}/v1/points/latest\n"
-               f"  history      : curl '{url}/v1/points?limit=10'\n"
-               f"  health       : curl {url}/readyz\n"
-               f"  metrics      : curl {url}/metrics\n"
-               f"  API docs     : {url}/docs\n"
-               f"  raw frames   : mtcw record -o out/capture -n 10   (with MTCW_MONITOR_ENDPOINT={env['MTCW_MONITOR_ENDPOINT']})\n"
-               f"Ctrl-C or SIGTERM stops everything.")
-    codes = sup.run_until_signal()
+
+    def banner(s: Supervisor) -> None:
+        url = s.endpoints["http_url"]
+        typer.echo(f"mtcw run: scene {sc.name} ({sc.description}); {workers} worker(s), profile {profile}\n"
+                   f"  latest point : curl {url}/v1/points/latest\n"
+                   f"  history      : curl '{url}/v1/points?limit=10'\n"
+                   f"  health       : curl {url}/readyz\n"
+                   f"  metrics      : curl {url}/metrics\n"
+                   f"  API docs     : {url}/docs\n"
+                   f"  raw frames   : mtcw record -o out/capture -n 10   "
+                   f"(with MTCW_MONITOR_ENDPOINT={s.endpoints['monitor_endpoint']})\n"
+                   f"Ctrl-C or SIGTERM stops everything.")
+
+    codes = sup.run_until_signal(on_start=banner)
     why = codes.pop("_why")
     typer.echo(f"mtcw run: stopped ({why}); exit codes {codes}")
-    if why and "exited" in str(why):
+    if why and ("exited" in str(why) or "failed" in str(why)):
         raise typer.Exit(1)
 
 

@@ -18,6 +18,7 @@ from mtcw_core.recording import RecordingWriter
 
 from .ordering import GapCounter
 from .settings import TransportSettings
+from .sockets import monitor_sub, open_socket
 from .wire import FRAME_TOPIC, WireError, decode_frame
 
 log = logging.getLogger("mtcw.monitor")
@@ -28,11 +29,7 @@ class Subscriber:
 
     def __init__(self, settings: TransportSettings, ctx: zmq.Context | None = None, rcvhwm: int | None = None) -> None:
         self.ctx = ctx or zmq.Context.instance()
-        self.sock = self.ctx.socket(zmq.SUB)
-        self.sock.setsockopt(zmq.RCVHWM, rcvhwm or settings.hwm)
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.setsockopt(zmq.SUBSCRIBE, FRAME_TOPIC)
-        self.sock.connect(settings.monitor_endpoint)
+        self.sock = open_socket(self.ctx, monitor_sub(settings, rcvhwm, FRAME_TOPIC))
         self.gaps = GapCounter()
         self.malformed = 0
 

@@ -13,7 +13,26 @@ so that frames lost after the last one that arrived are counted as dropped as we
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Generic, Optional, Protocol, TypeVar
+
+
+class Sequenced(Protocol):
+    """What the reorderer reads of a message (a :class:`~services.wire.PointMessage` has it)."""
+
+    @property
+    def source(self) -> str: ...
+
+    @property
+    def seq(self) -> int: ...
+
+    @property
+    def t_ns(self) -> int: ...
+
+    @property
+    def run(self) -> Optional[int]: ...
+
+
+M = TypeVar("M", bound=Sequenced)
 
 
 @dataclass
@@ -22,13 +41,13 @@ class _SourceState:
     run: int | None = None
     max_t_ns: int = 0
     floor_t_ns: int = -1  # without run ids: points triggered at or before this belong to an older run
-    held: dict[int, tuple[float, dict]] = field(default_factory=dict)  # seq -> (arrival time, message)
+    held: dict[int, tuple[float, Sequenced]] = field(default_factory=dict)  # seq -> (arrival time, message)
     end_seq: int | None = None  # the run's frame count, once its end-of-run notice came
     end_at: float = 0.0  # when that notice came
 
 
-class Reorderer:
-    """Per-source reorder buffer.
+class Reorderer(Generic[M]):
+    """Per-source reorder buffer of messages with ``source``, ``seq``, ``t_ns`` and ``run``.
 
     Parameters
     ----------
@@ -40,7 +59,7 @@ class Reorderer:
         Points held per source before the gap is given up regardless of time.
     """
 
-    def __init__(self, release: Callable[[dict], None], timeout_s: float = 2.0, max_held: int = 256) -> None:
+    def __init__(self, release: Callable[[M], None], timeout_s: float = 2.0, max_held: int = 256) -> None:
         self._release = release
         self.timeout_s = timeout_s
         self.max_held = max_held
@@ -49,10 +68,9 @@ class Reorderer:
         self.stale = 0
         self.restarts = 0
 
-    def add(self, msg: dict, now: float) -> str:
+    def add(self, msg: M, now: float) -> str:
         """Offer one point; returns ``"held"``, ``"released"``, ``"stale"`` or ``"restart"``."""
-        source, seq, t_ns = msg["source"], int(msg["seq"]), int(msg.get("t_ns", 0))
-        run = msg.get("run")
+        source, seq, t_ns, run = msg.source, int(msg.seq), int(msg.t_ns), msg.run
         st, kind = self._run_state(source, seq, run, t_ns)
         if st is None:
             self.stale += 1

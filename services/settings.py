@@ -1,7 +1,8 @@
 """Service settings: flags override environment (``MTCW_...``), which overrides the defaults.
 
 Every setting is validated (pydantic); an error names the field. Each service logs its
-settings at start-up so that endpoints, high-water marks, LINGER and the drop policy of a
+settings at start-up, and each socket the options in force on it, read back from ZeroMQ
+(:mod:`services.sockets`), so that endpoints, high-water marks, LINGER and the drop policy of a
 running daemon are never a guess.
 """
 
@@ -14,6 +15,9 @@ from typing import Literal, Optional
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .sockets import (DEFAULT_FRAME_HWM, DEFAULT_FRAME_LINGER_MS, DEFAULT_MAX_FRAME_BYTES, DEFAULT_MAX_POINT_BYTES,
+                      DEFAULT_POINT_HWM, DEFAULT_POINT_LINGER_MS, DEFAULT_POINT_SEND_TIMEOUT_MS)
+
 log = logging.getLogger("mtcw")
 
 
@@ -22,19 +26,33 @@ class TransportSettings(BaseSettings):
 
     The stable ends bind: the acquisition node binds ``frames_endpoint`` (PUSH, to workers) and
     ``monitor_endpoint`` (PUB, to recorders and monitors); the API binds ``points_endpoint``
-    (PULL). Workers and recorders connect, and reconnect by themselves.
+    (PULL). Workers and recorders connect, and reconnect by themselves. The defaults of the
+    socket options are named, with their reasons, in :mod:`services.sockets`.
     """
 
     model_config = SettingsConfigDict(env_prefix="MTCW_", extra="forbid", validate_default=True)
 
-    frames_endpoint: str = Field("tcp://127.0.0.1:5555", description="acquisition PUSH -> workers")
+    frames_endpoint: str = Field("tcp://127.0.0.1:5555", description="acquisition PUSH -> workers (bind: port 0 "
+                                                                      "takes a free one)")
     monitor_endpoint: str = Field("tcp://127.0.0.1:5556", description="acquisition PUB -> recorders")
     points_endpoint: str = Field("tcp://127.0.0.1:5557", description="workers -> API PULL")
-    hwm: int = Field(4, ge=1, le=100_000, description="ZeroMQ high-water mark (messages) of every socket")
-    linger_ms: int = Field(0, ge=-1, description="ZeroMQ LINGER on close (ms; -1 = wait forever)")
+    hwm: int = Field(DEFAULT_FRAME_HWM, ge=1, le=100_000,
+                     description="high-water mark (messages) of the frame sockets (PUSH, PUB, PULL, SUB)")
+    linger_ms: int = Field(DEFAULT_FRAME_LINGER_MS, ge=-1, description="LINGER of the acquisition node's frame "
+                                                                       "sockets (ms; -1 = wait for ever)")
     drop_policy: Literal["drop", "block"] = Field(
         "drop", description="when no worker can take a frame: drop it (counted) or wait for one")
+    points_hwm: int = Field(DEFAULT_POINT_HWM, ge=1, le=10_000_000,
+                            description="high-water mark (messages) of the point sockets (worker PUSH, API PULL)")
+    points_linger_ms: int = Field(DEFAULT_POINT_LINGER_MS, ge=-1, description="LINGER of the worker's point socket")
+    points_send_timeout_ms: int = Field(DEFAULT_POINT_SEND_TIMEOUT_MS, ge=0, description="a worker waits this long "
+                                        "for the API to take a point, then counts it undelivered")
+    max_frame_bytes: int = Field(DEFAULT_MAX_FRAME_BYTES, ge=1, description="MAXMSGSIZE of frame receivers (bytes "
+                                 "per message part; a peer sending more is disconnected)")
+    max_point_bytes: int = Field(DEFAULT_MAX_POINT_BYTES, ge=1, description="MAXMSGSIZE of the API's point receiver")
     metrics_host: str = Field("127.0.0.1", description="bind address of the Prometheus exporters")
+    endpoints_file: Optional[Path] = Field(None, description="once bound, write the bound endpoints here as JSON "
+                                                             "(for a parent that started this service on port 0)")
 
     @field_validator("frames_endpoint", "monitor_endpoint", "points_endpoint")
     @classmethod
@@ -54,7 +72,9 @@ class AcquisitionSettings(TransportSettings):
     source_name: str = Field("bench", min_length=1, description="the `source` field of every frame")
     seed: Optional[int] = None
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
-    wait_for_worker_s: float = Field(5.0, ge=0, description="before the first frame, wait this long for a worker")
+    wait_for_worker_s: float = Field(5.0, ge=0, description="before the first frame, wait this long for the "
+                                                            "workers (wait_for_workers of them)")
+    wait_for_workers: int = Field(1, ge=1, le=1024, description="how many workers to wait for before the first frame")
     end_timeout_s: float = Field(5.0, ge=0, description="at the end of a run, wait this long to hand the "
                                                         "end-of-run notice (and queued frames) to a worker")
 
@@ -91,7 +111,6 @@ class ApiSettings(TransportSettings):
                                                             "counting it dropped")
     reorder_max: int = Field(256, ge=1, description="points held for reordering before gaps are declared")
     stale_after_s: float = Field(5.0, gt=0, description="/readyz fails when the last frame is older")
-    token: Optional[str] = Field(None, description="bearer token for state-changing requests")
 
 
 def load(cls: type[BaseSettings], **flags) -> BaseSettings:

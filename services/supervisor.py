@@ -1,23 +1,35 @@
 """``mtcw run``: acquisition node, worker(s) and API as child processes on loopback.
 
 Each service is its own process (``python -m services.cli <service>``): a worker's chain runs
-without the GIL of the others, and each stops on SIGTERM as in a real deployment. The
-supervisor forwards Ctrl-C / SIGTERM, waits for the children, and kills what does not stop.
+without the GIL of the others, and each stops on SIGTERM as in a real deployment. Children that
+bind (the API, the acquisition node) are started one after the other, each reporting its bound
+endpoints to a file (``MTCW_ENDPOINTS_FILE``, :func:`services.sockets.report_endpoints`); the
+children started after them get those endpoints in their environment. So the services may bind
+to port 0 and nobody guesses a free port. The supervisor forwards Ctrl-C / SIGTERM, waits for
+the children, and kills what does not stop.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+from .sockets import wait_for_endpoints
 
 
 def free_ports(n: int) -> list[int]:
-    """``n`` TCP ports free on loopback right now (for tests and benchmarks on one machine)."""
+    """``n`` TCP ports free on loopback right now, for programs that cannot bind port 0 and report
+    what they got (Prometheus in a test, ``bench/stream.py``, the compose test's fixed ports).
+    Racy by nature: another process may take a port before it is used."""
     socks = [socket.socket() for _ in range(n)]
     for s in socks:
         s.bind(("127.0.0.1", 0))
@@ -27,51 +39,72 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
-def free_port_block(n: int, tries: int = 50) -> int:
-    """A port ``p`` such that ``p .. p + n - 1`` are all free on loopback right now (``mtcw run
-    --base-port`` takes consecutive ports)."""
-    for _ in range(tries):
-        base = free_ports(1)[0]
-        if base + n > 65535:
-            continue
-        socks = []
-        try:
-            for q in range(base, base + n):
-                s = socket.socket()
-                socks.append(s)
-                s.bind(("127.0.0.1", q))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no {n} consecutive free ports found")
-
-
 @dataclass
 class Child:
+    """One service process.
+
+    Attributes
+    ----------
+    name : str
+    argv : list of str
+    env : dict
+        Its own environment (over the supervisor's and the endpoints reported before it).
+    reports : bool
+        It binds and reports its endpoints; the next child starts once they are reported.
+    """
+
     name: str
     argv: list[str]
-    proc: subprocess.Popen | None = None
+    env: dict[str, str] = field(default_factory=dict)
+    reports: bool = False
+    proc: Optional[subprocess.Popen] = None
 
 
 @dataclass
 class Supervisor:
+    """Child processes started in order, stopped in reverse order.
+
+    Attributes
+    ----------
+    env : dict
+        Environment of every child (over ``os.environ``).
+    endpoints : dict
+        What the reporting children reported (``frames_endpoint``, ``points_endpoint``,
+        ``http_url``, ...), filled by :meth:`start`.
+    """
+
     children: list[Child] = field(default_factory=list)
     env: dict[str, str] = field(default_factory=dict)
     stop_timeout_s: float = 8.0
+    start_timeout_s: float = 60.0
+    endpoints: dict[str, str] = field(default_factory=dict)
 
-    def add(self, name: str, *args: str) -> None:
-        self.children.append(Child(name, [sys.executable, "-m", "services.cli", *args]))
+    def add(self, name: str, *args: str, reports: bool = False, env: Optional[dict[str, str]] = None) -> None:
+        self.children.append(Child(name, [sys.executable, "-m", "services.cli", *args], dict(env or {}), reports))
 
     def start(self) -> None:
-        env = {**os.environ, **self.env}
-        for c in self.children:
-            c.proc = subprocess.Popen(c.argv, env=env)
+        """Start the children in order; after a reporting child, wait for its endpoints.
 
-    def alive(self) -> list[str]:
-        return [c.name for c in self.children if c.proc is not None and c.proc.poll() is None]
+        Raises
+        ------
+        TimeoutError
+            When a reporting child exits or reports nothing within ``start_timeout_s``.
+        """
+        tmp = Path(tempfile.mkdtemp(prefix="mtcw-run-"))
+        try:
+            for c in self.children:
+                reported = {f"MTCW_{k.upper()}": v for k, v in self.endpoints.items() if k.endswith("_endpoint")}
+                env = {**os.environ, **self.env, **reported, **c.env}
+                path = tmp / f"{c.name}.json"
+                if c.reports:
+                    env["MTCW_ENDPOINTS_FILE"] = str(path)
+                c.proc = subprocess.Popen(c.argv, env=env)
+                if c.reports:
+                    proc = c.proc
+                    got = wait_for_endpoints(path, self.start_timeout_s, alive=lambda: proc.poll() is None)
+                    self.endpoints.update(got)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
     def stop(self) -> dict[str, int]:
         """SIGTERM one by one in reverse start order, upstream first (the acquisition node's
@@ -91,16 +124,25 @@ class Supervisor:
                 codes[c.name] = c.proc.wait()
         return {c.name: codes[c.name] for c in self.children if c.name in codes}
 
-    def run_until_signal(self, on_tick=None) -> dict[str, int]:
-        """Start, then wait for SIGINT/SIGTERM or a child's death; stop everything."""
-        stopping = {"why": None}
+    def run_until_signal(self, on_tick: Optional[Callable[[], None]] = None,
+                         on_start: Optional[Callable[["Supervisor"], None]] = None) -> dict[str, int]:
+        """Start, then wait for SIGINT/SIGTERM or a child's death; stop everything.
+
+        Returns the children's exit codes, and under ``"_why"`` why it stopped.
+        """
+        stopping: dict[str, Optional[str]] = {"why": None}
 
         def handler(signum, _frame):
             stopping["why"] = signal.Signals(signum).name
 
         old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
-            self.start()
+            try:
+                self.start()
+            except TimeoutError as err:
+                stopping["why"] = f"start failed: {err}"
+            if stopping["why"] is None and on_start:
+                on_start(self)
             while stopping["why"] is None:
                 dead = [c for c in self.children if c.proc.poll() is not None]
                 if dead:

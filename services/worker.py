@@ -3,7 +3,8 @@
 A worker holds at most ``hwm`` frames in its queue, so that frames are shared fairly between
 workers and a killed worker loses little (the consumer counts the loss from seq gaps). A message
 that is not a valid frame becomes a ``rejected`` point with the decoder's reason, so that the
-consumer's counters still add up. The acquisition node's end-of-run notice is passed on to the
+consumer's counters still add up. Each point carries ``processing_s``, the worker's own time
+for the frame (decode, chain, point); the API measures the trigger-to-point latency. The acquisition node's end-of-run notice is passed on to the
 API unchanged. Reconnection after a publisher restart is ZeroMQ's.
 """
 
@@ -19,56 +20,52 @@ from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
 
 from .settings import WorkerSettings, log_settings
-from .wire import END_TOPIC, VERSION, WireError, decode_frame, encode_points, result_message
+from .sockets import frames_pull, open_socket, points_push
+from .wire import END_TOPIC, PointMessage, WireError, decode_frame, encode_points, point_from_result, rejection_point, \
+    rejected_point, topic
 
 log = logging.getLogger("mtcw.worker")
 
 
-def rejection_message(err: WireError, parts) -> dict:
-    """A point message for a frame the decoder refused, keeping ``source``/``seq`` when readable."""
-    source, seq, t_ns = "", -1, 0
-    try:
-        import msgpack
-
-        h = msgpack.unpackb(bytes(parts[1]), raw=False)
-        if isinstance(h, dict):
-            source = h.get("source", "") if isinstance(h.get("source"), str) else ""
-            seq = h["seq"] if isinstance(h.get("seq"), int) else -1
-            t_ns = h["t_ns"] if isinstance(h.get("t_ns"), int) else 0
-    except Exception:
-        pass
-    return {"v": VERSION, "source": source, "seq": seq, "t_ns": t_ns, "status": "rejected",
-            "reason": f"malformed_{err.reason}: {err.detail}", "profile": "", "targets": [],
-            "unambiguous_range_m": None, "coarse_range_m": None, "stage_seconds": {}}
-
-
 class Worker:
+    """Frames in (PULL), chain, points out (PUSH); see the module docstring.
+
+    Parameters
+    ----------
+    settings : WorkerSettings
+    ctx : zmq.Context, optional
+    """
+
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
         self.chain = get_profile(settings.profile)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
         self.ctx = ctx or zmq.Context.instance()
-        self.pull = self.ctx.socket(zmq.PULL)
-        self.pull.setsockopt(zmq.RCVHWM, settings.hwm)
-        self.pull.setsockopt(zmq.LINGER, 0)
-        self.pull.connect(settings.frames_endpoint)
-        self.push = self.ctx.socket(zmq.PUSH)
-        self.push.setsockopt(zmq.SNDHWM, max(settings.hwm, 1000))
-        self.push.setsockopt(zmq.LINGER, 2000)  # deliver the last points on a clean stop
-        self.push.setsockopt(zmq.SNDTIMEO, 1000)
-        self.push.connect(settings.points_endpoint)
+        self.pull = open_socket(self.ctx, frames_pull(settings))
+        self.push = open_socket(self.ctx, points_push(settings))
         self.received = self.sent = self.unsent = 0
         self._metrics = _exporter(settings.metrics_port, settings.metrics_host, settings.name)
 
-    def handle(self, parts) -> dict:
-        """One message in, one point message out (never raises)."""
+    def handle(self, parts) -> PointMessage:
+        """One message in, one point message out (never raises).
+
+        A message that is not a valid frame becomes a ``rejected`` point (reason
+        ``malformed_<reason>``); a frame on which the chain fails unexpectedly becomes a
+        ``rejected`` point with reason ``chain_error``: every frame received is accounted for.
+        """
+        t0 = time.perf_counter()
         try:
             frame = decode_frame(parts)
         except WireError as err:
-            return rejection_message(err, parts)
-        res = process_frame(frame, self.chain, self.calibration)
-        return result_message(res, latency_s=(time.time_ns() - frame.t_ns) * 1e-9 if frame.t_ns else None,
-                              run=frame.extra.get("run"))
+            return rejection_point(err, parts, processing_s=time.perf_counter() - t0)
+        try:
+            res = process_frame(frame, self.chain, self.calibration)
+        except Exception as err:  # a chain bug must not stop the worker; the frame is counted
+            log.exception("worker %s: chain failed on seq %d", self.settings.name, frame.seq)
+            return rejected_point(frame.source, frame.seq, frame.t_ns, f"chain_error: {type(err).__name__}: {err}",
+                                  run=frame.run, profile=self.settings.profile,
+                                  processing_s=time.perf_counter() - t0)
+        return point_from_result(res, run=frame.run, processing_s=time.perf_counter() - t0)
 
     def run(self, stop: threading.Event) -> None:
         log_settings(f"worker {self.settings.name}", self.settings)
@@ -81,7 +78,7 @@ class Worker:
                 if not poller.poll(200):
                     continue
                 parts = self.pull.recv_multipart(copy=False)
-                if len(parts) == 2 and parts[0].bytes == END_TOPIC:  # end of a run: the API checks it
+                if topic(parts) == END_TOPIC and len(parts) == 2:  # end of a run: the API checks it
                     try:
                         self.push.send_multipart([p.bytes for p in parts])
                     except zmq.Again:
@@ -91,16 +88,16 @@ class Worker:
                 self.received += 1
                 msg = self.handle(parts)
                 if self._metrics:
-                    self._metrics[0].labels(msg["status"]).inc()
+                    self._metrics[0].labels(msg.status).inc()
                 try:
-                    self.push.send_multipart(encode_points(msg))
+                    self.push.send_multipart(encode_points(msg))  # SNDTIMEO: points_send_timeout_ms
                     self.sent += 1
                 except zmq.Again:  # the API is gone: the point is lost, and said so
                     self.unsent += 1
                     if self._metrics:
                         self._metrics[1].inc()
                     log.warning("worker %s: API not reachable; point seq %s not delivered", self.settings.name,
-                                msg["seq"])
+                                msg.seq)
         finally:
             log.info("worker %s: stopped (received %d, sent %d, undelivered %d)", self.settings.name,
                      self.received, self.sent, self.unsent)

@@ -113,6 +113,8 @@ class Simulator:
             tone_phases_rad=tuple(t.phase_rad for t in sc.modulator.tones),
             pulse=pulse,
             architecture=sc.architecture.kind,
+            # the offline default identity (mtcw_core.frame: whoever emits a stream stamps it; on the
+            # wire the acquisition node's publisher replaces these)
             seq=index,
             t_ns=sc.frames.start_time_ns + round(t_start * 1e9),
             source=sc.name,
