@@ -23,19 +23,21 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from services.supervisor import Supervisor, free_ports
+from services.supervisor import Supervisor
 
 
-def deploy(recording: Path, workers: int, rate: float, policy: str, profile: str) -> tuple[Supervisor, str]:
-    p = free_ports(4)
-    env = {"MTCW_FRAMES_ENDPOINT": f"tcp://127.0.0.1:{p[0]}", "MTCW_MONITOR_ENDPOINT": f"tcp://127.0.0.1:{p[1]}",
-           "MTCW_POINTS_ENDPOINT": f"tcp://127.0.0.1:{p[2]}", "MTCW_DROP_POLICY": policy, "MTCW_HISTORY": "100000"}
+def deploy(recording: Path, workers: int, rate: float, policy: str, profile: str) -> Supervisor:
+    """API, acquisition (replay) and workers on loopback; every port bound as 0 and reported, so
+    nothing is guessed (the API's URL is ``sup.endpoints["http_url"]`` once started)."""
+    env = {"MTCW_FRAMES_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_MONITOR_ENDPOINT": "tcp://127.0.0.1:0",
+           "MTCW_POINTS_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_DROP_POLICY": policy, "MTCW_HISTORY": "100000"}
     sup = Supervisor(env=env)
-    sup.add("api", "api", "--port", str(p[3]))
+    sup.add("api", "api", "--port", "0", reports=True)
+    sup.add("acq", "acquire", "--source", "replay", "--recording", str(recording), "--loop", "--rate", str(rate),
+            reports=True, env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
         sup.add(f"w{i}", "worker", "--profile", profile, "--name", f"w{i}")
-    sup.add("acq", "acquire", "--source", "replay", "--recording", str(recording), "--loop", "--rate", str(rate))
-    return sup, f"http://127.0.0.1:{p[3]}"
+    return sup
 
 
 def _wait_up(url: str, timeout: float = 60) -> None:
@@ -51,8 +53,9 @@ def _wait_up(url: str, timeout: float = 60) -> None:
 
 
 def measure(recording: Path, workers: int, seconds: float, rate: float, policy: str, profile: str) -> dict:
-    sup, url = deploy(recording, workers, rate, policy, profile)
+    sup = deploy(recording, workers, rate, policy, profile)
     sup.start()
+    url = sup.endpoints["http_url"]
     try:
         _wait_up(url)
         time.sleep(2.0)  # warm-up: caches, queues filled

@@ -133,11 +133,13 @@ def process(
     else:
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
                     err=True, fg=typer.colors.YELLOW)
-    rows, times, status, log = [], [], {}, ErrorLog()
+    rows, times, stages, status, log = [], [], {}, {}, ErrorLog()
     for fr in tqdm(rec, total=len(rec), unit="frame", desc=f"process [{settings.profile}]", file=sys.stderr):
         res = process_frame(fr, settings, cal)
         status[res.status] = status.get(res.status, 0) + 1
         times.append(sum(res.stage_seconds.values()))
+        for name, sec in res.stage_seconds.items():
+            stages.setdefault(name, []).append(sec)
         rows += _point_rows(res)
         for t in fr.truth or ():
             log.add(res, t)
@@ -150,7 +152,8 @@ def process(
                 w = csv.DictWriter(fh, fieldnames=keys)
                 w.writeheader()
                 w.writerows(rows)
-    summary = {"frames": len(rec), "status": status, "median_ms_per_frame": 1e3 * float(np.median(times))}
+    summary = {"frames": len(rec), "status": status, "median_ms_per_frame": 1e3 * float(np.median(times)),
+               "median_ms_per_stage": {k: round(1e3 * float(np.median(v)), 3) for k, v in stages.items()}}
     if log.range_error_m:
         summary.update(log.summary())
     typer.echo(json.dumps(summary, indent=2))
