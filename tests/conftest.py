@@ -44,3 +44,14 @@ def ref_dir() -> Path:
     if not REF_DIR.exists():
         pytest.skip("shared reference frames not present")
     return REF_DIR
+
+
+@pytest.fixture
+def ctx():
+    """A ZeroMQ context of the test's own, destroyed without lingering."""
+    import zmq
+
+    c = zmq.Context()
+    yield c
+    c.destroy(linger=0)
+

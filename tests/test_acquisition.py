@@ -13,13 +13,6 @@ from services.settings import AcquisitionSettings
 from services.wire import decode_end, decode_frame
 
 
-@pytest.fixture
-def ctx():
-    c = zmq.Context()
-    yield c
-    c.destroy(linger=0)
-
-
 def _frame(**kw) -> Frame:
     return Frame(samples=np.zeros((1, 32), "<f4"), fs_hz=1e9, tones_hz=(1e8,), wavelength_m=1.55e-6, **kw)
 

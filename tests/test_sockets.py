@@ -18,13 +18,6 @@ from services.settings import TransportSettings
 ANY = "tcp://127.0.0.1:0"
 
 
-@pytest.fixture
-def ctx():
-    c = zmq.Context()
-    yield c
-    c.destroy(linger=0)
-
-
 def _settings(**kw) -> TransportSettings:
     return TransportSettings(**{"frames_endpoint": ANY, "monitor_endpoint": ANY, "points_endpoint": ANY, **kw})
 

@@ -186,7 +186,8 @@ class TestLineWidths:
         n = 2**14
         sp = power_spectrum(tone(n, (3000 + 0.37) * FS / n), FS)
         w = widths_at(sp, [(3000 + 0.37) * FS / n])
-        assert 1.0 <= w <= 3.0
+        # Kaiser(14)'s main lobe: sum(P)/max(P) about 2.2 bins on the grid, 2.5 half a bin off it
+        assert 2.0 <= w <= 2.7
 
     def test_incoherent_line_is_wide(self):
         n = 2**14
@@ -205,7 +206,7 @@ class TestLineWidths:
         t = [2000 * df, 3000 * df, 5000 * df]
         x = sum(tone(n, f) for f in t)
         sp = power_spectrum(x, FS)
-        assert 1.0 <= line_width_bins(sp, t) <= 3.0
+        assert 2.0 <= line_width_bins(sp, t) <= 2.7
 
     def test_no_line_gives_default(self):
         sp = Spectrum(np.zeros(513), 1e6, 0.0, 1.0, 1024, False)
