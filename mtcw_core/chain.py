@@ -41,7 +41,7 @@ from .dsp.validate import validate
 from .frame import Frame
 from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
-from .ranging.gating import GateEstimate, gate_frame
+from .ranging.gating import GateEstimate, gate_frame, is_gated
 from .ranging.mixing import mix
 from .ranging.targets import Reference, resolve_targets, select_targets
 from .ranging.triangulation import Observations
@@ -135,7 +135,7 @@ class Stage:
 #: The chain, in order. Names are the vocabulary of timings, metrics and settings.
 STAGES: tuple[Stage, ...] = (
     Stage("validate", _validate),
-    Stage("gate", _gate, lambda s: s.frame.pulse is not None and s.settings.gate != "off"),
+    Stage("gate", _gate, lambda s: is_gated(s.frame, s.settings)),
     Stage("spectrum", _spectrum),
     Stage("doppler", _doppler),
     Stage("extract", _extract),

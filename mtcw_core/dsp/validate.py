@@ -42,16 +42,21 @@ def rail_fraction(r: np.ndarray, rail) -> float:
     return float(np.count_nonzero(stuck)) / r.size
 
 
-def search_grid_points(tones_hz, settings: ChainSettings, pulsed: bool) -> float:
-    """Points of the cycle-resolution grid a tone plan asks for: the searched span (the
-    configured range interval for CW frames when set, else the plan's unambiguous range) over
-    the grid step (the finest synthetic wavelength over ``points_per_cycle``)."""
+def plan_unambiguous_range(tones_hz) -> float:
+    """The unambiguous range (m) of a tone plan: ``c/(2*gcd)`` of its tone spacings."""
     t = sorted(float(f) for f in tones_hz)
-    diffs = [b - a for a, b in zip(t, t[1:])]
-    span = unambiguous_range(diffs)
+    return unambiguous_range([b - a for a, b in zip(t, t[1:])])
+
+
+def search_grid_points(tones_hz, settings: ChainSettings, pulsed: bool, l_unamb: float | None = None) -> float:
+    """Points of the cycle-resolution grid a tone plan asks for: the searched span (the
+    configured range interval for CW frames when set, else the plan's unambiguous range
+    ``l_unamb``, computed when not given) over the grid step (the finest synthetic wavelength
+    over ``points_per_cycle``)."""
+    span = plan_unambiguous_range(tones_hz) if l_unamb is None else l_unamb
     if settings.range_max_m is not None and not pulsed:
         span = min(span, settings.range_max_m - settings.range_min_m)
-    step = C / (2 * (t[-1] - t[0])) / settings.points_per_cycle
+    step = C / (2 * (max(tones_hz) - min(tones_hz))) / settings.points_per_cycle
     return span / step
 
 
@@ -65,10 +70,9 @@ def _check_limits(frame: Frame, settings: ChainSettings) -> None:
     if not all(isinstance(f, (int, float)) and math.isfinite(f) for f in tones) or len(set(tones)) != len(tones):
         raise Rejected("tone_plan", f"tones {list(tones)} must be finite and distinct")
     if len(tones) >= 2 and all(0 < f < frame.fs_hz / 2 for f in tones):
-        pts = search_grid_points(tones, settings, frame.pulse is not None)
+        l_unamb = plan_unambiguous_range(tones)
+        pts = search_grid_points(tones, settings, frame.pulse is not None, l_unamb)
         if pts > settings.max_grid_points:
-            t = sorted(tones)
-            l_unamb = unambiguous_range([b - a for a, b in zip(t, t[1:])])
             raise Rejected("tone_plan", f"tones {list(tones)} repeat only every {l_unamb:.3g} m: "
                                         f"the cycle search would need {pts:.3g} grid points "
                                         f"(limit {settings.max_grid_points}; put the tones on a coarser grid, "

@@ -563,6 +563,11 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     return GateEstimate(tau, sigma, windows, snr, detected, width)
 
 
+def is_gated(frame: Frame, settings: ChainSettings) -> bool:
+    """Whether the ``gate`` stage applies: a pulsed (quasi-CW) frame, with gating not turned off."""
+    return frame.pulse is not None and settings.gate != "off"
+
+
 def gate_frame(x: np.ndarray, frame: Frame, settings: ChainSettings) -> GateEstimate | None:
     """The stage: coarse gating of a pulsed frame (None for CW frames or with gating off).
 
@@ -571,7 +576,7 @@ def gate_frame(x: np.ndarray, frame: Frame, settings: ChainSettings) -> GateEsti
     x : ndarray, shape (N,), the validated detector signal (V)
     frame : its frame, for the gate timing (``frame.pulse``) and the ``pulse_ref`` channel
     """
-    if frame.pulse is None or settings.gate == "off":
+    if not is_gated(frame, settings):
         return None
     p = frame.pulse
     ref = frame.volts("pulse_ref") if "pulse_ref" in frame.channels else None

@@ -96,7 +96,8 @@ def _tone_snr(fams: list[LineFamily]) -> dict[str, float]:
 
 
 def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate, frame: Frame,
-                 settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None) -> TargetPoint:
+                 settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None,
+                 l_unamb: float | None = None) -> TargetPoint:
     """One candidate's point: cycle resolution, sigma, consistency, velocity.
 
     Parameters
@@ -104,8 +105,10 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     fams : the candidate's line families; obs : their pair observations (stage ``mix``)
     dop : the candidate's Doppler line (not detected for the static candidate)
     coarse : the quasi-CW coarse range interval (m), or None
+    l_unamb : the unambiguous range of ``obs`` (m); computed from ``obs.df_hz`` when not given
     """
-    l_unamb = unambiguous_range(obs.df_hz)
+    if l_unamb is None:
+        l_unamb = unambiguous_range(obs.df_hz)
     lo, hi, ambiguous = _search_interval(settings, l_unamb, coarse)
     if settings.method == "seed":
         sol = resolve_seed(obs, ref.tau0_s, hi, lo)
@@ -142,8 +145,8 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     l_unamb = None
     for k, obs in sorted(observations.items()):
         fam_k = [f for f in families if f.target == k]
-        points.append((k, solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse)))
         lu = unambiguous_range(obs.df_hz)
+        points.append((k, solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)))
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
     return points, l_unamb
 
