@@ -4,10 +4,40 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, settings as hsettings
+
 
 from mtcw_core.scene import Scene, scene_from_dict
 
 REF_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "testdata" / "reference-frames"
+
+
+#: Fuzz profiles (Hypothesis): ``ci`` (the default, a few hundred cases per parser) and ``long``
+#: (>= 10^4 cases per parser), chosen by ``pytest --long`` or ``MTCW_FUZZ=long``. Fuzz tests use
+#: ``@hsettings(max_examples=FUZZ_EXAMPLES)``-free decorators and read the loaded profile.
+hsettings.register_profile("ci", max_examples=300, deadline=None,
+                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+hsettings.register_profile("long", max_examples=10_000, deadline=None,
+                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+def pytest_addoption(parser):
+    parser.addoption("--long", action="store_true", default=False,
+                     help="long fuzz (>= 10^4 cases per parser) and soak runs")
+
+
+def pytest_configure(config):
+    import os
+
+    long = config.getoption("--long") or os.environ.get("MTCW_FUZZ") == "long"
+    config.mtcw_long = long
+    hsettings.load_profile("long" if long else "ci")
+
+
+@pytest.fixture
+def long_run(request) -> bool:
+    """True under ``pytest --long`` (or ``MTCW_FUZZ=long``): soak and stop tests run their long versions."""
+    return bool(request.config.mtcw_long)
 
 
 def make_scene(**over) -> Scene:
