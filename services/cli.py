@@ -343,6 +343,23 @@ def api(
 
 
 @app.command()
+def keys(
+    directory: Path = typer.Argument(..., help="where to keep the keys (give it as MTCW_CURVE_DIR)"),
+    client: Optional[list[str]] = typer.Option(None, "--client", help="client identities to make and allow in "
+                                                                     "(repeat; default: worker, recorder)"),
+) -> None:
+    """Make CurveZMQ keys: the servers' pair, one pair per client, and the allow-list (idempotent)."""
+    from services.auth import AUTHORIZED_DIR, DEFAULT_CLIENTS, make_keys
+
+    try:
+        written = make_keys(directory, tuple(client) if client else DEFAULT_CLIENTS)
+    except (OSError, ValueError) as err:
+        _fail(f"keys: {err}")
+    allowed = sorted(p.stem for p in (directory / AUTHORIZED_DIR).glob("*.key"))
+    typer.echo(json.dumps({"curve_dir": str(directory), "made": sorted(written), "authorized": allowed}))
+
+
+@app.command()
 def record(
     output: Path = typer.Option(..., "-o", "--output", help="recording prefix"),
     frames: int = typer.Option(10, "-n", "--frames", help="frames to record (0 = until Ctrl-C)"),

@@ -12,9 +12,10 @@ import logging
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .auth import AUTHORIZED_DIR, SERVER, is_local_endpoint
 from .sockets import (DEFAULT_FRAME_HWM, DEFAULT_FRAME_LINGER_MS, DEFAULT_MAX_FRAME_BYTES, DEFAULT_MAX_POINT_BYTES,
                       DEFAULT_POINT_HWM, DEFAULT_POINT_LINGER_MS, DEFAULT_POINT_SEND_TIMEOUT_MS)
 
@@ -53,6 +54,11 @@ class TransportSettings(BaseSettings):
     metrics_host: str = Field("127.0.0.1", description="bind address of the Prometheus exporters")
     endpoints_file: Optional[Path] = Field(None, description="once bound, write the bound endpoints here as JSON "
                                                              "(for a parent that started this service on port 0)")
+    curve_dir: Optional[Path] = Field(None, description="CurveZMQ keys made by `mtcw keys DIR`: every socket "
+                                      "encrypted, peers checked against DIR/authorized; required when an endpoint "
+                                      "is not on this machine")
+    curve_client: str = Field("worker", min_length=1, pattern=r"^[A-Za-z0-9_.-]+$",
+                              description="this service's client identity in curve_dir/clients (connecting sockets)")
 
     @field_validator("frames_endpoint", "monitor_endpoint", "points_endpoint")
     @classmethod
@@ -60,6 +66,24 @@ class TransportSettings(BaseSettings):
         if "://" not in v:
             raise ValueError(f"{v!r} is not a ZeroMQ endpoint (tcp://host:port, ipc://path)")
         return v
+
+    @field_validator("curve_dir")
+    @classmethod
+    def _keys(cls, v: Optional[Path]) -> Optional[Path]:
+        if v is not None and not ((v / f"{SERVER}.key").is_file() and (v / AUTHORIZED_DIR).is_dir()):
+            raise ValueError(f"{v} holds no CurveZMQ keys ({SERVER}.key, {AUTHORIZED_DIR}/): make them with "
+                             f"`mtcw keys {v}`")
+        return v
+
+    @model_validator(mode="after")
+    def _local_unless_authenticated(self) -> "TransportSettings":
+        if self.curve_dir is None:
+            for name in ("frames_endpoint", "monitor_endpoint", "points_endpoint"):
+                ep = getattr(self, name)
+                if not is_local_endpoint(ep):
+                    raise ValueError(f"{name}: {ep} is reachable from other machines; set curve_dir (keys from "
+                                     f"`mtcw keys DIR`) to authenticate and encrypt, or bind to 127.0.0.1")
+        return self
 
 
 class AcquisitionSettings(TransportSettings):
@@ -118,7 +142,11 @@ def load(cls: type[BaseSettings], **flags) -> BaseSettings:
     try:
         return cls(**{k: v for k, v in flags.items() if v is not None})
     except ValidationError as err:
-        msgs = [f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in err.errors()]
+        msgs = []
+        for e in err.errors():
+            msg = e["msg"].removeprefix("Value error, ")
+            loc = ".".join(str(p) for p in e["loc"])
+            msgs.append(f"{loc}: {msg}" if loc else msg)  # a check across fields names its field itself
         raise ValueError("; ".join(msgs)) from None
 
 

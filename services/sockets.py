@@ -20,9 +20,11 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional, Union
 
 import zmq
+
+from .auth import CurveClient, CurveServer, apply_client, apply_server, client_keys, server_keys
 
 if TYPE_CHECKING:
     from .settings import TransportSettings
@@ -91,6 +93,11 @@ class SocketSpec:
         disconnected).
     subscribe : bytes, optional
         Topic prefix of a SUB socket.
+    field : str, optional
+        The settings field the endpoint comes from, named in errors (``frames_endpoint``).
+    curve : CurveServer or CurveClient, optional
+        CurveZMQ keys (:mod:`services.auth`): a binding socket is a server that checks its peers
+        against the allow-list, a connecting one a client of the server whose key it holds.
     """
 
     role: str
@@ -102,6 +109,17 @@ class SocketSpec:
     send_timeout_ms: Optional[int] = None
     max_msg_bytes: Optional[int] = None
     subscribe: Optional[bytes] = None
+    field: str = "endpoint"
+    curve: Union[CurveServer, CurveClient, None] = None
+
+
+class SocketError(ValueError):
+    """A socket could not be bound or connected; the message names the settings field."""
+
+    def __init__(self, field: str, message: str, errno: int = 0) -> None:
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.errno = errno
 
 
 def policy_name(send_timeout_ms: int) -> str:
@@ -113,16 +131,29 @@ def policy_name(send_timeout_ms: int) -> str:
     return f"wait {send_timeout_ms} ms, then drop"
 
 
-def open_socket(ctx: zmq.Context, spec: SocketSpec) -> zmq.Socket:
+def open_socket(ctx: zmq.Context, spec: SocketSpec,
+                on_refused: Optional[Callable[[str], None]] = None) -> zmq.Socket:
     """Make, configure, bind or connect the socket ``spec`` describes, and log what is in force.
+
+    Parameters
+    ----------
+    ctx : zmq.Context
+    spec : SocketSpec
+    on_refused : callable(domain), optional
+        Called when a CURVE server socket refuses a peer (a service's metric).
 
     Raises
     ------
-    zmq.ZMQError
-        When the endpoint cannot be bound or connected (the socket is closed first).
+    SocketError
+        When the endpoint cannot be bound or connected (the socket is closed first); the
+        message names the settings field, the role and the endpoint.
     """
     sock = ctx.socket(spec.kind)
     try:
+        if isinstance(spec.curve, CurveServer):
+            apply_server(ctx, sock, spec.curve, spec.field.removesuffix("_endpoint"), on_refused)
+        elif isinstance(spec.curve, CurveClient):
+            apply_client(sock, spec.curve)
         sending = spec.kind in _SENDING
         sock.setsockopt(zmq.SNDHWM if sending else zmq.RCVHWM, spec.hwm)
         sock.setsockopt(zmq.LINGER, spec.linger_ms)
@@ -135,8 +166,8 @@ def open_socket(ctx: zmq.Context, spec: SocketSpec) -> zmq.Socket:
         (sock.bind if spec.bind else sock.connect)(spec.endpoint)
     except zmq.ZMQError as err:
         sock.close(linger=0)
-        raise zmq.ZMQError(err.errno, f"{spec.role}: cannot {'bind' if spec.bind else 'connect'} "
-                                      f"{spec.endpoint}: {err}") from None
+        raise SocketError(spec.field, f"{spec.role} cannot {'bind' if spec.bind else 'connect'} {spec.endpoint}: "
+                                      f"{err}", err.errno) from None
     log.info("socket %s: %s", spec.role, json.dumps(socket_options(sock)))
     return sock
 
@@ -150,7 +181,7 @@ def socket_options(sock: zmq.Socket) -> dict:
         ``type``, ``endpoint`` (``LAST_ENDPOINT``: the bound or connected one), ``hwm`` (the
         send or receive HWM by the socket's direction), ``linger_ms`` and, where they apply,
         ``policy`` (from ``SNDTIMEO``; PUB always drops) and ``max_msg_bytes`` (``MAXMSGSIZE``,
-        -1 = no limit).
+        -1 = no limit), and ``curve`` (``server``, ``client`` or ``off``).
     """
     kind = sock.getsockopt(zmq.TYPE)
     sending = kind in _SENDING
@@ -162,6 +193,8 @@ def socket_options(sock: zmq.Socket) -> dict:
         out["policy"] = "drop"
     else:
         out["max_msg_bytes"] = sock.getsockopt(zmq.MAXMSGSIZE)
+    mech = sock.getsockopt(zmq.MECHANISM)
+    out["curve"] = ("server" if sock.getsockopt(zmq.CURVE_SERVER) else "client") if mech == zmq.CURVE else "off"
     return out
 
 
@@ -171,41 +204,56 @@ def bound_endpoint(sock: zmq.Socket) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# the five roles, from the settings
+# the six roles, from the settings
+def _server(st: TransportSettings) -> Optional[CurveServer]:
+    """The binding services' CURVE keys and allow-list, when ``curve_dir`` is set."""
+    return server_keys(st.curve_dir) if st.curve_dir is not None else None
+
+
+def _client(st: TransportSettings) -> Optional[CurveClient]:
+    """A connecting service's CURVE identity ``curve_client``, when ``curve_dir`` is set."""
+    return client_keys(st.curve_dir, st.curve_client) if st.curve_dir is not None else None
+
+
 def frames_push(st: TransportSettings) -> SocketSpec:
     """The acquisition node's frame socket to the workers: bound, policy ``drop_policy``."""
     return SocketSpec("frames (acquisition PUSH)", zmq.PUSH, st.frames_endpoint, bind=True, hwm=st.hwm,
-                      linger_ms=st.linger_ms, send_timeout_ms=SEND_POLICY_TIMEOUT_MS[st.drop_policy])
+                      linger_ms=st.linger_ms, send_timeout_ms=SEND_POLICY_TIMEOUT_MS[st.drop_policy],
+                      field="frames_endpoint", curve=_server(st))
 
 
 def monitor_pub(st: TransportSettings) -> SocketSpec:
     """The acquisition node's frame socket to monitors and recorders: bound, drops at its HWM."""
     return SocketSpec("monitor (acquisition PUB)", zmq.PUB, st.monitor_endpoint, bind=True, hwm=st.hwm,
-                      linger_ms=st.linger_ms)
+                      linger_ms=st.linger_ms, field="monitor_endpoint", curve=_server(st))
 
 
 def frames_pull(st: TransportSettings) -> SocketSpec:
     """A worker's frame socket: connects, holds at most ``hwm`` frames, refuses oversized ones."""
     return SocketSpec("frames (worker PULL)", zmq.PULL, st.frames_endpoint, bind=False, hwm=st.hwm,
-                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_frame_bytes)
+                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_frame_bytes, field="frames_endpoint",
+                      curve=_client(st))
 
 
 def monitor_sub(st: TransportSettings, hwm: int | None = None, topic: bytes = b"frame") -> SocketSpec:
     """A monitor's or recorder's frame socket: connects, subscribes to ``topic``."""
     return SocketSpec("monitor (SUB)", zmq.SUB, st.monitor_endpoint, bind=False, hwm=hwm or st.hwm,
-                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_frame_bytes, subscribe=topic)
+                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_frame_bytes, subscribe=topic,
+                      field="monitor_endpoint", curve=_client(st))
 
 
 def points_push(st: TransportSettings) -> SocketSpec:
     """A worker's point socket to the API: connects, waits ``points_send_timeout_ms``, then drops."""
     return SocketSpec("points (worker PUSH)", zmq.PUSH, st.points_endpoint, bind=False, hwm=st.points_hwm,
-                      linger_ms=st.points_linger_ms, send_timeout_ms=st.points_send_timeout_ms)
+                      linger_ms=st.points_linger_ms, send_timeout_ms=st.points_send_timeout_ms,
+                      field="points_endpoint", curve=_client(st))
 
 
 def points_pull(st: TransportSettings) -> SocketSpec:
     """The API's point socket: bound, refuses oversized messages."""
     return SocketSpec("points (API PULL)", zmq.PULL, st.points_endpoint, bind=True, hwm=st.points_hwm,
-                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_point_bytes)
+                      linger_ms=RECEIVER_LINGER_MS, max_msg_bytes=st.max_point_bytes, field="points_endpoint",
+                      curve=_server(st))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -29,7 +29,10 @@ MTCW_SERVICES = ("acquisition", "worker", "api")
 
 def test_compose_declares_the_services_and_python_healthchecks():
     svc = COMPOSE["services"]
-    assert set(svc) == {"acquisition", "worker", "api", "prometheus", "grafana"}
+    assert set(svc) == {"keys", "acquisition", "worker", "api", "prometheus", "grafana"}
+    for name in MTCW_SERVICES:  # the compose network is not loopback: CurveZMQ everywhere
+        assert svc[name]["environment"]["MTCW_CURVE_DIR"] == "/keys" and "mtcw-keys:/keys" in svc[name]["volumes"]
+        assert svc[name]["depends_on"]["keys"] == {"condition": "service_completed_successfully"}
     for name in MTCW_SERVICES:
         hc = svc[name]["healthcheck"]["test"]
         assert hc[:3] == ["CMD", "python", "-c"], f"{name}: healthcheck must use python, not curl"
@@ -71,8 +74,9 @@ def test_prometheus_config_is_valid():
     assert r.returncode == 0, r.stdout + r.stderr
 
 
-def _localise(text: str, ports: dict[int, int]) -> str:
+def _localise(text: str, ports: dict[int, int], keys: Path) -> str:
     text = text.replace("tcp://*:", "tcp://127.0.0.1:").replace("0.0.0.0", "127.0.0.1")
+    text = re.sub(r"^/keys$", str(keys), text)
     text = re.sub(r"tcp://(acquisition|api):", "tcp://127.0.0.1:", text)
     for old, new in ports.items():
         text = re.sub(rf"\b{old}\b", str(new), text)
@@ -83,17 +87,22 @@ def test_every_compose_command_starts_and_passes_its_healthcheck(tmp_path):
     fixed = [5555, 5556, 5557, 9101, 9102, 8000]
     ports = dict(zip(fixed, free_ports(len(fixed))))
     procs: dict[str, subprocess.Popen] = {}
+    keys = tmp_path / "keys"
+    made = subprocess.run([sys.executable, "-m", "services.cli", *[_localise(a, ports, keys) for a in
+                                                                  COMPOSE["services"]["keys"]["command"]]],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0 and (keys / "server.key_secret").exists(), made.stderr
     try:
         for name in ("api", "worker", "acquisition"):
             s = COMPOSE["services"][name]
-            env = {**os.environ, **{k: _localise(str(v), ports) for k, v in s["environment"].items()}}
-            argv = [_localise(a, ports) for a in s["command"]]
+            env = {**os.environ, **{k: _localise(str(v), ports, keys) for k, v in s["environment"].items()}}
+            argv = [_localise(a, ports, keys) for a in s["command"]]
             procs[name] = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], cwd=ROOT, env=env,
                                            stdout=open(tmp_path / f"{name}.log", "wb"), stderr=subprocess.STDOUT)
         url = f"http://127.0.0.1:{ports[8000]}/v1/points/latest"
         Bench.wait(lambda: httpx.get(url, timeout=1).status_code == 200, "a point through the compose commands", 90)
         for name in MTCW_SERVICES:
-            code = _localise(COMPOSE["services"][name]["healthcheck"]["test"][3], ports)
+            code = _localise(COMPOSE["services"][name]["healthcheck"]["test"][3], ports, keys)
             r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
             assert r.returncode == 0, f"{name} healthcheck: {r.stderr}"
             assert procs[name].poll() is None, f"{name} died"
