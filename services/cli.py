@@ -268,11 +268,28 @@ def _stop_on_signals():
     return stop
 
 
-def _logging(verbose: bool = False) -> None:
-    import logging
+LOG_FORMATS = ("text", "json")
 
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+def _logging(verbose: bool = False) -> None:
+    """Log to stderr as text, or as one JSON object per line when ``MTCW_LOG_FORMAT=json``
+    (keys ``time``, ``level``, ``logger``, ``message``, ``process`` and ``exc_info`` on errors,
+    by python-json-logger)."""
+    import logging
+    import os
+
+    fmt = os.environ.get("MTCW_LOG_FORMAT", "text").strip().lower()
+    if fmt not in LOG_FORMATS:
+        _fail(f"settings: MTCW_LOG_FORMAT: {fmt!r} is not one of {', '.join(LOG_FORMATS)}")
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json":
+        from pythonjsonlogger.json import JsonFormatter
+
+        handler.setFormatter(JsonFormatter("%(asctime)s %(levelname)s %(name)s %(message)s %(process)d",
+                                           rename_fields={"asctime": "time", "levelname": "level", "name": "logger"}))
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
 
 
 def _service_settings(cls, **flags):

@@ -59,3 +59,31 @@ def test_calibrate_writes_a_file_that_loads(tmp_path):
     assert r.exit_code == 0, r.output
     cal = Calibration.load(out)
     assert cal.frames_used == 2 and len(cal.tones_hz) == len(cal.tone_phases_rad) == 3
+
+
+def test_logs_are_json_lines_when_asked_and_a_bad_format_is_named():
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "MTCW_LOG_FORMAT": "json", "MTCW_WAIT_FOR_WORKER_S": "0", "MTCW_END_TIMEOUT_S": "0",
+           "MTCW_FRAMES_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_MONITOR_ENDPOINT": "tcp://127.0.0.1:0"}
+    r = subprocess.run([sys.executable, "-m", "services.cli", "acquire", "--frames", "2", "--rate", "0"],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stderr.splitlines()]  # every line is one JSON object
+    assert len(lines) >= 3 and all({"time", "level", "logger", "message"} <= set(x) for x in lines)
+    assert any(x["logger"] == "mtcw.sockets" and '"curve": "off"' in x["message"] for x in lines)
+    r = subprocess.run([sys.executable, "-m", "services.cli", "acquire"], env={**env, "MTCW_LOG_FORMAT": "xml"},
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "MTCW_LOG_FORMAT: 'xml'" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_keys_command_makes_an_allow_list_and_is_idempotent(tmp_path):
+    d = tmp_path / "k"
+    r1 = CliRunner().invoke(app, ["keys", str(d)])
+    r2 = CliRunner().invoke(app, ["keys", str(d), "--client", "scope-box"])
+    assert r1.exit_code == 0 and r2.exit_code == 0, r1.output + r2.output
+    assert _summary(r1.output)["made"] == ["recorder", "server", "worker"]
+    assert _summary(r2.output) == {"curve_dir": str(d), "made": ["scope-box"],
+                                   "authorized": ["recorder", "scope-box", "worker"]}
