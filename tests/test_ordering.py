@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import pytest
+
 from services.ordering import GapCounter, Reorderer
 
 
@@ -89,19 +91,107 @@ def test_reorderer_counts_the_lost_tail_of_a_run_after_its_end_notice():
     r.poll(now=1.3)
     assert out == [0, 1, 2, 3, 4] and r.dropped == 5 and r.awaited() == 0
     assert r.add(_msg(7, run=7), now=1.4) == "stale"  # a tail frame after its slot was given up
-    assert r.end("s", 3, frames=4, t_ns=50, now=1.5) == "stale"  # an older run's notice changes nothing
+    assert r.end("s", 3, frames=4, t_ns=50, now=1.5) == "other_run"  # an older run's notice changes nothing
     assert r.dropped == 5
 
 
-def test_reorderer_end_notice_of_a_run_it_never_saw_counts_every_frame():
-    r = Reorderer(lambda m: None, timeout_s=1.0)
+def test_reorderer_refuses_the_end_notice_of_a_run_not_in_progress():
+    """A notice of a run never seen (forged, or a run all of whose frames were lost) is refused:
+    it starts no run and counts nothing; the run in progress goes on."""
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0)
     r.add(_msg(0, t_ns=100, run=1), now=0.0)
-    assert r.end("s", 2, frames=3, t_ns=900, now=0.1) == "ended"  # new run: none of its frames came
-    r.poll(now=1.2)
-    assert r.dropped == 3 and r.restarts == 1
+    assert r.end("s", 2, frames=3, t_ns=900, now=0.1) == "other_run"
+    assert r.end("elsewhere", 1, frames=3, t_ns=900, now=0.1) == "other_run"  # a source never seen
+    assert r.add(_msg(1, t_ns=101, run=1), now=0.2) == "released"  # run 1 is still the run in progress
+    r.poll(now=5.0)
+    assert out == [0, 1] and r.dropped == 0 and r.restarts == 0 and r.awaited() == 0
+
+
+def test_reorderer_refuses_an_end_notice_with_an_impossible_frame_count():
+    r = Reorderer(lambda m: None, timeout_s=1.0, max_held=8, max_jump=1000)
+    for s in range(5):
+        r.add(_msg(s, run=1), now=0.0)
+    assert r.end("s", 1, frames=10**15, t_ns=2000, now=0.1) == "bad_frames"  # forged: 10^15 frames
+    assert r.end("s", 1, frames=3, t_ns=2000, now=0.1) == "bad_frames"  # fewer than already released
+    r.poll(now=5.0)
+    assert r.dropped == 0 and r.awaited() == 0
+    assert r.end("s", 1, frames=5 + 1000, t_ns=2000, now=5.0) == "ended"  # at the bound: believed
+    r.poll(now=6.1)
+    assert r.dropped == 1000
+
+
+def test_reorderer_refuses_a_lone_point_that_jumps_too_far_ahead():
+    """One forged point with seq 2^62 neither adds 2^62 to dropped nor makes the real run stale."""
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0, max_held=8, max_jump=1000)
+    for s in range(5):
+        r.add(_msg(s, run=1), now=0.0)
+    assert r.add(_msg(2**62, run=1), now=0.1) == "jump"
+    assert r.held() == 0
+    for i, s in enumerate(range(5, 10)):
+        assert r.add(_msg(s, run=1), now=0.2 + i) == "released"
+    r.poll(now=20.0)
+    assert out == list(range(10)) and r.dropped == 0 and r.resyncs == 0
+    assert r.add(_msg(5 + 1000 + 5, run=1), now=20.1) == "held"  # within max_jump of next_seq = 10: a gap
+    r.poll(now=21.2)
+    assert r.dropped == 1000 + 5 - 5 and out[-1] == 1010
+
+
+def test_reorderer_follows_a_real_jump_confirmed_by_a_second_point():
+    """A stream that really jumped (the consumer was away) re-synchronises on the second point;
+    the first one's slot is a gap like the others, so published = released + dropped."""
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0, max_held=8, max_jump=1000)
+    for s in range(5):
+        r.add(_msg(s, run=1), now=0.0)
+    assert r.add(_msg(50_000, run=1), now=1.0) == "jump"
+    assert r.add(_msg(50_001, run=1), now=1.1) == "resync"
+    assert r.add(_msg(50_002, run=1), now=1.2) == "held"
+    r.poll(now=2.2)
+    assert out == [0, 1, 2, 3, 4, 50_001, 50_002] and r.resyncs == 1
+    assert len(out) + r.dropped == 50_003  # every frame 0 .. 50 002: released or dropped
+
+
+def test_reorderer_a_far_ahead_held_point_does_not_give_up_a_gap_the_stream_is_filling():
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0, max_held=8, max_jump=1000)
+    r.add(_msg(0, run=1), now=0.0)
+    r.add(_msg(500, run=1), now=0.0)  # forged, within the bound: held
+    for s in range(1, 40):  # the real stream goes on in order for 3.9 s, longer than the timeout
+        r.add(_msg(s, run=1), now=0.1 * s)
+    assert out == list(range(40)) and r.dropped == 0 and r.held() == 1
+    assert r.end("s", 1, frames=40, t_ns=5000, now=4.0) == "ended"  # the real end: 500 was never sent
+    r.poll(now=6.0)
+    assert r.held() == 0 and r.dropped == 0 and r.stale == 1 and out == list(range(40))
+
+
+def test_reorderer_state_restored_goes_on_and_counts_what_was_missed():
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0)
+    for s in (0, 1, 2, 4):
+        r.add(_msg(s, run=3), now=0.0)
+    assert r.dirty == {"s"}
+    saved = {k: (v.next_seq, v.run, v.max_t_ns, dict(v.held)) for k, v in r.sources().items()}
+    r2 = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0)
+    from services.ordering import SourceState
+
+    nxt, run, max_t, held = saved["s"]
+    r2.restore("s", SourceState(next_seq=nxt, run=run, max_t_ns=max_t, held=held), now=100.0)
+    assert r2.add(_msg(2, run=3), now=100.1) == "stale"  # released before the restart: not new
+    r2.add(_msg(9, run=3), now=100.2)  # 3 and 5..8 were sent while the consumer was down
+    r2.poll(now=101.0)
+    assert r2.dropped == 0  # the restored point waits a full timeout from the restart
+    r2.poll(now=101.3)
+    assert out == [0, 1, 2, 4, 9] and r2.dropped == 1 + 4
 
 
 def test_gap_counter():
     g = GapCounter()
     gaps = [g.see("a", s) for s in [5, 6, 9, 10, 0, 1]]  # 0 after 10: restart, re-sync
     assert gaps == [0, 0, 2, 0, 0, 0] and g.dropped == 2 and g.received == 6
+
+
+def test_reorderer_max_jump_is_at_least_max_held():
+    with pytest.raises(ValueError, match="max_jump"):
+        Reorderer(lambda m: None, max_held=256, max_jump=100)
