@@ -1,36 +1,58 @@
-"""The API: consumes points from the workers, keeps the latest and a bounded history, serves HTTP.
+"""The API: consumes points from the workers, keeps them durably, serves HTTP.
 
 A background thread (:class:`PointReceiver`) binds the points socket (PULL), decodes each
 message into its schema (:mod:`services.wire`) and hands it to the :class:`PointStore`, which
-puts points back in ``seq`` order (:class:`~services.ordering.Reorderer`) and updates the
-Prometheus metrics; the FastAPI app reads the store. The receiver never dies of a message: a
-malformed one is logged, counted in ``mtcw_messages_malformed_total{reason}`` and skipped, and
-``/healthz`` says whether the receiver thread is alive and what went wrong last.
+puts points back in ``seq`` order (:class:`~services.ordering.Reorderer`); once per loop
+iteration the store commits what was released, the counters and the reorder state to SQLite in
+one transaction (:class:`~services.history.HistoryDB`), and only then shows it: the latest points,
+``/healthz``'s counts and the Prometheus metrics are what is committed, so nothing is ever served
+that a restart would take back. The receiver never dies of a message: a malformed one is logged,
+counted in ``mtcw_messages_malformed_total{reason}`` and skipped; so is one the store refuses
+(``seq_jump``, ``end_run``, ``end_frames``, ``future_t_ns``, ``out_of_range``: see
+:mod:`services.ordering`).
 
-Counters add up: ``received = processed + rejected`` (late and repeated points are rejected
-with reason ``stale``); frames that never came are ``dropped``, including those after the last
-arrival of a run, once the acquisition node's end-of-run notice (forwarded by a worker) has said
-how many frames the run had.
+Counters add up: ``received = processed + rejected + held_for_reordering`` (late and repeated
+points are rejected with reason ``stale``); frames that never came are ``dropped``, including
+those after the last arrival of a run, once the acquisition node's end-of-run notice (forwarded
+by a worker) has said how many frames the run had. Refused messages are in none of these.
+
+Restart: history, latest points, counters and each source's reorder state (with the points held
+for reordering) are read back at start-up. What a killed API had received after its last commit
+(at most one loop iteration: :data:`BATCH_MAX` messages or 0.1 s) is gone; those frames are seq
+gaps for the restarted API, counted as dropped like the frames published while it was down, so
+``published = processed + rejected + dropped`` still holds (unless the lost messages included a
+run's end-of-run notice, whose tail then stays uncounted).
 
 ``latency_s`` of a served point, and ``mtcw_frame_latency_seconds``, is the time from the
 frame's trigger (``t_ns``, stamped by the acquisition node) to the point's arrival here, by this
 process's clock; the worker's own time for the frame is the point's ``processing_s``.
+
+Health: ``/livez`` answers while the process serves; ``/readyz`` checks the receiver, the store
+(the last write committed, at most :data:`~services.history` ``PROBE_S`` ago) and that a frame
+arrived within ``stale_after_s``; ``/healthz`` (kept for existing users) is the receiver's state
+and the counts, 503 once the receiver has died. Under :func:`serve`, a dead receiver stops the
+process (exit status 3), so that its supervisor restarts it.
 """
 
 from __future__ import annotations
 
 import logging
+import platform
+import sys
 import threading
 import time
-from collections import deque
 from contextlib import asynccontextmanager
+from importlib import metadata
+from pathlib import Path
 from typing import Callable, Optional
 
 import msgspec
 import zmq
 from fastapi import FastAPI, HTTPException, Query, Response
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, GCCollector, Histogram,
+                               PlatformCollector, ProcessCollector, generate_latest)
 
+from .history import INT64_MAX, HistoryDB, Segment
 from .ordering import Reorderer
 from .settings import ApiSettings, log_settings
 from .sockets import bound_endpoint, open_socket, points_pull, report_endpoints
@@ -39,6 +61,23 @@ from .wire import END_TOPIC, EndMessage, PointMessage, ServedPoint, WireError, d
 log = logging.getLogger("mtcw.api")
 
 _BUCKETS = (1e-4, 3e-4, 1e-3, 3e-3, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0)
+#: Messages taken from the socket per receiver-loop iteration at most, i.e. per transaction: at
+#: about 50 us per point to decode and order, a full batch is 50 ms of work before it is shown.
+BATCH_MAX = 1000
+#: With no traffic, the receiver still writes (a heartbeat, and retention by age) this often (s):
+#: the store's readiness check is a real write at most this old.
+PROBE_S = 2.0
+#: ``/readyz`` fails when the last successful write is older than this (s).
+STORE_STALE_S = 5 * PROBE_S
+#: Points released but not yet committed, at most: beyond it (the disk is full or gone) the
+#: receiver stops taking messages (the workers' sends time out and are counted there) until a
+#: commit succeeds.
+PENDING_MAX = 100_000
+#: Exit status of :func:`serve` when the points receiver has died.
+EXIT_RECEIVER_DEAD = 3
+
+#: The books: ``received = processed + rejected + held``; ``dropped`` counts frames that never came.
+BOOKS = ("received", "processed", "rejected", "dropped")
 
 
 def reason_key(reason: Optional[str]) -> str:
@@ -46,8 +85,42 @@ def reason_key(reason: Optional[str]) -> str:
     return (reason or "unknown").split(":", 1)[0].strip()[:40] or "unknown"
 
 
+def _git_commit() -> str:
+    """The commit of the source tree this runs from, read from ``.git`` without running git;
+    ``"unknown"`` when it is not a checkout (an installed package, an image)."""
+    try:
+        root = Path(__file__).resolve().parents[1]
+        git = root / ".git"
+        if git.is_file():  # a worktree: "gitdir: <path>"
+            git = Path(git.read_text().split(":", 1)[1].strip())
+        head = (git / "HEAD").read_text().strip()
+        if not head.startswith("ref:"):
+            return head[:40]
+        ref = head.split(":", 1)[1].strip()
+        common = Path((git / "commondir").read_text().strip()) if (git / "commondir").is_file() else None
+        for base in (git, (git / common) if common else None):
+            if base is not None and (base / ref).is_file():
+                return (base / ref).read_text().strip()[:40]
+            packed = base / "packed-refs" if base is not None else None
+            if packed is not None and packed.is_file():
+                for line in packed.read_text().splitlines():
+                    if line.endswith(" " + ref):
+                        return line.split()[0][:40]
+    except (OSError, IndexError, ValueError):
+        pass
+    return "unknown"
+
+
+def _version() -> str:
+    try:
+        return metadata.version("mtcw")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
 class Metrics:
-    """The spec's Prometheus metrics, in their own registry (one per app)."""
+    """The API's Prometheus metrics, in their own registry (one per app), with the process,
+    platform and garbage-collector collectors and ``mtcw_build_info``."""
 
     def __init__(self) -> None:
         r = self.registry = CollectorRegistry()
@@ -63,11 +136,25 @@ class Metrics:
         self.velocity = Gauge("mtcw_velocity_meters_per_second", "latest velocity", ["source"], registry=r)
         self.tone_snr = Gauge("mtcw_tone_snr_db", "latest post-integration SNR per tone", ["tone"], registry=r)
         self.age = Gauge("mtcw_last_frame_age_seconds", "seconds since the last point arrived", registry=r)
-        self.malformed = Counter("mtcw_messages_malformed_total", "messages the API's receiver refused (points, "
-                                 "end notices), by reason", ["reason"], registry=r)
+        self.malformed = Counter("mtcw_messages_malformed_total", "messages the API's receiver refused (malformed "
+                                 "points and end notices; seq_jump, end_run, end_frames, future_t_ns, out_of_range: "
+                                 "not believed), by reason", ["reason"], registry=r)
         self.receiver_errors = Counter("mtcw_receiver_errors_total", "messages the receiver decoded but could not "
                                        "store (a bug; logged with its traceback)", registry=r)
+        self.store_rows = Gauge("mtcw_store_points", "points in the durable history", registry=r)
+        self.store_commit = Histogram("mtcw_store_commit_seconds", "one batch written to the store", buckets=_BUCKETS,
+                                      registry=r)
+        self.store_errors = Counter("mtcw_store_errors_total", "store failures: commit (batch kept and retried), "
+                                    "bad_row (a stored point that cannot be read, skipped)", ["kind"], registry=r)
         self.rejected.labels("stale")  # present from the start, so that sums are complete
+        for kind in ("commit", "bad_row"):
+            self.store_errors.labels(kind)
+        ProcessCollector(registry=r)
+        PlatformCollector(registry=r)
+        GCCollector(registry=r)
+        self.build = Gauge("mtcw_build_info", "mtcw version, Python version and git commit of this process (value 1)",
+                           ["version", "python", "commit"], registry=r)
+        self.build.labels(_version(), platform.python_version(), _git_commit()).set(1)
 
 
 def served_json(point: ServedPoint) -> dict:
@@ -76,99 +163,277 @@ def served_json(point: ServedPoint) -> dict:
 
 
 class PointStore:
-    """Latest point per source, a bounded history, counters; thread-safe.
+    """Ordering, counting and the durable history of the points; the receiver thread's side.
+
+    The receiver calls :meth:`add`, :meth:`end`, :meth:`refuse` and :meth:`poll` as messages come
+    and :meth:`commit` once per loop iteration; HTTP threads read what was committed
+    (:attr:`latest`, :meth:`snapshot`, ``db.points``).
 
     Parameters
     ----------
     settings : ApiSettings
     metrics : Metrics
     clock_ns : callable, optional
-        Wall clock (Unix ns) for the points' ``latency_s`` (``time.time_ns``); for tests.
+        Wall clock (Unix ns): the points' ``latency_s``, the future bound on ``t_ns``, ``served_ns``.
+    db : HistoryDB, optional
+        The store (default: opened at ``settings.store_path``).
     """
 
-    def __init__(self, settings: ApiSettings, metrics: Metrics, clock_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(self, settings: ApiSettings, metrics: Metrics, clock_ns: Callable[[], int] = time.time_ns,
+                 db: Optional[HistoryDB] = None) -> None:
         self.settings = settings
         self.m = metrics
         self.clock_ns = clock_ns
-        self.lock = threading.Lock()
-        self.latest: dict[str, ServedPoint] = {}
-        self.history: deque[ServedPoint] = deque(maxlen=settings.history)
-        self.counts = {"received": 0, "processed": 0, "rejected": 0, "dropped": 0}
+        self.db = db if db is not None else HistoryDB(settings.store_path, settings.history, settings.retention_s,
+                                                      on_bad_row=self._bad_row)
+        self.lock = threading.Lock()  # guards the committed view below
+        self.order: Reorderer[ServedPoint] = Reorderer(self._release, settings.reorder_timeout_s,
+                                                        settings.reorder_max, settings.max_seq_jump)
+        # working state: the receiver thread's
+        self.counts: dict[str, int] = dict.fromkeys(BOOKS, 0)  # and "rejected:<reason>", "refused:<reason>"
+        self._pending: list[tuple[int, ServedPoint]] = []  # released since the last commit
+        self._segments: dict[str, Segment] = {}
+        self._counts_changed = False
         self.last_arrival: Optional[float] = None  # monotonic
         self.started = time.monotonic()
-        self.order: Reorderer[ServedPoint] = Reorderer(self._release, settings.reorder_timeout_s,
-                                                        settings.reorder_max)
+        # committed view
+        self.latest: dict[str, ServedPoint] = {}
+        self._shown: dict[str, int] = {}
+        self._view: dict = {}
+        self.last_write: Optional[float] = None  # monotonic time of the last successful commit
+        self.write_error: Optional[str] = None
+        self.commits = 0
+        self._restore()
 
-    def add(self, msg: PointMessage, now_mono: float) -> None:
-        """One point message, arrived at ``now_mono`` (monotonic s); its latency is measured now."""
-        latency_s = max(self.clock_ns() - msg.t_ns, 0) * 1e-9 if msg.t_ns else None
+    # ------------------------------------------------------------------------------------------
+    def _restore(self) -> None:
+        got = self.db.load()
+        now = time.monotonic()
+        self.counts.update(got.counters)
+        for source, st in got.sources.items():
+            self.order.restore(source, st, now)
+        self._segments = got.segments
+        self.latest = dict(got.latest)
+        for p in got.latest.values():
+            self._gauges(p)
+        self._publish(now)
+        self.last_write = now  # the store was just opened and read: writable is checked by the first commit
+        if got.points or got.sources:
+            log.info("api: store %s restored: %d points, %d sources (%d points held for reordering), counts %s",
+                     self.db.path, got.points, len(got.sources), self.order.held(),
+                     {k: self.counts[k] for k in BOOKS})
+
+    def _bad_row(self, where: str) -> None:
+        self.m.store_errors.labels("bad_row").inc()
+
+    # ------------------------------------------------------------------------------------------
+    # the receiver thread's side
+    def add(self, msg: PointMessage, now_mono: float) -> str:
+        """One point message, arrived at ``now_mono`` (monotonic s); its latency is measured now.
+
+        Returns the reorderer's outcome (``"held"``, ``"released"``, ...), ``"rejected"`` for an
+        unordered rejected point (``seq = -1``) or ``"refused"`` (counted as malformed, not in the books).
+        """
+        why = self._implausible(msg.seq, msg.t_ns, msg.run) if msg.seq >= 0 else None
+        if why:
+            self.refuse(why, f"point {msg.source!r} seq {msg.seq} t_ns {msg.t_ns}")
+            return "refused"
+        now_ns = self.clock_ns()
+        latency_s = max(now_ns - msg.t_ns, 0) * 1e-9 if msg.t_ns else None
         point = ServedPoint(**msgspec.structs.asdict(msg), latency_s=latency_s)
-        with self.lock:
-            self.counts["received"] += 1
-            self.m.received.inc()
+        if point.seq < 0:  # a frame the worker could not even decode: counted, not ordered
+            self._count("received")
             self.last_arrival = now_mono
-            if point.seq < 0:  # a frame the worker could not even decode: counted, not ordered
-                self._count_rejected(point.reason)
-                return
-            stale_before = self.order.stale
-            dropped_before = self.order.dropped
-            self.order.add(point, now_mono)
-            self._after_order(stale_before, dropped_before)
+            self._count_rejected(point.reason)
+            return "rejected"
+        stale0, dropped0 = self.order.stale, self.order.dropped
+        outcome = self.order.add(point, now_mono)
+        if outcome == "jump":
+            self.refuse("seq_jump", f"point {msg.source!r} seq {msg.seq}: more than {self.order.max_jump} ahead of "
+                                    f"the next expected seq (kept aside until a second point confirms it)")
+            return "refused"
+        self._count("received")
+        self.last_arrival = now_mono
+        if outcome == "resync":
+            log.warning("api: source %r jumped ahead to seq %d (confirmed by a second point); the gap is dropped",
+                        msg.source, msg.seq)
+        self._after_order(stale0, dropped0)
+        return outcome
 
-    def end(self, msg: EndMessage, now_mono: float) -> None:
-        """An end-of-run notice: the run had ``msg.frames`` frames; the missing tail is dropped."""
-        with self.lock:
-            stale_before, dropped_before = self.order.stale, self.order.dropped
-            if self.order.end(msg.source, msg.run, msg.frames, msg.t_ns, now_mono) == "stale":
-                log.info("api: end-of-run notice of an older run of %r ignored", msg.source)
-            self._after_order(stale_before, dropped_before)
+    def end(self, msg: EndMessage, now_mono: float) -> str:
+        """An end-of-run notice: the run had ``msg.frames`` frames; the missing tail is dropped.
+        Returns ``"ended"`` or ``"refused"``."""
+        why = self._implausible(msg.frames, msg.t_ns, msg.run)
+        if why:
+            self.refuse(why, f"end notice of {msg.source!r}")
+            return "refused"
+        stale0, dropped0 = self.order.stale, self.order.dropped
+        outcome = self.order.end(msg.source, msg.run, msg.frames, msg.t_ns, now_mono)
+        if outcome != "ended":
+            self.refuse("end_run" if outcome == "other_run" else "end_frames",
+                        f"end notice of {msg.source!r} run {msg.run} with {msg.frames} frames: "
+                        + ("not the run in progress" if outcome == "other_run" else "frame count out of bounds"))
+            return "refused"
+        self._after_order(stale0, dropped0)
+        return outcome
+
+    def refuse(self, reason: str, detail: str) -> None:
+        """A message not believed (malformed, or implausible): counted by reason, logged."""
+        self._count(f"refused:{reason}")
+        log.warning("api: refused a message (%s): %s", reason, detail[:300])
+
+    def _implausible(self, seq: int, t_ns: int, run: Optional[int]) -> Optional[str]:
+        if seq > INT64_MAX or t_ns > INT64_MAX or (run is not None and run > INT64_MAX):
+            return "out_of_range"
+        if t_ns > self.clock_ns() + self.settings.max_future_s * 1e9:
+            return "future_t_ns"
+        return None
 
     def poll(self, now_mono: float) -> None:
-        with self.lock:
-            stale_before, dropped_before = self.order.stale, self.order.dropped
-            self.order.poll(now_mono)
-            self._after_order(stale_before, dropped_before)
-            if self.last_arrival is not None:
-                self.m.age.set(now_mono - self.last_arrival)
+        """Give up gaps that have waited longer than the reorder timeout."""
+        stale0, dropped0 = self.order.stale, self.order.dropped
+        self.order.poll(now_mono)
+        self._after_order(stale0, dropped0)
 
-    def _after_order(self, stale_before: int, dropped_before: int) -> None:
-        for _ in range(self.order.stale - stale_before):
+    def _after_order(self, stale0: int, dropped0: int) -> None:
+        for _ in range(self.order.stale - stale0):
             self._count_rejected("stale")
-        d = self.order.dropped - dropped_before
-        if d:
-            self.counts["dropped"] += d
-            self.m.dropped.inc(d)
+        if self.order.dropped > dropped0:
+            self._count("dropped", self.order.dropped - dropped0)
+
+    def _count(self, key: str, n: int = 1) -> None:
+        self.counts[key] = self.counts.get(key, 0) + n
+        self._counts_changed = True
 
     def _count_rejected(self, reason: Optional[str]) -> None:
-        self.counts["rejected"] += 1
-        self.m.rejected.labels(reason_key(reason)).inc()
+        self._count("rejected")
+        self._count(f"rejected:{reason_key(reason)}")
 
     def _release(self, p: ServedPoint) -> None:
-        """Called by the reorderer, in seq order, once per point (lock held)."""
+        """Called by the reorderer, in seq order, once per point: counted and filed under its
+        source's current segment (a new one when the run changes or seq goes back)."""
         if p.status == "rejected":
             self._count_rejected(p.reason)
         else:
-            self.counts["processed"] += 1
-            self.m.processed.inc()
+            self._count("processed")
+        seg = self._segments.get(p.source)
+        if seg is None or seg.run != p.run or p.seq <= seg.last_seq:
+            seg = self._segments[p.source] = Segment(0 if seg is None else seg.number + 1, p.run, p.seq)
+        seg.last_seq = p.seq
+        self._pending.append((seg.number, p))
+
+    def backlogged(self) -> bool:
+        """True when so much waits for a commit that no more should be taken in."""
+        return len(self._pending) >= PENDING_MAX
+
+    def commit(self, now_mono: Optional[float] = None) -> bool:
+        """Write what changed since the last commit in one transaction, then show it.
+
+        A write is made even with nothing new once :data:`PROBE_S` has passed (the heartbeat that
+        ``/readyz`` relies on, and retention by age). On failure the batch is kept for the next
+        try and ``/readyz`` says why. Returns whether the store is up to date.
+        """
+        now_mono = time.monotonic() if now_mono is None else now_mono
+        dirty = set(self.order.dirty)
+        due = self.last_write is None or now_mono - self.last_write >= PROBE_S
+        if not (self._pending or dirty or self._counts_changed or due):
+            return True
+        sources = self.order.sources()
+        t0 = time.perf_counter()
+        try:
+            self.db.write(self._pending, self.counts if self._counts_changed else {},
+                          {s: sources[s] for s in dirty if s in sources}, self.clock_ns())
+        except Exception as err:  # disk full, I/O error, a bug: keep everything, try again next time
+            first = self.write_error is None
+            self.write_error = f"{type(err).__name__}: {err}"[:300]
+            self.m.store_errors.labels("commit").inc()
+            (log.exception if first else log.debug)("api: store commit failed (%d points kept for the next try)",
+                                                     len(self._pending))
+            return False
+        self.m.store_commit.observe(time.perf_counter() - t0)
+        if self.write_error is not None:
+            log.warning("api: store commits again after: %s", self.write_error)
+        self.order.dirty -= dirty
+        self._counts_changed = False
+        released, self._pending = self._pending, []
+        with self.lock:
+            for _, p in released:
+                self.latest[p.source] = p
+        for _, p in released:
+            self._observe(p)
+        self._publish(now_mono)
+        self.write_error = None
+        self.last_write = now_mono
+        self.commits += 1
+        return True
+
+    def flush(self) -> None:
+        """Commit now (tests, and a clean stop)."""
+        self.commit(time.monotonic())
+
+    # ------------------------------------------------------------------------------------------
+    def _observe(self, p: ServedPoint) -> None:
         for stage, sec in p.stage_seconds.items():
             self.m.stage.labels(stage).observe(sec)
         if p.latency_s is not None:
             self.m.latency.observe(p.latency_s)
+        self._gauges(p)
+
+    def _gauges(self, p: ServedPoint) -> None:
         if p.targets:
             self.m.range.labels(p.source).set(p.targets[0].range_m)
             self.m.velocity.labels(p.source).set(p.targets[0].velocity_mps)
         for tone, snr in p.tone_snr_db.items():
             self.m.tone_snr.labels(tone).set(snr)
-        self.latest[p.source] = p
-        self.history.append(p)
+
+    def _publish(self, now_mono: float) -> None:
+        """Show the committed counts (and bring the Prometheus counters up to them)."""
+        for key, value in list(self.counts.items()):
+            inc = value - self._shown.get(key, 0)
+            if inc <= 0:
+                continue
+            self._shown[key] = value
+            name, _, reason = key.partition(":")
+            if key in ("received", "processed", "dropped"):
+                getattr(self.m, key).inc(inc)
+            elif name == "rejected" and reason:
+                self.m.rejected.labels(reason).inc(inc)
+            elif name == "refused":
+                self.m.malformed.labels(reason).inc(inc)
+        view = {k: self.counts[k] for k in BOOKS}
+        view.update(held_for_reordering=self.order.held(), awaited_after_end=self.order.awaited())
+        with self.lock:
+            self._view = view
+        self.m.store_rows.set(self.db.rows)
 
     def snapshot(self) -> dict:
+        """The committed counts (``received = processed + rejected + held_for_reordering``), the
+        age of the last frame and the uptime."""
+        now = time.monotonic()
         with self.lock:
-            now = time.monotonic()
-            age = None if self.last_arrival is None else now - self.last_arrival
-            return {**self.counts, "last_frame_age_s": age, "held_for_reordering": self.order.held(),
-                    "awaited_after_end": self.order.awaited(),
-                    "uptime_s": now - self.started}
+            view = dict(self._view)
+        last = self.last_arrival
+        return {**view, "last_frame_age_s": None if last is None else now - last, "uptime_s": now - self.started}
+
+    def store_status(self, receiver_running: bool) -> tuple[bool, str]:
+        """Whether the store takes writes: the last commit succeeded, and (with a receiver running)
+        not longer than :data:`STORE_STALE_S` ago."""
+        if self.write_error is not None:
+            return False, f"store {self.db.path}: last commit failed: {self.write_error}"
+        if self.last_write is None:
+            return False, f"store {self.db.path}: no write yet"
+        age = time.monotonic() - self.last_write
+        if receiver_running and age > STORE_STALE_S:
+            return False, f"store {self.db.path}: no write for {age:.0f} s (the receiver writes every {PROBE_S:g} s)"
+        return True, f"store {self.db.path}: last write {age:.1f} s ago, {self.db.rows} points" + (
+            "" if self.db.durable else " (not durable: :memory:)")
+
+    def close(self) -> None:
+        """Commit what is left and close the store."""
+        try:
+            self.flush()
+        finally:
+            self.db.close()
 
 
 class PointReceiver(threading.Thread):
@@ -179,13 +444,17 @@ class PointReceiver(threading.Thread):
     store : PointStore
     settings : ApiSettings
     ctx : zmq.Context, optional
+    on_death : callable(why), optional
+        Called from the thread when it ends other than by :meth:`stop` (``serve`` exits then).
     """
 
-    def __init__(self, store: PointStore, settings: ApiSettings, ctx: zmq.Context | None = None) -> None:
+    def __init__(self, store: PointStore, settings: ApiSettings, ctx: zmq.Context | None = None,
+                 on_death: Optional[Callable[[str], None]] = None) -> None:
         super().__init__(name="points-receiver", daemon=True)
         self.store = store
         self.settings = settings
         self.ctx = ctx or zmq.Context.instance()
+        self.on_death = on_death
         self.stop_event = threading.Event()
         self.sock = open_socket(self.ctx, points_pull(settings))
         self.endpoint = bound_endpoint(self.sock)
@@ -197,24 +466,26 @@ class PointReceiver(threading.Thread):
 
     def handle(self, parts: list, now_mono: float) -> str:
         """Decode one message and give it to the store; returns ``"point"``, ``"end"``,
-        ``"malformed"`` or ``"error"`` (never raises)."""
+        ``"malformed"``, ``"refused"`` or ``"error"`` (never raises)."""
         self.messages += 1
         kind = "end" if topic(parts) == END_TOPIC else "point"
         try:
             msg = decode_end(parts) if kind == "end" else decode_points(parts)
         except WireError as err:
             self.malformed += 1
-            self.store.m.malformed.labels(err.reason).inc()
+            self.store.refuse(err.reason, f"malformed {kind} message: {err}")
             self._error(f"malformed {kind} message: {err}")
-            log.warning("api: dropped a malformed %s message: %s", kind, err)
             return "malformed"
         try:
-            (self.store.end if kind == "end" else self.store.add)(msg, now_mono)
+            outcome = (self.store.end if kind == "end" else self.store.add)(msg, now_mono)
         except Exception as err:  # a bug, not a bad message: logged loudly, counted, and go on
             self.store.m.receiver_errors.inc()
             self._error(f"{kind} message not stored: {type(err).__name__}: {err}")
             log.exception("api: could not store a %s message", kind)
             return "error"
+        if outcome == "refused":
+            self._error(f"{kind} message refused (see mtcw_messages_malformed_total)")
+            return "refused"
         return kind
 
     def _error(self, what: str) -> None:
@@ -225,14 +496,30 @@ class PointReceiver(threading.Thread):
         poller.register(self.sock, zmq.POLLIN)
         try:
             while not self.stop_event.is_set():
-                if poller.poll(100):
-                    self.handle(self.sock.recv_multipart(), time.monotonic())
-                self.store.poll(time.monotonic())
+                if self.store.backlogged():  # the store cannot keep up (or write): leave messages queued
+                    self.stop_event.wait(0.2)
+                elif poller.poll(100):
+                    for _ in range(BATCH_MAX):
+                        try:
+                            parts = self.sock.recv_multipart(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        self.handle(parts, time.monotonic())
+                now = time.monotonic()
+                self.store.poll(now)
+                self.store.commit(now)
         except Exception as err:  # the receiver is dead: /healthz and /readyz say so, and why
             self.died = f"{type(err).__name__}: {err}"
             log.exception("api: points receiver died")
         finally:
             self.sock.close()
+        if self.died is None:
+            try:
+                self.store.commit()  # a clean stop keeps what was received
+            except Exception:
+                log.exception("api: last commit failed")
+        elif self.on_death is not None:
+            self.on_death(self.died)
 
     def status(self) -> dict:
         """``state`` (``not_started``, ``alive``, ``stopped`` or ``dead``), ``endpoint``, message counts and the
@@ -251,12 +538,32 @@ class PointReceiver(threading.Thread):
         self.stop_event.set()
 
 
+_TRUE = {"", "1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+def _flag(value: Optional[str], name: str) -> bool:
+    """A boolean query parameter: absent = false; ``?name``, ``=1``, ``=true`` (yes, on) = true."""
+    if value is None:
+        return False
+    v = value.strip().lower()
+    if v in _TRUE:
+        return True
+    if v in _FALSE:
+        return False
+    raise HTTPException(422, f"{name}: {value!r} is not a boolean (1, true, yes, on; 0, false, no, off)")
+
+
 def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
-               clock_ns: Callable[[], int] = time.time_ns) -> FastAPI:
+               clock_ns: Callable[[], int] = time.time_ns,
+               on_receiver_death: Optional[Callable[[str], None]] = None) -> FastAPI:
     """The FastAPI app; with ``start_receiver`` the points thread runs for the app's lifetime.
 
-    Once the receiver has bound, its endpoint (and ``app.state.http_url``, when :func:`serve`
-    set it) are written to ``settings.endpoints_file``. ``clock_ns`` is the store's wall clock.
+    The store is opened here (raises :class:`~services.history.StoreError` naming
+    ``store_path``) and closed when the app stops. Once the receiver has bound, its endpoint (and
+    ``app.state.http_url``, when :func:`serve` set it) are written to ``settings.endpoints_file``.
+    ``clock_ns`` is the store's wall clock; ``on_receiver_death`` is called (from the receiver
+    thread) if it dies.
     """
     settings = settings or ApiSettings()
     metrics = Metrics()
@@ -265,19 +572,24 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         recv = None
-        if start_receiver:
-            log_settings("api", settings)
-            recv = app.state.receiver = PointReceiver(store, settings)
-            recv.start()
-            http_url = getattr(app.state, "http_url", None)
-            report_endpoints(settings.endpoints_file, {"points_endpoint": recv.endpoint,
-                                                       **({"http_url": http_url} if http_url else {})})
-            log.info("api: points on %s (PULL); HTTP on %s", recv.endpoint, http_url or f"{settings.host}:"
-                                                                                      f"{settings.port}")
-        yield
-        if recv is not None:
-            recv.stop()
-            recv.join(timeout=2)
+        try:
+            if start_receiver:
+                log_settings("api", settings)
+                recv = app.state.receiver = PointReceiver(store, settings, on_death=on_receiver_death)
+                recv.start()
+                http_url = getattr(app.state, "http_url", None)
+                report_endpoints(settings.endpoints_file, {"points_endpoint": recv.endpoint,
+                                                           **({"http_url": http_url} if http_url else {})})
+                log.info("api: points on %s (PULL); HTTP on %s; store %s", recv.endpoint,
+                         http_url or f"{settings.host}:{settings.port}", store.db.path if store.db.durable
+                         else ":memory: (nothing kept across restarts)")
+            yield
+        finally:
+            if recv is not None:
+                recv.stop()
+                recv.join(timeout=5)
+            if recv is None or not recv.is_alive():
+                store.close()
 
     app = FastAPI(title="mtcw", version="1", lifespan=lifespan,
                   description="Range and velocity from a multi-tone CW lidar (PB-MTCW), live.")
@@ -300,16 +612,22 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
                 raise HTTPException(404, "no points received yet")
             return {"points": {s: served_json(p) for s, p in store.latest.items()}}
 
-    @app.get("/v1/points", summary="bounded history, oldest first")
-    def points(since_seq: int = Query(-1, ge=-1, description="only points with seq greater than this"),
+    @app.get("/v1/points", summary="history, oldest first (release order)",
+             responses={200: {"content": {"application/json": {"example": {"points": [], "count": 0,
+                                                                           "more": False}}}}})
+    def points(since_seq: int = Query(-1, ge=-1, le=INT64_MAX, description="only points with seq greater than this"),
                limit: int = Query(100, ge=1, le=10_000),
-               source: Optional[str] = Query(None, min_length=1, max_length=200)) -> dict:
-        with store.lock:
-            sel = [p for p in store.history if p.seq > since_seq and (source is None or p.source == source)]
-        return {"points": [served_json(p) for p in sel[:limit]], "count": min(len(sel), limit),
-                "more": len(sel) > limit}
+               source: Optional[str] = Query(None, min_length=1, max_length=200)) -> Response:
+        docs, more = store.db.points(since_seq, limit, source)
+        body = b'{"points":[' + b",".join(docs) + b'],"count":%d,"more":%s}' % (len(docs), b"true" if more else
+                                                                              b"false")
+        return Response(body, media_type="application/json")
 
-    @app.get("/healthz", summary="alive, and the points receiver's state")
+    @app.get("/livez", summary="the process serves HTTP (always 200 while it does)")
+    def livez() -> dict:
+        return {"status": "alive", "uptime_s": time.monotonic() - store.started}
+
+    @app.get("/healthz", summary="the points receiver's state and the counts (503 once the receiver died)")
     def healthz(response: Response) -> dict:
         recv = receiver_status()
         dead = recv["state"] == "dead"
@@ -317,27 +635,36 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
             response.status_code = 503
         return {"status": "receiver_dead" if dead else "alive", "receiver": recv, **store.snapshot()}
 
-    @app.get("/readyz", summary="receiver alive and a frame arrived recently")
-    def readyz(response: Response) -> dict:
+    @app.get("/readyz", summary="receiver alive, store writable, a frame arrived recently (?verbose: each check)")
+    def readyz(response: Response, verbose: Optional[str] = Query(None, description="list every check (?verbose, "
+                                                                                     "=1, =true)")) -> dict:
+        show = _flag(verbose, "verbose")
         snap = store.snapshot()
         recv = receiver_status()
+        checks: dict[str, dict] = {}
+        alive = recv["state"] in ("alive", "not_started")
+        checks["receiver"] = {"ok": alive, "why": "points receiver " + (
+            recv["state"] if alive else f"{recv['state']}: {recv.get('last_error')}")}
+        ok, why = store.store_status(receiver_running=recv["state"] == "alive")
+        checks["store"] = {"ok": ok, "why": why}
         age = snap["last_frame_age_s"]
-        if recv["state"] not in ("alive", "not_started"):
-            why = f"points receiver {recv['state']}: {recv.get('last_error')}"
-        elif age is None:
-            why = "no frame yet"
-        elif age >= settings.stale_after_s:
-            why = f"last frame {age:.1f} s ago"
-        else:
-            why = "ok"
-        ready = why == "ok"
-        if not ready:
+        fresh = age is not None and age < settings.stale_after_s
+        checks["frames"] = {"ok": fresh, "why": "no frame yet" if age is None else
+                            f"last frame {age:.1f} s ago (stale after {settings.stale_after_s:g} s)"}
+        failed = [c["why"] for c in checks.values() if not c["ok"]]
+        if failed:
             response.status_code = 503
-        return {"status": "ready" if ready else "not_ready", "reason": why, "receiver": recv, **snap}
+        out = {"status": "not_ready" if failed else "ready", "reason": failed[0] if failed else "ok",
+               "receiver": recv, **snap}
+        if show:
+            out["checks"] = checks
+        return out
 
     @app.get("/metrics", summary="Prometheus text format", response_class=Response)
     def prom() -> Response:
-        store.poll(time.monotonic())
+        last = store.last_arrival
+        if last is not None:
+            metrics.age.set(time.monotonic() - last)
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
     return app
@@ -347,13 +674,33 @@ def serve(settings: ApiSettings) -> None:
     """Run the API under uvicorn until SIGINT/SIGTERM (uvicorn's own graceful shutdown).
 
     The HTTP socket is bound here (``port`` 0 takes a free one), so that its URL can be
-    reported with the points endpoint (``endpoints_file``).
+    reported with the points endpoint (``endpoints_file``). A store that cannot be opened ends
+    the process with a message naming ``store_path``; a points receiver that dies stops the
+    server and ends the process with status :data:`EXIT_RECEIVER_DEAD`, for its supervisor
+    (docker's restart policy, ``mtcw run``) to start it again: history and books survive that.
     """
     import uvicorn
 
-    app = create_app(settings)
+    from .history import StoreError
+
+    server: Optional[uvicorn.Server] = None
+    died: list[str] = []
+
+    def receiver_died(why: str) -> None:
+        died.append(why)
+        log.error("api: the points receiver died (%s); stopping, exit status %d", why, EXIT_RECEIVER_DEAD)
+        if server is not None:
+            server.should_exit = True
+
+    try:
+        app = create_app(settings, on_receiver_death=receiver_died)
+    except StoreError as err:
+        raise SystemExit(f"error: {err}") from None
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning")
     sock = config.bind_socket()
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     app.state.http_url = f"http://{host}:{sock.getsockname()[1]}"
-    uvicorn.Server(config).run(sockets=[sock])
+    server = uvicorn.Server(config)
+    server.run(sockets=[sock])
+    if died:
+        sys.exit(EXIT_RECEIVER_DEAD)

@@ -16,6 +16,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .auth import AUTHORIZED_DIR, SERVER, is_local_endpoint
+from .ordering import DEFAULT_MAX_JUMP
 from .sockets import (DEFAULT_FRAME_HWM, DEFAULT_FRAME_LINGER_MS, DEFAULT_MAX_FRAME_BYTES, DEFAULT_MAX_POINT_BYTES,
                       DEFAULT_POINT_HWM, DEFAULT_POINT_LINGER_MS, DEFAULT_POINT_SEND_TIMEOUT_MS)
 
@@ -130,11 +131,37 @@ class WorkerSettings(TransportSettings):
 class ApiSettings(TransportSettings):
     host: str = Field("127.0.0.1", description="HTTP bind address (loopback unless told otherwise)")
     port: int = Field(8000, ge=0, le=65535)
-    history: int = Field(10_000, ge=1, le=10_000_000, description="points kept for /v1/points")
+    store_path: str = Field("out/mtcw-api.sqlite3", min_length=1,
+                            description="SQLite file of the history, latest points, counters and reorder state "
+                                        "(parents created; one API per file); ':memory:' keeps nothing across "
+                                        "restarts")
+    history: int = Field(100_000, ge=1, le=10_000_000, description="points kept for /v1/points (the oldest are "
+                                                                   "deleted, in batches)")
+    retention_s: float = Field(0.0, ge=0, description="also delete points served longer ago than this "
+                                                      "(s; 0 = no age limit)")
     reorder_timeout_s: float = Field(2.0, gt=0, description="wait this long for a missing seq before "
                                                             "counting it dropped")
     reorder_max: int = Field(256, ge=1, description="points held for reordering before gaps are declared")
+    max_seq_jump: int = Field(DEFAULT_MAX_JUMP, ge=1, description="the largest seq gap one message may declare "
+                              "(frames; at least reorder_max): a point further ahead, or an end-of-run notice "
+                              "further beyond what was seen, is refused until a second point confirms the jump")
+    max_future_s: float = Field(60.0, gt=0, description="refuse points and notices triggered more than this "
+                                                        "ahead of the API's clock (s)")
     stale_after_s: float = Field(5.0, gt=0, description="/readyz fails when the last frame is older")
+
+    @field_validator("store_path")
+    @classmethod
+    def _store_path(cls, v: str) -> str:
+        if v != ":memory:" and Path(v).expanduser().is_dir():
+            raise ValueError(f"{v} is a directory; give a file in it (e.g. {Path(v) / 'mtcw-api.sqlite3'})")
+        return v
+
+    @model_validator(mode="after")
+    def _jump_covers_reordering(self) -> "ApiSettings":
+        if self.max_seq_jump < self.reorder_max:
+            raise ValueError(f"max_seq_jump: {self.max_seq_jump} is less than reorder_max ({self.reorder_max}): "
+                             f"points held for reordering would be refused")
+        return self
 
 
 def load(cls: type[BaseSettings], **flags) -> BaseSettings:

@@ -34,6 +34,13 @@ def pytest_configure(config):
     hsettings.load_profile("long" if long else "ci")
 
 
+@pytest.fixture(autouse=True)
+def _api_store(tmp_path_factory, monkeypatch):
+    """Every test's API (in process or a child) gets a store of its own (``MTCW_STORE_PATH``),
+    never the default ``out/mtcw-api.sqlite3`` of the checkout: history would leak between tests."""
+    monkeypatch.setenv("MTCW_STORE_PATH", str(tmp_path_factory.mktemp("api-store") / "mtcw-api.sqlite3"))
+
+
 @pytest.fixture
 def long_run(request) -> bool:
     """True under ``pytest --long`` (or ``MTCW_FUZZ=long``): soak and stop tests run their long versions."""
