@@ -5,7 +5,7 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY mtcw_core ./mtcw_core
 COPY services ./services
-RUN pip install . && mkdir /keys && chown nobody /keys
+RUN pip install . && mkdir /keys /data && chown nobody /keys /data
 USER nobody
 ENTRYPOINT ["mtcw"]
 CMD ["--help"]

@@ -52,16 +52,15 @@ import fcntl
 import heapq
 import logging
 import os
-import shutil
+import itertools
 import sqlite3
-import tempfile
 import threading
 import time
-import weakref
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
+from urllib.parse import quote
 
 import msgspec
 
@@ -175,10 +174,13 @@ class Restored:
     bad_rows: int = 0
 
 
-def _connect(path: str) -> sqlite3.Connection:
-    conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=10.0)
+def _connect(uri: str) -> sqlite3.Connection:
+    conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False, timeout=10.0)
     conn.execute("PRAGMA busy_timeout = 10000")
     return conn
+
+
+_memory_ids = itertools.count()
 
 
 class HistoryDB:
@@ -188,7 +190,8 @@ class HistoryDB:
     ----------
     path : str or Path
         The database file (its parent directories are created), or ``":memory:"`` for a private
-        temporary file removed on :meth:`close` (nothing survives a restart).
+        database in this process's memory (SQLite's ``memdb``: no file, no WAL, readers and the
+        writer take turns; gone with its last connection: nothing survives a restart).
     retention_points : int
         Points kept at most.
     retention_s : float
@@ -208,29 +211,16 @@ class HistoryDB:
         self.retention_points = retention_points
         self.retention_s = retention_s
         self.on_bad_row = on_bad_row or (lambda where: None)
-        self._tmpdir: Optional[str] = None
+        self._lock_fd = -1
         if str(path) == MEMORY:
-            self._tmpdir = tempfile.mkdtemp(prefix="mtcw-api-")
-            weakref.finalize(self, shutil.rmtree, self._tmpdir, True)
-            self.path = Path(self._tmpdir) / "store.sqlite3"
+            self.path = Path(MEMORY)
+            self.uri = f"file:/mtcw-api-{os.getpid()}-{next(_memory_ids)}?vfs=memdb"
             self.durable = False
         else:
-            self.path = Path(path).expanduser()
+            self.path = Path(path).expanduser().absolute()
+            self.uri = f"file:{quote(str(self.path))}"
             self.durable = True
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._lock_fd = os.open(f"{self.path}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as err:
-            raise StoreError(f"store_path: cannot create {self.path}: {err.strerror or err}") from None
-        try:
-            fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = os.pread(self._lock_fd, 32, 0).decode(errors="replace").strip() or "?"
-            os.close(self._lock_fd)
-            raise StoreError(f"store_path: {self.path} is in use by another process (pid {holder}); one API per "
-                             f"store") from None
-        os.ftruncate(self._lock_fd, 0)
-        os.pwrite(self._lock_fd, str(os.getpid()).encode(), 0)
+            self._lock()
         self._readers: list[sqlite3.Connection] = []
         self._local = threading.local()
         self._readers_lock = threading.Lock()
@@ -242,12 +232,29 @@ class HistoryDB:
         self.rows = self.conn.execute("SELECT count(*) FROM points").fetchone()[0]
         self._held: dict[str, set[int]] = {}  # what the held table holds, per source
 
+    def _lock(self) -> None:
+        """Parents made, and the exclusive lock on ``<file>.lock`` taken (our pid written in it)."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._lock_fd = os.open(f"{self.path}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise StoreError(f"store_path: cannot create {self.path}: {err.strerror or err}") from None
+        try:
+            fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(self._lock_fd, 32, 0).decode(errors="replace").strip() or "?"
+            self._release_lock()
+            raise StoreError(f"store_path: {self.path} is in use by another process (pid {holder}); one API per "
+                             f"store") from None
+        os.ftruncate(self._lock_fd, 0)
+        os.pwrite(self._lock_fd, str(os.getpid()).encode(), 0)
+
     # ------------------------------------------------------------------------------------------
     def _open_writer(self) -> sqlite3.Connection:
         try:
-            conn = self._schema(_connect(str(self.path)))
+            conn = self._schema(_connect(self.uri))
         except sqlite3.DatabaseError as err:
-            if isinstance(err, sqlite3.OperationalError) and "locked" in str(err):
+            if not self.durable or isinstance(err, sqlite3.OperationalError):  # locked, read-only, no space, ...
                 raise StoreError(f"store_path: {self.path}: {err}") from None
             # not a database, or a damaged one: keep it aside for inspection and start afresh
             aside = self.path.with_name(f"{self.path.name}.corrupt-{int(time.time())}")
@@ -258,7 +265,7 @@ class HistoryDB:
                 if p.exists():
                     p.rename(f"{aside}{suffix}")
             try:
-                conn = self._schema(_connect(str(self.path)))
+                conn = self._schema(_connect(self.uri))
             except sqlite3.Error as err2:
                 raise StoreError(f"store_path: {self.path}: {err2}") from None
         return conn
@@ -266,7 +273,7 @@ class HistoryDB:
     def _schema(self, conn: sqlite3.Connection) -> sqlite3.Connection:
         try:
             mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if mode.lower() != "wal":
+            if mode.lower() != "wal" and self.durable:
                 raise StoreError(f"store_path: {self.path}: SQLite refused WAL mode (got {mode!r})")
             conn.execute("PRAGMA synchronous = NORMAL")
             version = conn.execute("PRAGMA user_version").fetchone()[0]
@@ -417,7 +424,7 @@ class HistoryDB:
     def _reader(self) -> sqlite3.Connection:
         conn = getattr(self._local, "conn", None)
         if conn is None:
-            conn = self._local.conn = _connect(str(self.path))
+            conn = self._local.conn = _connect(self.uri)
             conn.execute("PRAGMA query_only = 1")
             with self._readers_lock:
                 self._readers.append(conn)
@@ -493,8 +500,6 @@ class HistoryDB:
             self.conn.close()
         finally:
             self._release_lock()
-            if self._tmpdir is not None:
-                shutil.rmtree(self._tmpdir, ignore_errors=True)
 
     def _release_lock(self) -> None:
         if self._lock_fd >= 0:

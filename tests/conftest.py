@@ -35,10 +35,11 @@ def pytest_configure(config):
 
 
 @pytest.fixture(autouse=True)
-def _api_store(tmp_path_factory, monkeypatch):
-    """Every test's API (in process or a child) gets a store of its own (``MTCW_STORE_PATH``),
-    never the default ``out/mtcw-api.sqlite3`` of the checkout: history would leak between tests."""
-    monkeypatch.setenv("MTCW_STORE_PATH", str(tmp_path_factory.mktemp("api-store") / "mtcw-api.sqlite3"))
+def _api_store(monkeypatch):
+    """Every API a test starts (in process or a child) keeps its history in memory, its own
+    (``MTCW_STORE_PATH=:memory:``), never in the checkout's default ``out/mtcw-api.sqlite3``:
+    history would leak from test to test. Tests of restarts give a file of their own."""
+    monkeypatch.setenv("MTCW_STORE_PATH", ":memory:")
 
 
 @pytest.fixture

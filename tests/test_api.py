@@ -8,6 +8,7 @@ import json
 import re
 import sqlite3
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -27,7 +28,7 @@ T0_NS = 1_700_000_000_000_000_000
 
 
 def _settings(**kw) -> ApiSettings:
-    """API settings on a free port; the store is the test's own file (``MTCW_STORE_PATH`` from conftest)."""
+    """API settings on a free port; the store is the test's own, in memory (``MTCW_STORE_PATH`` from conftest)."""
     return ApiSettings(**{"points_endpoint": "tcp://127.0.0.1:0", "reorder_timeout_s": 1.0, **kw})
 
 
@@ -217,7 +218,7 @@ class TestHttp:
         for s in range(3):
             store.add(_point(s), now_mono=time.monotonic())
         store.flush()
-        with sqlite3.connect(store.db.path) as db:  # damage the middle row behind the store's back
+        with sqlite3.connect(store.db.uri, uri=True) as db:  # damage the middle row behind the store's back
             db.execute("UPDATE points SET body = ? WHERE seq = 1", (b"\xa6source\xa4b\xffch",))
         r = client.get("/v1/points")
         assert r.status_code == 200 and [p["seq"] for p in r.json()["points"]] == [0, 2]
@@ -327,6 +328,29 @@ def test_a_dead_receiver_calls_on_death():
         recv.store.poll = broken
         _wait(lambda: died, "on_death")
     assert died == ["RuntimeError: store poll broke"]
+
+
+def test_serve_ends_with_status_3_when_the_receiver_dies(monkeypatch):
+    """Under serve (``mtcw api``) a dead receiver stops the server: the supervisor restarts it."""
+    import services.api as api
+
+    def broken(self, now_mono: float) -> None:
+        raise RuntimeError("store poll broke")
+
+    monkeypatch.setattr(api.PointStore, "poll", broken)
+    out = []
+
+    def run() -> None:
+        try:
+            api.serve(_settings(port=0))
+            out.append(None)
+        except SystemExit as e:
+            out.append(e.code)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(30)
+    assert out == [api.EXIT_RECEIVER_DEAD]
 
 
 def test_receiver_handle_never_raises():

@@ -7,6 +7,7 @@ run against them.
 
 from __future__ import annotations
 
+import http.server
 import json
 import os
 import re
@@ -14,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -42,6 +44,58 @@ def test_compose_declares_the_services_and_python_healthchecks():
     assert all(p.startswith("127.0.0.1:") for s in svc.values() for p in s.get("ports", []))
     for vol in svc["prometheus"]["volumes"] + svc["grafana"]["volumes"]:
         assert (ROOT / vol.split(":")[0]).exists(), vol
+
+
+def test_compose_api_keeps_its_store_in_a_volume_and_checks_health_not_just_liveness():
+    api = COMPOSE["services"]["api"]
+    store = api["environment"]["MTCW_STORE_PATH"]
+    mounts = dict(v.split(":")[::-1] for v in api["volumes"])  # mount point -> volume
+    assert store.startswith("/data/") and mounts["/data"] in COMPOSE["volumes"], "the store must outlive the container"
+    assert mounts["/keys"] == "mtcw-keys"
+    # the image runs as nobody: /data must be made and handed to it before USER nobody
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    made = re.search(r"^RUN .*mkdir [^&]*/data.*chown nobody [^&]*/data", dockerfile, re.M)
+    assert made and dockerfile.index(made.group(0)) < dockerfile.index("USER nobody")
+    hc = api["healthcheck"]["test"][3]
+    assert "/healthz" not in hc and ("/readyz" in hc or "/livez" in hc)
+
+
+class _FakeApi(http.server.BaseHTTPRequestHandler):
+    """Answers /readyz?verbose with the checks it is given (status 503 when one fails)."""
+
+    checks: dict = {}
+
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        body = json.dumps({"checks": self.checks}).encode()
+        self.send_response(200 if all(c["ok"] for c in self.checks.values()) else 503)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args):
+        pass
+
+
+def test_api_healthcheck_fails_on_a_dead_receiver_or_store_not_on_a_quiet_source(tmp_path):
+    srv = http.server.HTTPServer(("127.0.0.1", 0), _FakeApi)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    code = _localise(COMPOSE["services"]["api"]["healthcheck"]["test"][3], {8000: srv.server_port}, tmp_path)
+
+    def check(receiver: bool, store: bool, frames: bool) -> int:
+        _FakeApi.checks = {"receiver": {"ok": receiver, "why": ""}, "store": {"ok": store, "why": ""},
+                           "frames": {"ok": frames, "why": ""}}
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=30).returncode
+
+    try:
+        assert check(True, True, True) == 0
+        assert check(True, True, False) == 0  # no frame lately: the API itself is fine
+        assert check(True, False, True) != 0
+        assert check(False, True, True) != 0
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=30).returncode != 0  # no API
 
 
 def _metric_names() -> set[str]:
@@ -75,8 +129,11 @@ def test_prometheus_config_is_valid():
 
 
 def _localise(text: str, ports: dict[int, int], keys: Path) -> str:
+    """A compose string for this machine: loopback, the free ports, the keys in ``keys`` and the
+    volume ``/data`` in ``keys``'s parent."""
     text = text.replace("tcp://*:", "tcp://127.0.0.1:").replace("0.0.0.0", "127.0.0.1")
     text = re.sub(r"^/keys$", str(keys), text)
+    text = re.sub(r"^/data/", f"{keys.parent / 'data'}/", text)
     text = re.sub(r"tcp://(acquisition|api):", "tcp://127.0.0.1:", text)
     for old, new in ports.items():
         text = re.sub(rf"\b{old}\b", str(new), text)
@@ -106,6 +163,8 @@ def test_every_compose_command_starts_and_passes_its_healthcheck(tmp_path):
             r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
             assert r.returncode == 0, f"{name} healthcheck: {r.stderr}"
             assert procs[name].poll() is None, f"{name} died"
+        store = Path(_localise(COMPOSE["services"]["api"]["environment"]["MTCW_STORE_PATH"], ports, keys))
+        assert store.parent == tmp_path / "data" and store.exists()  # the API keeps its history where compose says
     finally:
         for name, p in procs.items():
             if p.poll() is None:
