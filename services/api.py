@@ -210,6 +210,8 @@ class PointStore:
         got = self.db.load()
         now = time.monotonic()
         self.counts.update(got.counters)
+        if got.bad_held:  # unreadable now: as if never received; their seqs are gaps, counted dropped
+            self._count("received", -got.bad_held)
         for source, st in got.sources.items():
             self.order.restore(source, st, now)
         self._segments = got.segments

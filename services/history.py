@@ -163,7 +163,11 @@ class Restored:
     points : int
         Rows in ``points``.
     bad_rows : int
-        Stored points that could not be decoded (skipped, logged).
+        Newest points (``latest``) that could not be decoded (skipped, logged).
+    bad_held : int
+        Points held for reordering that could not be decoded: never to be released (the caller
+        takes them out of ``received``; their seqs become gaps, counted as dropped, so that the
+        books still balance).
     """
 
     counters: dict[str, int] = field(default_factory=dict)
@@ -172,6 +176,7 @@ class Restored:
     segments: dict[str, Segment] = field(default_factory=dict)
     points: int = 0
     bad_rows: int = 0
+    bad_held: int = 0
 
 
 def _connect(uri: str) -> sqlite3.Connection:
@@ -312,13 +317,15 @@ class HistoryDB:
                 out.sources[source] = SourceState(next_seq=nxt, run=run, max_t_ns=max_t, floor_t_ns=floor_t,
                                                   end_seq=end, source=source)
             for source, seq, body in c.execute("SELECT source, seq, body FROM held"):
+                # every row is remembered as stored, so that the source's next write deletes the
+                # ones not put back in the reorderer
+                self._held.setdefault(source, set()).add(seq)
                 p = self._decode(body, "held", f"{source} seq {seq}")
                 st = out.sources.get(source)
-                if p is None or st is None:
-                    out.bad_rows += p is None
-                    continue
-                st.held[seq] = (0.0, p)
-                self._held.setdefault(source, set()).add(seq)
+                if p is None:
+                    out.bad_held += 1
+                elif st is not None:
+                    st.held[seq] = (0.0, p)
             for source, seg, run, max_seq in c.execute(
                     "SELECT source, segment, run, max_seq FROM segments s WHERE segment = "
                     "(SELECT max(segment) FROM segments t WHERE t.source = s.source)"):

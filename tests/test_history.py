@@ -223,6 +223,31 @@ def test_a_clean_restart_keeps_history_latest_counts_and_held_points(tmp_path):
         b.close()
 
 
+def test_a_held_point_that_cannot_be_read_back_becomes_a_gap(tmp_path):
+    """Unreadable after the restart: out of ``received``, its seq dropped; the books balance."""
+    path = tmp_path / "s.sqlite3"
+    a = _store(path)
+    for s in (0, 2, 3):  # 2 and 3 held for 1
+        a.add(_point(s, run=9), now_mono=0.0)
+    a.close()
+    with sqlite3.connect(path) as c:
+        c.execute("UPDATE held SET body = x'c1' WHERE seq = 2")
+    b = _store(path)
+    try:
+        snap = b.snapshot()
+        assert (snap["received"], snap["processed"], snap["rejected"], snap["held_for_reordering"]) == (2, 1, 0, 1)
+        assert 'mtcw_store_errors_total{kind="bad_row"} 1.0' in _metrics(b)
+        b.add(_point(1, run=9), now_mono=time.monotonic())  # releases 1; 2 is a gap now; 3 waits
+        b.poll(time.monotonic() + 5)
+        b.flush()
+        snap = b.snapshot()
+        assert (snap["received"], snap["processed"], snap["rejected"], snap["dropped"]) == (3, 3, 0, 1)
+        assert snap["processed"] + snap["rejected"] + snap["dropped"] == 4  # seqs 0 .. 3
+        assert b.db.conn.execute("SELECT count(*) FROM held").fetchone()[0] == 0  # the bad row went too
+    finally:
+        b.close()
+
+
 def test_what_was_not_committed_is_lost_and_counted_dropped_after_restart(tmp_path):
     """A kill loses what came after the last commit; the restarted store counts those frames as
     dropped (seq gaps), so that published = processed + rejected + dropped."""
