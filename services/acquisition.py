@@ -27,6 +27,7 @@ from mtcw_core.recording import read_recording
 from mtcw_core.scene import load_scene
 from mtcw_core.simulate import Simulator
 
+from .auth import terminate
 from .settings import AcquisitionSettings, log_settings
 from .sockets import bound_endpoint, frames_push, monitor_pub, open_socket, report_endpoints
 from .wire import encode_end, encode_frame, end_message
@@ -98,6 +99,9 @@ class Publisher:
     ----------
     settings : AcquisitionSettings
     ctx : zmq.Context, optional
+        A context of the caller's, who must then terminate it (after :meth:`close`) before the
+        process exits: frames still queued are sent from their arrays until then. By default
+        the publisher makes its own and terminates it in :meth:`close`.
     clock_ns : callable, optional
         Wall clock for ``t_ns`` (``time.time_ns``); for tests.
     """
@@ -105,13 +109,19 @@ class Publisher:
     def __init__(self, settings: AcquisitionSettings, ctx: zmq.Context | None = None,
                  clock_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
-        self.ctx = ctx or zmq.Context.instance()
+        self._own_ctx = ctx is None
+        self.ctx = zmq.Context() if ctx is None else ctx
         self.clock_ns = clock_ns
-        self.push = open_socket(self.ctx, frames_push(settings))
         try:
-            self.pub = open_socket(self.ctx, monitor_pub(settings))
-        except zmq.ZMQError:
-            self.push.close()
+            self.push = open_socket(self.ctx, frames_push(settings))
+            try:
+                self.pub = open_socket(self.ctx, monitor_pub(settings))
+            except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
+                self.push.close()
+                raise
+        except (zmq.ZMQError, ValueError):
+            if self._own_ctx:
+                terminate(self.ctx)
             raise
         # watch for workers from the moment of binding, so that none connects unseen before wait_for_worker
         self._monitor: zmq.Socket | None = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
@@ -130,8 +140,9 @@ class Publisher:
         """The bound endpoint of the PUB socket."""
         return bound_endpoint(self.pub)
 
-    def wait_for_worker(self, timeout_s: float, count: int = 1) -> bool:
-        """Wait until ``count`` workers have connected to the PUSH socket (True) or the timeout passes."""
+    def wait_for_worker(self, timeout_s: float, count: int = 1, stop: threading.Event | None = None) -> bool:
+        """Wait until ``count`` workers have connected to the PUSH socket (True), the timeout
+        passes or ``stop`` is set (False)."""
         from zmq.utils.monitor import recv_monitor_message
 
         mon = self._monitor or self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
@@ -139,8 +150,9 @@ class Publisher:
         try:
             deadline = time.monotonic() + timeout_s
             seen = 0
-            while (left := deadline - time.monotonic()) > 0:
-                if mon.poll(int(left * 1000)) and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+            while (left := deadline - time.monotonic()) > 0 and not (stop is not None and stop.is_set()):
+                if (mon.poll(int(min(left, 0.2) * 1000))
+                        and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED):
                     seen += 1
                     if seen >= count:
                         return True
@@ -150,7 +162,11 @@ class Publisher:
             mon.close()
 
     def send(self, frame: Frame) -> bool:
-        """Stamp and send one frame; returns False when it was dropped (no worker free)."""
+        """Stamp and send one frame; returns False when it was dropped (no worker free).
+
+        The samples are not copied: libzmq reads them from the frame's array, which pyzmq keeps
+        alive until libzmq is done with it; the array must not be written to afterwards.
+        """
         frame = frame.with_(source=self.settings.source_name, seq=self.seq, t_ns=self.clock_ns(), run=self.run)
         self.seq += 1
         parts = encode_frame(frame)
@@ -187,33 +203,67 @@ class Publisher:
         return ok
 
     def close(self) -> None:
+        """Close the sockets and, if the publisher made its context, terminate it.
+
+        Terminating waits until every queued message is sent or discarded: up to the frames
+        socket's LINGER (:meth:`finish` raises it so that the end-of-run notice and the frames
+        before it are delivered; otherwise 0, nothing waits). Only then is no buffer of a
+        zero-copy frame still in libzmq's hands, so that the process may exit.
+        """
         if self._monitor is not None:
             self.push.disable_monitor()
             self._monitor.close()
             self._monitor = None
+        linger_ms = self.push.getsockopt(zmq.LINGER) if not self.push.closed else 0
         self.push.close()
         self.pub.close()
+        if self._own_ctx and not self.ctx.closed:
+            t0 = time.monotonic()
+            terminate(self.ctx)
+            log.info("acquisition: queued messages sent or discarded in %.2f s (frames socket LINGER %d ms)",
+                     time.monotonic() - t0, linger_ms)
 
 
 def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None = None,
-                    on_frame=None) -> Publisher:
-    """Publish frames until the source ends, ``settings.frames`` are sent, or ``stop`` is set."""
+                    on_frame: Callable[[Publisher], None] | None = None) -> Publisher:
+    """Publish frames until the source ends, ``settings.frames`` are sent, or ``stop`` is set.
+
+    However the run ends (``stop`` included), the end-of-run notice is sent once a frame was,
+    and the publisher is closed: its context is terminated, which waits (up to the LINGER that
+    :meth:`Publisher.finish` sets) until the notice and the frames queued before it are
+    delivered. The caller may then exit; no zero-copy buffer is left in libzmq's hands.
+
+    Parameters
+    ----------
+    settings : AcquisitionSettings
+    stop : threading.Event, optional
+        Set by a clean stop (SIGINT/SIGTERM in ``mtcw acquire``).
+    on_frame : callable, optional
+        Called with the publisher after each frame (tests).
+
+    Returns
+    -------
+    Publisher
+        Closed; its counters (``seq``, ``published``, ``dropped``) tell what the run did.
+    """
     stop = stop or threading.Event()
     log_settings("acquisition", settings)
     source = make_source(settings)
     pub = Publisher(settings)
-    report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
-                                               "monitor_endpoint": pub.monitor_endpoint})
-    metrics = _exporter(settings.metrics_port, settings.metrics_host)
-    if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s,
-                                                                   settings.wait_for_workers):
-        log.warning("acquisition: fewer than %d worker(s) after %.1f s; frames are dropped (and counted) while no "
-                    "worker is free", settings.wait_for_workers, settings.wait_for_worker_s)
-    period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
-    next_t = time.monotonic()
-    log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
-             pub.frames_endpoint, pub.monitor_endpoint)
     try:
+        report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
+                                                   "monitor_endpoint": pub.monitor_endpoint})
+        metrics = _exporter(settings.metrics_port, settings.metrics_host)
+        if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s,
+                                                                       settings.wait_for_workers, stop):
+            if stop.is_set():
+                return pub
+            log.warning("acquisition: fewer than %d worker(s) after %.1f s; frames are dropped (and counted) while "
+                        "no worker is free", settings.wait_for_workers, settings.wait_for_worker_s)
+        period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
+        next_t = time.monotonic()
+        log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
+                 pub.frames_endpoint, pub.monitor_endpoint)
         for frame in source.frames():
             if stop.is_set():
                 break

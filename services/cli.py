@@ -271,6 +271,26 @@ def _stop_on_signals():
     return stop
 
 
+def _exit_zero_on_signals() -> None:
+    """SIGINT/SIGTERM end the process with status 0 (for ``mtcw api``, a clean stop).
+
+    uvicorn installs its own handlers while it serves, shuts down gracefully on the first
+    signal, restores the handlers it found and then raises the signal again, "to trigger the
+    expected behaviour": with the default handlers that ends the process killed by SIGTERM
+    (status -15) after a clean stop. With this handler in place that re-raised signal exits 0,
+    and a signal before uvicorn serves ends the process at once, also with 0.
+    """
+    import signal
+
+    def handler(*_):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+        raise SystemExit(0)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)
+
+
 LOG_FORMATS = ("text", "json")
 
 
@@ -355,6 +375,7 @@ def api(
     port: Optional[int] = typer.Option(None, help="HTTP port [MTCW_PORT; default 8000]"),
 ) -> None:
     """API: latest points, history, health and Prometheus metrics over HTTP."""
+    _exit_zero_on_signals()
     from services.api import serve
     from services.settings import ApiSettings
 
