@@ -135,3 +135,92 @@ def test_acquisition_node_stops_cleanly_under_backlog_and_the_books_balance(tmp_
             assert rc == 0 and "Traceback" not in bench.log(name), f"{name} exited {rc}:\n{bench.log(name)[-2000:]}"
     finally:
         bench.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# the run ledger: a killed run's frame count outlives it
+def test_ledger_keeps_the_count_and_survives_a_torn_slot(tmp_path):
+    from services.acquisition import RunLedger
+
+    path = tmp_path / "state"
+    assert RunLedger.read(path) is None
+    led = RunLedger(path)
+    for n in range(1, 8):
+        led.record("bench", 42, n)
+    assert RunLedger.read(path) == {"source": "bench", "run": 42, "frames": 7, "ended": False}
+    raw = bytearray(path.read_bytes())
+    raw[RunLedger.SLOT + 5: RunLedger.SLOT + 9] = b"\x00\xff{]"  # the write of frame 7 torn by a kill
+    path.write_bytes(bytes(raw))
+    assert RunLedger.read(path)["frames"] == 6  # the other slot: one frame less, never garbage
+    led.record("bench", 42, 8, ended=True)
+    assert RunLedger.read(path)["ended"] is True
+    led.close()
+    path.write_bytes(b"\x00" * 10)
+    assert RunLedger.read(path) is None
+
+
+def test_a_restarted_node_sends_the_end_notice_its_killed_run_never_sent(ctx, tmp_path):
+    """Run 1 is 'killed' after 5 frames (its publisher is dropped without finish); the next
+    publisher on the same state file first sends run 1's notice with those 5 frames."""
+    st = AcquisitionSettings(frames_endpoint="tcp://127.0.0.1:0", monitor_endpoint="tcp://127.0.0.1:0",
+                             drop_policy="block", state_file=tmp_path / "acq.state")
+    first = Publisher(st, ctx)
+    pull = ctx.socket(zmq.PULL)
+    pull.connect(first.frames_endpoint)
+    assert first.wait_for_worker(10)
+    for _ in range(5):
+        first.send(_frame())
+    killed_run = first.run
+    for _ in range(5):
+        pull.recv_multipart()
+    pull.close()
+    first.ledger = None  # as after SIGKILL: no finish, the mapping left as it was
+    first.push.close(linger=0)
+    first.pub.close(linger=0)
+    second = Publisher(st, ctx)
+    assert second.unfinished == {"source": "bench", "run": killed_run, "frames": 5, "ended": False}
+    pull = ctx.socket(zmq.PULL)
+    pull.connect(second.frames_endpoint)
+    try:
+        assert second.wait_for_worker(10)
+        assert second.finish_unfinished(5.0)
+        end = decode_end(pull.recv_multipart())
+        assert (end.run, end.frames, end.source) == (killed_run, 5, "bench")
+        assert not second.finish_unfinished(5.0)  # once
+        second.send(_frame())
+        assert second.finish(5.0)
+        pull.recv_multipart()
+        assert decode_end(pull.recv_multipart()).frames == 1
+    finally:
+        pull.close(linger=0)
+        second.close()
+    third = Publisher(st, ctx)  # run 2 ended cleanly: nothing to send for it
+    assert third.unfinished is None
+    third.close()
+
+
+def test_a_stranger_is_refused_by_the_frames_socket_and_counted(tmp_path):
+    from services.auth import CurveClient, make_keys, server_keys
+
+    make_keys(tmp_path / "k")
+    st = AcquisitionSettings(frames_endpoint="tcp://127.0.0.1:0", monitor_endpoint="tcp://127.0.0.1:0",
+                             curve_dir=tmp_path / "k")
+    refused: list[str] = []
+    pub = Publisher(st, on_refused=refused.append)
+    c = zmq.Context()
+    stranger = c.socket(zmq.PULL)
+    pk, sk = zmq.curve_keypair()
+    from services.auth import apply_client
+
+    apply_client(stranger, CurveClient(pk, sk, server_keys(tmp_path / "k").public))
+    stranger.connect(pub.frames_endpoint)
+    try:
+        deadline = time.monotonic() + 10
+        while not pub.peers_refused["frames"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.peers_refused["frames"] >= 1 and refused[0] == "frames"
+        assert not pub.wait_for_worker(0.5)  # a refused peer is no worker
+    finally:
+        stranger.close(linger=0)
+        c.term()
+        pub.close()
