@@ -13,12 +13,15 @@ that the consumer also counts frames lost after the last one it received.
 
 from __future__ import annotations
 
+import collections
 import importlib
+import json
 import logging
 import secrets
 import threading
 import time
-from typing import Callable, Iterator, Protocol
+from pathlib import Path
+from typing import Callable, Iterator, Optional, Protocol
 
 import zmq
 
@@ -27,6 +30,7 @@ from mtcw_core.recording import read_recording
 from mtcw_core.scene import load_scene
 from mtcw_core.simulate import Simulator
 
+from .auth import terminate
 from .settings import AcquisitionSettings, log_settings
 from .sockets import bound_endpoint, frames_push, monitor_pub, open_socket, report_endpoints
 from .wire import encode_end, encode_frame, end_message
@@ -85,6 +89,67 @@ def make_source(settings: AcquisitionSettings) -> FrameSource:
     raise ValueError(f"source: {settings.source!r} is not sim, replay or module:Class")
 
 
+class RunLedger:
+    """How many frames the current run has stamped, kept in a small memory-mapped file that
+    outlives the process: after a SIGKILL the next start of the node reads the killed run's
+    count and sends the end-of-run notice it never sent, so that the frames it published after
+    the last one that reached the API are counted as dropped, not lost.
+
+    Updating costs a few microseconds per frame (a write into the mapping, no system call); the
+    kernel keeps the page when the process dies. Two slots are written in turn, each a JSON
+    object padded to :attr:`SLOT` bytes, so that a write torn by the kill leaves the other one
+    readable: the reader takes the valid slot with the larger count.
+
+    Parameters
+    ----------
+    path : Path
+        The file (made, or taken over, by this run).
+    """
+
+    SLOT = 256
+
+    def __init__(self, path: Path) -> None:
+        import mmap
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+b") as fh:
+            fh.truncate(2 * self.SLOT)
+            self._map = mmap.mmap(fh.fileno(), 2 * self.SLOT)
+        self._map[:] = b" " * (2 * self.SLOT)
+
+    def record(self, source: str, run: int, frames: int, ended: bool = False) -> None:
+        """Run ``run`` of ``source`` has stamped ``frames`` frames (``ended``: its notice is sent)."""
+        text = json.dumps({"source": source, "run": run, "frames": frames, "ended": ended}).encode()
+        if len(text) >= self.SLOT:
+            raise ValueError(f"state_file: source name too long for the ledger ({len(text)} bytes)")
+        slot = (frames % 2) * self.SLOT
+        self._map[slot:slot + self.SLOT] = text.ljust(self.SLOT)
+
+    def close(self) -> None:
+        self._map.close()
+
+    @classmethod
+    def read(cls, path: Path) -> Optional[dict]:
+        """The last state a run left in ``path`` (``source``, ``run``, ``frames``, ``ended``), or
+        None when there is no readable one."""
+        try:
+            raw = Path(path).read_bytes()
+        except OSError:
+            return None
+        best = None
+        for i in range(0, len(raw), cls.SLOT):
+            try:
+                d = json.loads(raw[i:i + cls.SLOT])
+                ok = (isinstance(d, dict) and isinstance(d.get("source"), str) and isinstance(d.get("run"), int)
+                      and isinstance(d.get("frames"), int) and d["frames"] >= 0)
+            except ValueError:
+                continue
+            if ok and (best is None or (d["run"] == best["run"] and d["frames"] > best["frames"])):
+                best = d
+        return best
+
+
 class Publisher:
     """Binds the PUSH (workers) and PUB (monitors) sockets, stamps each frame's identity and sends it.
 
@@ -98,20 +163,32 @@ class Publisher:
     ----------
     settings : AcquisitionSettings
     ctx : zmq.Context, optional
+        A context of the caller's, who must then terminate it (after :meth:`close`) before the
+        process exits: frames still queued are sent from their arrays until then. By default
+        the publisher makes its own and terminates it in :meth:`close`.
     clock_ns : callable, optional
         Wall clock for ``t_ns`` (``time.time_ns``); for tests.
     """
 
     def __init__(self, settings: AcquisitionSettings, ctx: zmq.Context | None = None,
-                 clock_ns: Callable[[], int] = time.time_ns) -> None:
+                 clock_ns: Callable[[], int] = time.time_ns,
+                 on_refused: Callable[[str], None] | None = None) -> None:
         self.settings = settings
-        self.ctx = ctx or zmq.Context.instance()
+        self._own_ctx = ctx is None
+        self.ctx = zmq.Context() if ctx is None else ctx
         self.clock_ns = clock_ns
-        self.push = open_socket(self.ctx, frames_push(settings))
+        self.peers_refused: collections.Counter[str] = collections.Counter()
+        self._on_refused = on_refused
         try:
-            self.pub = open_socket(self.ctx, monitor_pub(settings))
-        except zmq.ZMQError:
-            self.push.close()
+            self.push = open_socket(self.ctx, frames_push(settings), self._refused)
+            try:
+                self.pub = open_socket(self.ctx, monitor_pub(settings), self._refused)
+            except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
+                self.push.close()
+                raise
+        except (zmq.ZMQError, ValueError):
+            if self._own_ctx:
+                terminate(self.ctx)
             raise
         # watch for workers from the moment of binding, so that none connects unseen before wait_for_worker
         self._monitor: zmq.Socket | None = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
@@ -119,6 +196,19 @@ class Publisher:
         self.seq = 0
         self.published = 0
         self.dropped = 0
+        path = settings.state_file
+        self.unfinished = RunLedger.read(path) if path is not None else None  # a killed run's last state
+        if self.unfinished is not None and self.unfinished.get("ended"):
+            self.unfinished = None
+        self.ledger = RunLedger(path) if path is not None else None
+        if self.ledger is not None:
+            self.ledger.record(settings.source_name, self.run, 0)
+
+    def _refused(self, socket: str) -> None:
+        """A peer with an unknown CURVE key was refused on ``socket`` (the ZAP handler's thread)."""
+        self.peers_refused[socket] += 1
+        if self._on_refused is not None:
+            self._on_refused(socket)
 
     @property
     def frames_endpoint(self) -> str:
@@ -130,8 +220,9 @@ class Publisher:
         """The bound endpoint of the PUB socket."""
         return bound_endpoint(self.pub)
 
-    def wait_for_worker(self, timeout_s: float, count: int = 1) -> bool:
-        """Wait until ``count`` workers have connected to the PUSH socket (True) or the timeout passes."""
+    def wait_for_worker(self, timeout_s: float, count: int = 1, stop: threading.Event | None = None) -> bool:
+        """Wait until ``count`` workers have connected to the PUSH socket (True), the timeout
+        passes or ``stop`` is set (False)."""
         from zmq.utils.monitor import recv_monitor_message
 
         mon = self._monitor or self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
@@ -139,8 +230,9 @@ class Publisher:
         try:
             deadline = time.monotonic() + timeout_s
             seen = 0
-            while (left := deadline - time.monotonic()) > 0:
-                if mon.poll(int(left * 1000)) and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+            while (left := deadline - time.monotonic()) > 0 and not (stop is not None and stop.is_set()):
+                if (mon.poll(int(min(left, 0.2) * 1000))
+                        and recv_monitor_message(mon)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED):
                     seen += 1
                     if seen >= count:
                         return True
@@ -150,9 +242,15 @@ class Publisher:
             mon.close()
 
     def send(self, frame: Frame) -> bool:
-        """Stamp and send one frame; returns False when it was dropped (no worker free)."""
+        """Stamp and send one frame; returns False when it was dropped (no worker free).
+
+        The samples are not copied: libzmq reads them from the frame's array, which pyzmq keeps
+        alive until libzmq is done with it; the array must not be written to afterwards.
+        """
         frame = frame.with_(source=self.settings.source_name, seq=self.seq, t_ns=self.clock_ns(), run=self.run)
         self.seq += 1
+        if self.ledger is not None:  # counted before it leaves: a kill now leaves it counted, as dropped
+            self.ledger.record(self.settings.source_name, self.run, self.seq)
         parts = encode_frame(frame)
         # PUB never blocks: a slow subscriber loses frames and sees the seq gap
         self.pub.send_multipart(parts, copy=False)
@@ -164,13 +262,32 @@ class Publisher:
         self.published += 1
         return True
 
+    def finish_unfinished(self, timeout_s: float) -> bool:
+        """Send the end-of-run notice that a killed previous run of this node never sent (its frame
+        count from the ledger); True if a worker took it, False if there was none to send."""
+        prev = self.unfinished
+        self.unfinished = None
+        if prev is None:
+            return False
+        log.warning("acquisition: the previous run %d of %r ended without its end-of-run notice (killed?) after "
+                    "%d frames; sending it now", prev["run"], prev["source"], prev["frames"])
+        return self._send_end(end_message(prev["source"], prev["run"], prev["frames"], self.clock_ns(), 0),
+                              timeout_s)
+
     def finish(self, timeout_s: float) -> bool:
         """Send the end-of-run notice to a worker (waiting up to ``timeout_s``); True if handed over.
 
         The PUSH socket then lingers up to ``timeout_s`` so that the notice and the frames still
         queued for workers are delivered rather than discarded on close.
         """
-        parts = encode_end(end_message(self.settings.source_name, self.run, self.seq, self.clock_ns(), self.dropped))
+        ok = self._send_end(end_message(self.settings.source_name, self.run, self.seq, self.clock_ns(),
+                                        self.dropped), timeout_s)
+        if ok and self.ledger is not None:
+            self.ledger.record(self.settings.source_name, self.run, self.seq, ended=True)
+        return ok
+
+    def _send_end(self, msg, timeout_s: float) -> bool:
+        parts = encode_end(msg)
         ok = bool(self.push.poll(int(timeout_s * 1000), zmq.POLLOUT))
         if ok:
             try:
@@ -187,33 +304,71 @@ class Publisher:
         return ok
 
     def close(self) -> None:
+        """Close the sockets and, if the publisher made its context, terminate it.
+
+        Terminating waits until every queued message is sent or discarded: up to the frames
+        socket's LINGER (:meth:`finish` raises it so that the end-of-run notice and the frames
+        before it are delivered; otherwise 0, nothing waits). Only then is no buffer of a
+        zero-copy frame still in libzmq's hands, so that the process may exit.
+        """
         if self._monitor is not None:
             self.push.disable_monitor()
             self._monitor.close()
             self._monitor = None
+        if self.ledger is not None:
+            self.ledger.close()
+            self.ledger = None
+        linger_ms = self.push.getsockopt(zmq.LINGER) if not self.push.closed else 0
         self.push.close()
         self.pub.close()
+        if self._own_ctx and not self.ctx.closed:
+            t0 = time.monotonic()
+            terminate(self.ctx)
+            log.info("acquisition: queued messages sent or discarded in %.2f s (frames socket LINGER %d ms)",
+                     time.monotonic() - t0, linger_ms)
 
 
 def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None = None,
-                    on_frame=None) -> Publisher:
-    """Publish frames until the source ends, ``settings.frames`` are sent, or ``stop`` is set."""
+                    on_frame: Callable[[Publisher], None] | None = None) -> Publisher:
+    """Publish frames until the source ends, ``settings.frames`` are sent, or ``stop`` is set.
+
+    However the run ends (``stop`` included), the end-of-run notice is sent once a frame was,
+    and the publisher is closed: its context is terminated, which waits (up to the LINGER that
+    :meth:`Publisher.finish` sets) until the notice and the frames queued before it are
+    delivered. The caller may then exit; no zero-copy buffer is left in libzmq's hands.
+
+    Parameters
+    ----------
+    settings : AcquisitionSettings
+    stop : threading.Event, optional
+        Set by a clean stop (SIGINT/SIGTERM in ``mtcw acquire``).
+    on_frame : callable, optional
+        Called with the publisher after each frame (tests).
+
+    Returns
+    -------
+    Publisher
+        Closed; its counters (``seq``, ``published``, ``dropped``) tell what the run did.
+    """
     stop = stop or threading.Event()
     log_settings("acquisition", settings)
     source = make_source(settings)
-    pub = Publisher(settings)
-    report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
-                                               "monitor_endpoint": pub.monitor_endpoint})
     metrics = _exporter(settings.metrics_port, settings.metrics_host)
-    if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s,
-                                                                   settings.wait_for_workers):
-        log.warning("acquisition: fewer than %d worker(s) after %.1f s; frames are dropped (and counted) while no "
-                    "worker is free", settings.wait_for_workers, settings.wait_for_worker_s)
-    period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
-    next_t = time.monotonic()
-    log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
-             pub.frames_endpoint, pub.monitor_endpoint)
+    pub = Publisher(settings, on_refused=(lambda sock: metrics[2].labels(sock).inc()) if metrics else None)
     try:
+        report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
+                                                   "monitor_endpoint": pub.monitor_endpoint})
+        if settings.wait_for_worker_s > 0 and not pub.wait_for_worker(settings.wait_for_worker_s,
+                                                                       settings.wait_for_workers, stop):
+            if stop.is_set():
+                return pub
+            log.warning("acquisition: fewer than %d worker(s) after %.1f s; frames are dropped (and counted) while "
+                        "no worker is free", settings.wait_for_workers, settings.wait_for_worker_s)
+        pub.finish_unfinished(settings.end_timeout_s)
+        period = 1.0 / settings.rate_hz if settings.rate_hz > 0 else 0.0
+        next_t = time.monotonic()
+        log.info("acquisition: publishing %s frames on %s (PUSH) and %s (PUB)", settings.source,
+                 pub.frames_endpoint, pub.monitor_endpoint)
         for frame in source.frames():
             if stop.is_set():
                 break
@@ -250,5 +405,7 @@ def _exporter(port: int, host: str):
     reg = CollectorRegistry()
     c_pub = Counter("mtcw_frames_published_total", "frames the acquisition node published", registry=reg)
     c_drop = Counter("mtcw_acquisition_dropped_total", "frames dropped because no worker was free", registry=reg)
+    c_refused = Counter("mtcw_peers_refused_total", "peers refused for an unknown CURVE key, by socket", ["socket"],
+                        registry=reg)
     start_http_server(port, addr=host, registry=reg)
-    return c_pub, c_drop
+    return c_pub, c_drop, c_refused

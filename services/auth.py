@@ -182,6 +182,14 @@ def stop_authenticator(ctx: zmq.Context) -> None:
         auth.stop()
 
 
+def terminate(ctx: zmq.Context) -> None:
+    """Stop the context's ZAP handler, then terminate the context: ``term()`` waits for every
+    socket's LINGER (queued messages still go out), and would wait for ever on the handler's own
+    sockets."""
+    stop_authenticator(ctx)
+    ctx.term()
+
+
 def apply_server(ctx: zmq.Context, sock: zmq.Socket, keys: CurveServer, domain: str,
                  on_refused: Optional[Callable[[str], None]] = None) -> Gate:
     """Make ``sock`` (not yet bound) a CURVE server whose peers are checked by a :class:`Gate`."""

@@ -67,16 +67,16 @@ def info(recording: Path = typer.Argument(..., help="SigMF recording (prefix or 
         rec = read_recording(recording)
     except RecordingError as err:
         _fail(str(err))
-    g = rec.glob
+    g, truth = rec.meta.global_info, rec.meta.captures[0].truth
     out = {
         "frames": len(rec),
         "frame_samples": rec.frame_samples,
-        "datatype": g["core:datatype"],
-        "sample_rate_hz": g["core:sample_rate"],
-        "tones_hz": g["mtcw:tones_hz"],
+        "datatype": g.datatype,
+        "sample_rate_hz": g.sample_rate,
+        "tones_hz": g.tones_hz,
         "receiver": rec.receiver,
         "channels": list(rec.channels),
-        "truth_first_frame": rec.meta["captures"][0].get("mtcw:truth"),
+        "truth_first_frame": None if truth is None else [t.model_dump() for t in truth],
     }
     typer.echo(json.dumps(out, indent=2))
 
@@ -134,15 +134,18 @@ def process(
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
                     err=True, fg=typer.colors.YELLOW)
     rows, times, stages, status, log = [], [], {}, {}, ErrorLog()
-    for fr in tqdm(rec, total=len(rec), unit="frame", desc=f"process [{settings.profile}]", file=sys.stderr):
-        res = process_frame(fr, settings, cal)
-        status[res.status] = status.get(res.status, 0) + 1
-        times.append(sum(res.stage_seconds.values()))
-        for name, sec in res.stage_seconds.items():
-            stages.setdefault(name, []).append(sec)
-        rows += _point_rows(res)
-        for t in fr.truth or ():
-            log.add(res, t)
+    try:
+        for fr in tqdm(rec, total=len(rec), unit="frame", desc=f"process [{settings.profile}]", file=sys.stderr):
+            res = process_frame(fr, settings, cal)
+            status[res.status] = status.get(res.status, 0) + 1
+            times.append(sum(res.stage_seconds.values()))
+            for name, sec in res.stage_seconds.items():
+                stages.setdefault(name, []).append(sec)
+            rows += _point_rows(res)
+            for t in fr.truth or ():
+                log.add(res, t)
+    except RecordingError as err:  # the data file changed under us after it was opened
+        _fail(str(err))
     if output is not None:
         if output.suffix == ".json":
             output.write_text(json.dumps(rows, indent=1, default=float))
@@ -174,7 +177,7 @@ def calibrate(
     try:
         cal = derive_calibration(tqdm(rec, total=len(rec), unit="frame", desc="calibrate", file=sys.stderr),
                                  known_range, source=str(recording))
-    except (CalibrationError, Rejected) as err:
+    except (CalibrationError, Rejected, RecordingError) as err:
         _fail(str(err))
     cal.save(output)
     typer.echo(json.dumps({"written": str(output), "tau0_s": cal.tau0_s, "tone_phases_rad": cal.tone_phases_rad,
@@ -268,6 +271,26 @@ def _stop_on_signals():
     return stop
 
 
+def _exit_zero_on_signals() -> None:
+    """SIGINT/SIGTERM end the process with status 0 (for ``mtcw api``, a clean stop).
+
+    uvicorn installs its own handlers while it serves, shuts down gracefully on the first
+    signal, restores the handlers it found and then raises the signal again, "to trigger the
+    expected behaviour": with the default handlers that ends the process killed by SIGTERM
+    (status -15) after a clean stop. With this handler in place that re-raised signal exits 0,
+    and a signal before uvicorn serves ends the process at once, also with 0.
+    """
+    import signal
+
+    def handler(*_):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+        raise SystemExit(0)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)
+
+
 LOG_FORMATS = ("text", "json")
 
 
@@ -352,6 +375,7 @@ def api(
     port: Optional[int] = typer.Option(None, help="HTTP port [MTCW_PORT; default 8000]"),
 ) -> None:
     """API: latest points, history, health and Prometheus metrics over HTTP."""
+    _exit_zero_on_signals()
     from services.api import serve
     from services.settings import ApiSettings
 
@@ -394,8 +418,8 @@ def record(
     except RecordingError as err:
         _fail(str(err))
     bar.close()
-    typer.echo(json.dumps({"written": str(output), "frames": sub.gaps.received, "dropped": sub.gaps.dropped,
-                           "malformed": sub.malformed}))
+    typer.echo(json.dumps({"written": str(output), "frames": sub.gaps.received - sub.refused,
+                           "dropped": sub.gaps.dropped, "malformed": sub.malformed, "refused": sub.refused}))
 
 
 @app.command()

@@ -1,7 +1,10 @@
 """Subscribers to the raw frame stream (PUB/SUB): the recorder behind ``mtcw record``.
 
 A subscriber never slows the workers: when it falls behind, ZeroMQ drops frames at its
-high-water mark, and the subscriber counts them from the ``seq`` gaps.
+high-water mark, and the subscriber counts them from the ``seq`` gaps. The recorder skips and
+counts (``refused``) a frame its recording cannot hold (one unlike the recording's first frame,
+fields the SigMF reader would refuse) and goes on; its recording stays readable if it is killed
+(:class:`~mtcw_core.recording.RecordingWriter` keeps the metadata current).
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from typing import Callable, Iterator
 import zmq
 
 from mtcw_core.frame import Frame
-from mtcw_core.recording import RecordingWriter
+from mtcw_core.recording import RecordingError, RecordingWriter
 
 from .ordering import GapCounter
 from .settings import TransportSettings
@@ -32,6 +35,8 @@ class Subscriber:
         self.sock = open_socket(self.ctx, monitor_sub(settings, rcvhwm, FRAME_TOPIC))
         self.gaps = GapCounter()
         self.malformed = 0
+        #: frames decoded but refused by the consumer (the recorder: frames its recording cannot hold)
+        self.refused = 0
 
     def frames(self, stop: threading.Event, timeout_ms: int = 200) -> Iterator[Frame]:
         poller = zmq.Poller()
@@ -57,13 +62,24 @@ class Subscriber:
 
 def record(settings: TransportSettings, output: Path, count: int, stop: threading.Event,
            progress: Callable[[int], None] | None = None) -> Subscriber:
-    """Write ``count`` frames (0 = until stopped) from the monitor stream to a SigMF recording."""
+    """Write ``count`` frames (0 = until stopped) from the monitor stream to a SigMF recording.
+
+    A frame the recording refuses (:class:`~mtcw_core.recording.RecordingError`) is logged,
+    counted in ``refused`` of the returned subscriber, and skipped; it does not count towards
+    ``count``.
+    """
     sub = Subscriber(settings)
     n = 0
     try:
         with RecordingWriter(output, description="mtcw record: frames from the monitor stream") as w:
             for fr in sub.frames(stop):
-                w.write(fr)
+                try:
+                    w.write(fr)
+                except RecordingError as err:
+                    sub.refused += 1
+                    if sub.refused <= 10 or sub.refused % 1000 == 0:  # the first ones, then a reminder
+                        log.warning("record: frame refused (%d so far): %s", sub.refused, err)
+                    continue
                 n += 1
                 if progress:
                     progress(n)

@@ -102,6 +102,9 @@ class AcquisitionSettings(TransportSettings):
     wait_for_workers: int = Field(1, ge=1, le=1024, description="how many workers to wait for before the first frame")
     end_timeout_s: float = Field(5.0, ge=0, description="at the end of a run, wait this long to hand the "
                                                         "end-of-run notice (and queued frames) to a worker")
+    state_file: Optional[Path] = Field(None, description="the run's frame count, kept current before every send "
+                                       "(a memory-mapped file): a node restarted after a kill sends the killed "
+                                       "run's end-of-run notice, so its lost tail is counted")
 
     @field_validator("recording")
     @classmethod

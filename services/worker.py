@@ -19,6 +19,7 @@ import zmq
 from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
 
+from .auth import terminate
 from .settings import WorkerSettings, log_settings
 from .sockets import frames_pull, open_socket, points_push
 from .wire import END_TOPIC, PointMessage, WireError, decode_frame, encode_points, point_from_result, rejection_point, \
@@ -34,15 +35,29 @@ class Worker:
     ----------
     settings : WorkerSettings
     ctx : zmq.Context, optional
+        A context of the caller's (who terminates it). By default the worker makes its own and
+        terminates it when :meth:`run` ends, which is what makes the point socket's LINGER
+        hold: closing a socket alone does not wait for its queue, and a process that exits
+        without terminating the context loses the last points.
     """
 
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
         self.chain = get_profile(settings.profile)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
-        self.ctx = ctx or zmq.Context.instance()
-        self.pull = open_socket(self.ctx, frames_pull(settings))
-        self.push = open_socket(self.ctx, points_push(settings))
+        self._own_ctx = ctx is None
+        self.ctx = zmq.Context() if ctx is None else ctx
+        try:
+            self.pull = open_socket(self.ctx, frames_pull(settings))
+            try:
+                self.push = open_socket(self.ctx, points_push(settings))
+            except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
+                self.pull.close()
+                raise
+        except (zmq.ZMQError, ValueError):
+            if self._own_ctx:
+                terminate(self.ctx)
+            raise
         self.received = self.sent = self.unsent = 0
         self._metrics = _exporter(settings.metrics_port, settings.metrics_host, settings.name)
 
@@ -102,7 +117,9 @@ class Worker:
             log.info("worker %s: stopped (received %d, sent %d, undelivered %d)", self.settings.name,
                      self.received, self.sent, self.unsent)
             self.pull.close()
-            self.push.close()
+            self.push.close()  # LINGER points_linger_ms: the last points still go out while the context terminates
+            if self._own_ctx:
+                terminate(self.ctx)
 
 
 def _exporter(port: int, host: str, name: str):

@@ -87,3 +87,19 @@ def test_keys_command_makes_an_allow_list_and_is_idempotent(tmp_path):
     assert _summary(r1.output)["made"] == ["recorder", "server", "worker"]
     assert _summary(r2.output) == {"curve_dir": str(d), "made": ["scope-box"],
                                    "authorized": ["recorder", "scope-box", "worker"]}
+
+
+def test_info_and_a_malformed_recording_named_without_a_traceback(recording, tmp_path):
+    r = CliRunner().invoke(app, ["info", str(recording)])
+    assert r.exit_code == 0, r.output
+    info = _summary(r.stdout)
+    assert info["frames"] == 4 and info["receiver"] == "single" and len(info["truth_first_frame"]) == 1
+    meta = json.loads(recording.with_name(recording.name + ".sigmf-meta").read_text())
+    meta["global"]["mtcw:frame_samples"] = "abc"
+    (tmp_path / "bad.sigmf-meta").write_text(json.dumps(meta))
+    (tmp_path / "bad.sigmf-data").symlink_to(recording.with_name(recording.name + ".sigmf-data"))
+    for cmd in ("info", "process", "calibrate"):
+        args = [cmd, str(tmp_path / "bad")] + (["--known-range", "1"] if cmd == "calibrate" else [])
+        bad = CliRunner().invoke(app, args)
+        assert bad.exit_code == 2 and "Traceback" not in bad.output, bad.output
+        assert "bad.sigmf-meta: global.mtcw:frame_samples: Input should be a valid integer, got 'abc'" in bad.output

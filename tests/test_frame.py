@@ -1,4 +1,4 @@
-"""mtcw_core.frame: the one Frame <-> dict mapping, and SigMF recordings going through it."""
+"""mtcw_core.frame: the one Frame <-> dict mapping (SigMF recordings through it: tests/test_recording.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from mtcw_core.frame import SAMPLE_DTYPES, Frame, PulseInfo, TruthTarget, dtype_name, frame_from_dict, frame_to_dict
-from mtcw_core.recording import RecordingError, RecordingWriter, read_recording
 
 
 def _frame(dtype="<i2", receiver="single", seq=0, **kw) -> Frame:
@@ -34,23 +33,3 @@ def test_mapping_round_trip_is_exact():
     assert back == fr
     minimal = frame_from_dict({"fs_hz": 1.0, "tones_hz": [0.25], "wavelength_m": 1e-6}, fr.samples[:1])
     assert (minimal.receiver, minimal.channels, minimal.pulse, minimal.run) == ("single", ("pd",), None, None)
-
-
-@pytest.mark.parametrize("dtype", ["<f4", "<i2", "i1"])
-@pytest.mark.parametrize("receiver", ["single", "iq"])
-def test_sigmf_round_trip_through_the_mapping(tmp_path, dtype, receiver):
-    frames = [_frame(dtype, receiver, seq=s) for s in range(3)]
-    with RecordingWriter(tmp_path / "rec") as w:
-        for fr in frames:
-            w.write(fr)
-    rec = read_recording(tmp_path / "rec")
-    for fr, back in zip(frames, rec):
-        np.testing.assert_array_equal(back.samples, fr.samples)
-        assert back.with_(samples=None) == fr.with_(samples=None)  # run is not recorded (None here)
-
-
-def test_a_recording_refuses_a_frame_unlike_the_first(tmp_path):
-    with pytest.raises(RecordingError, match="pulse differs"):
-        with RecordingWriter(tmp_path / "rec") as w:
-            w.write(_frame())
-            w.write(_frame(seq=1, pulse=None))

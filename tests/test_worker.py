@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import msgspec
 import numpy as np
@@ -92,6 +93,9 @@ def test_run_accounts_for_every_message_between_good_frames(ctx, frame):
         push.send_multipart(encode_frame(frame.with_(seq=2)))
         got = [decode_points(pull.recv_multipart()) if pull.poll(20_000) else None for _ in range(3)]
         assert [(p.seq, p.status) for p in got] == [(0, "ok"), (1, "rejected"), (2, "ok")]
+        deadline = time.monotonic() + 5
+        while w.sent < 3 and time.monotonic() < deadline:  # the count follows the send's return
+            time.sleep(0.01)
         assert t.is_alive() and w.received == 3 and w.sent == 3
         assert np.isfinite(got[0].targets[0].range_m)
     finally:
