@@ -30,7 +30,7 @@ def deploy(recording: Path, workers: int, rate: float, policy: str, profile: str
     """API, acquisition (replay) and workers on loopback; every port bound as 0 and reported, so
     nothing is guessed (the API's URL is ``sup.endpoints["http_url"]`` once started)."""
     env = {"MTCW_FRAMES_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_MONITOR_ENDPOINT": "tcp://127.0.0.1:0",
-           "MTCW_POINTS_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_DROP_POLICY": policy, "MTCW_HISTORY": "100000",
+           "MTCW_POINTS_ENDPOINT": "tcp://127.0.0.1:0", "MTCW_DROP_POLICY": policy, "MTCW_RETENTION_POINTS": "100000",
            "MTCW_STORE_PATH": ":memory:"}  # each measurement starts with an empty history
     sup = Supervisor(env=env)
     sup.add("api", "api", "--port", "0", reports=True)

@@ -28,8 +28,8 @@ frame's trigger (``t_ns``, stamped by the acquisition node) to the point's arriv
 process's clock; the worker's own time for the frame is the point's ``processing_s``.
 
 Health: ``/livez`` answers while the process serves; ``/readyz`` checks the receiver, the store
-(the last write committed, at most :data:`~services.history` ``PROBE_S`` ago) and that a frame
-arrived within ``stale_after_s``; ``/healthz`` (kept for existing users) is the receiver's state
+(the last write succeeded, at most :data:`STORE_STALE_S` ago: the receiver writes at least every
+:data:`PROBE_S`) and that a frame arrived within ``stale_after_s``; ``/healthz`` (kept for existing users) is the receiver's state
 and the counts, 503 once the receiver has died. Under :func:`serve`, a dead receiver stops the
 process (exit status 3), so that its supervisor restarts it.
 """
@@ -184,7 +184,7 @@ class PointStore:
         self.settings = settings
         self.m = metrics
         self.clock_ns = clock_ns
-        self.db = db if db is not None else HistoryDB(settings.store_path, settings.history, settings.retention_s,
+        self.db = db if db is not None else HistoryDB(settings.store_path, settings.retention_points, settings.retention_s,
                                                       on_bad_row=self._bad_row)
         self.lock = threading.Lock()  # guards the committed view below
         self.order: Reorderer[ServedPoint] = Reorderer(self._release, settings.reorder_timeout_s,
@@ -614,15 +614,17 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
                 raise HTTPException(404, "no points received yet")
             return {"points": {s: served_json(p) for s, p in store.latest.items()}}
 
-    @app.get("/v1/points", summary="history, oldest first (release order)",
-             responses={200: {"content": {"application/json": {"example": {"points": [], "count": 0,
-                                                                           "more": False}}}}})
+    @app.get("/v1/points", summary="history, oldest first (release order), paged by a cursor",
+             responses={200: {"content": {"application/json": {"example": {"points": [], "count": 0, "more": False,
+                                                                           "next": None}}}}})
     def points(since_seq: int = Query(-1, ge=-1, le=INT64_MAX, description="only points with seq greater than this"),
                limit: int = Query(100, ge=1, le=10_000),
-               source: Optional[str] = Query(None, min_length=1, max_length=200)) -> Response:
-        docs, more = store.db.points(since_seq, limit, source)
-        body = b'{"points":[' + b",".join(docs) + b'],"count":%d,"more":%s}' % (len(docs), b"true" if more else
-                                                                              b"false")
+               source: Optional[str] = Query(None, min_length=1, max_length=200),
+               after: int = Query(0, ge=0, le=INT64_MAX, description="a cursor: the `next` of an earlier answer "
+                                                                     "(only points released after it)")) -> Response:
+        docs, more, nxt = store.db.points(since_seq, limit, source, after)
+        body = b'{"points":[%s],"count":%d,"more":%s,"next":%s}' % (
+            b",".join(docs), len(docs), b"true" if more else b"false", b"null" if nxt is None else b"%d" % nxt)
         return Response(body, media_type="application/json")
 
     @app.get("/livez", summary="the process serves HTTP (always 200 while it does)")

@@ -15,6 +15,7 @@ Schema (version 1, ``PRAGMA user_version``)::
               served_ns INTEGER,                      -- wall clock when committed (retention by age)
               body BLOB)                              -- the served point, msgpack (ServedPoint)
         INDEX points_by_segment (source, segment, seq)
+        INDEX points_by_segment_id (source, segment)      -- then id: SQLite appends the rowid
     segments (source, segment, run, last_id, max_seq; PRIMARY KEY (source, segment))
     latest   (source PRIMARY KEY, body)
     counters (name PRIMARY KEY, value INTEGER)
@@ -23,9 +24,11 @@ Schema (version 1, ``PRAGMA user_version``)::
     meta     (key PRIMARY KEY, value)                 -- heartbeat_ns: the write probe
 
 Within one segment (one run of one source) points are released in strictly increasing ``seq``,
-so ``seq`` order there is ``id`` order: ``/v1/points?since_seq=S&source=X`` is one index seek per
-segment of ``X`` whose ``max_seq`` exceeds ``S`` (:meth:`HistoryDB.points` merges them by ``id``,
-reading only as many rows as it returns); no query scans the table.
+so ``seq`` order there is ``id`` order: ``/v1/points?since_seq=S&source=X&after=C`` is, per
+segment of ``X`` with points beyond ``S`` and ``C``, one seek for the first seq beyond ``S``
+and one ordered range of ids from there (:meth:`HistoryDB.points` merges the segments by ``id``,
+reading only as many rows as it returns); without ``source`` and ``since_seq`` it is one range
+of ids. No query scans the table.
 
 Writes: :meth:`HistoryDB.write` is one transaction per receiver-loop iteration (the points it
 released, the counters, the state of the sources that changed, the held points added and gone,
@@ -91,6 +94,7 @@ CREATE TABLE points (
     body BLOB NOT NULL
 );
 CREATE INDEX points_by_segment ON points (source, segment, seq);
+CREATE INDEX points_by_segment_id ON points (source, segment);
 CREATE TABLE segments (
     source TEXT NOT NULL,
     segment INTEGER NOT NULL,
@@ -437,13 +441,19 @@ class HistoryDB:
                 self._readers.append(conn)
         return conn
 
-    def points(self, since_seq: int, limit: int, source: Optional[str] = None) -> tuple[list[bytes], bool]:
-        """Served points with ``seq > since_seq`` (of ``source``, or of every source), oldest
-        first (release order), as JSON documents.
+    def points(self, since_seq: int, limit: int, source: Optional[str] = None,
+               after: int = 0) -> tuple[list[bytes], bool, Optional[int]]:
+        """Served points with ``seq > since_seq`` (of ``source``, or of every source) released
+        after the point whose id is ``after`` (a cursor from an earlier answer), oldest first
+        (release order), as JSON documents.
 
-        One read transaction on this thread's connection; one index seek per segment (a run of a
-        source) with a point beyond ``since_seq``, merged by ``id``. A stored point that cannot
-        be decoded is skipped, logged and reported to ``on_bad_row``.
+        One read transaction on this thread's connection. Without ``source`` and ``since_seq``:
+        one range of the table's own order (``id > after``). Otherwise, per segment (a run of a
+        source) with a point beyond ``since_seq`` and ``after``: one seek in
+        ``points_by_segment`` for the first seq beyond ``since_seq``, then an ordered range of
+        ``points_by_segment_id`` from there (seq and id rise together in a segment); the
+        segments are merged by ``id``, reading only as many rows as are returned. A stored point
+        that cannot be decoded is skipped, logged and reported to ``on_bad_row``.
 
         Returns
         -------
@@ -451,20 +461,32 @@ class HistoryDB:
             At most ``limit`` JSON objects.
         more : bool
             Whether further points match.
+        next : int or None
+            The cursor after the last point returned (its id), to pass as ``after``; None when
+            nothing was returned.
         """
         conn = self._reader()
         conn.execute("BEGIN")
+        cursors: list[sqlite3.Cursor] = []
         try:
-            if source is None:
-                segs = conn.execute("SELECT source, segment FROM segments WHERE max_seq > ?", (since_seq,)).fetchall()
+            if source is None and since_seq < 0:
+                cursors.append(conn.execute("SELECT id, body FROM points WHERE id > ? ORDER BY id", (after,)))
             else:
-                segs = conn.execute("SELECT source, segment FROM segments WHERE source = ? AND max_seq > ?",
-                                    (source, since_seq)).fetchall()
-            # cursors step lazily: each reads only the rows the merge takes from it
-            cursors = [conn.execute("SELECT id, body FROM points WHERE source = ? AND segment = ? AND seq > ? "
-                                    "ORDER BY seq", (s, g, since_seq)) for s, g in segs]
+                segs = conn.execute("SELECT source, segment FROM segments WHERE max_seq > ? AND last_id > ?"
+                                    + ("" if source is None else " AND source = ?"),
+                                    (since_seq, after) + (() if source is None else (source,))).fetchall()
+                for s, g in segs:
+                    first = conn.execute("SELECT id FROM points INDEXED BY points_by_segment WHERE source = ? AND "
+                                         "segment = ? AND seq > ? ORDER BY seq LIMIT 1", (s, g, since_seq)).fetchone()
+                    if first is None:
+                        continue
+                    # cursors step lazily: each reads only the rows the merge takes from it
+                    cursors.append(conn.execute("SELECT id, body FROM points INDEXED BY points_by_segment_id WHERE "
+                                                "source = ? AND segment = ? AND id >= ? ORDER BY id",
+                                                (s, g, max(first[0], after + 1))))
             out: list[bytes] = []
             more = False
+            last: Optional[int] = None
             for pid, body in heapq.merge(*cursors, key=lambda r: r[0]):
                 p = self._decode(body, "points", f"id {pid}")
                 if p is None:
@@ -478,11 +500,12 @@ class HistoryDB:
                     more = True
                     break
                 out.append(doc)
+                last = pid
+        finally:
             for cur in cursors:
                 cur.close()
-        finally:
             conn.execute("COMMIT")
-        return out, more
+        return out, more, last
 
     def _decode(self, body: bytes, where: str, what: str) -> Optional[ServedPoint]:
         try:

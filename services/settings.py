@@ -138,8 +138,10 @@ class ApiSettings(TransportSettings):
                             description="SQLite file of the history, latest points, counters and reorder state "
                                         "(parents created; one API per file); ':memory:' keeps nothing across "
                                         "restarts")
-    history: int = Field(100_000, ge=1, le=10_000_000, description="points kept for /v1/points (the oldest are "
-                                                                   "deleted, in batches)")
+    retention_points: int = Field(100_000, ge=1, le=100_000_000, description="points kept for /v1/points (the "
+                                  "oldest are deleted, in batches)")
+    history: Optional[int] = Field(None, ge=1, le=100_000_000, description="the old name of retention_points "
+                                   "(MTCW_HISTORY); retention_points wins when both are set")
     retention_s: float = Field(0.0, ge=0, description="also delete points served longer ago than this "
                                                       "(s; 0 = no age limit)")
     reorder_timeout_s: float = Field(2.0, gt=0, description="wait this long for a missing seq before "
@@ -161,6 +163,8 @@ class ApiSettings(TransportSettings):
 
     @model_validator(mode="after")
     def _jump_covers_reordering(self) -> "ApiSettings":
+        if self.history is not None and "retention_points" not in self.model_fields_set:
+            self.retention_points = self.history
         if self.max_seq_jump < self.reorder_max:
             raise ValueError(f"max_seq_jump: {self.max_seq_jump} is less than reorder_max ({self.reorder_max}): "
                              f"points held for reordering would be refused")

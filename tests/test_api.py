@@ -52,7 +52,7 @@ def _wait(cond, what: str, timeout_s: float = 10.0):
 
 # ---------------------------------------------------------------------------------------------
 def _history(store: PointStore, **kw) -> list[dict]:
-    docs, _ = store.db.points(kw.get("since_seq", -1), kw.get("limit", 10_000), kw.get("source"))
+    docs, _, _ = store.db.points(kw.get("since_seq", -1), kw.get("limit", 10_000), kw.get("source"))
     return [json.loads(d) for d in docs]
 
 
@@ -139,7 +139,8 @@ class TestHttp:
             yield c
 
     def test_bad_http_parameters_get_4xx_with_a_message(self, client):
-        for params in ({"limit": 0}, {"limit": "many"}, {"since_seq": -5}, {"limit": 10**9}):
+        for params in ({"limit": 0}, {"limit": "many"}, {"since_seq": -5}, {"limit": 10**9}, {"after": -1},
+                       {"since_seq": 2**63}):
             r = client.get("/v1/points", params=params)
             assert r.status_code == 422 and r.json()["detail"], params
         r = client.get("/v1/points/latest", params={"source": "nope"})
@@ -158,6 +159,16 @@ class TestHttp:
         assert "reason" not in one and one["targets"][0]["direction"] == "static"
         r = client.get("/v1/points", params={"since_seq": 1, "limit": 2, "source": "bench"}).json()
         assert [p["seq"] for p in r["points"]] == [2, 3] and r["more"] is True
+        r = client.get("/v1/points", params={"since_seq": 1, "limit": 2, "source": "bench", "after": r["next"]}).json()
+        assert [p["seq"] for p in r["points"]] == [4] and r["more"] is False  # the next page, by the cursor
+        pages, after = [], 0
+        while True:  # every point, two at a time
+            r = client.get("/v1/points", params={"limit": 2, "after": after}).json()
+            pages += [(p["source"], p["seq"]) for p in r["points"]]
+            if not r["more"]:
+                break
+            after = r["next"]
+        assert pages == [("bench", s) for s in range(5)] + [("other", 0)]
         assert client.get("/readyz").status_code == 200
         h = client.get("/healthz").json()
         assert h["status"] == "alive" and h["receiver"] == {"state": "not_started"}

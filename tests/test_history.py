@@ -42,7 +42,7 @@ def _store(path: Path | str, clock_ns=lambda: T0_NS, **kw) -> PointStore:
 
 
 def _seqs(store: PointStore, **kw) -> list[tuple[str, int]]:
-    docs, _ = store.db.points(kw.get("since_seq", -1), kw.get("limit", 10_000), kw.get("source"))
+    docs, _, _ = store.db.points(kw.get("since_seq", -1), kw.get("limit", 10_000), kw.get("source"))
     return [(p["source"], p["seq"]) for p in map(json.loads, docs)]
 
 
@@ -57,7 +57,16 @@ def test_history_query_is_an_index_seek_per_segment(tmp_path):
         assert "USING INDEX points_by_segment (source=? AND segment=? AND seq>?)" in plan, plan
         assert "TEMP B-TREE" not in plan and "SCAN" not in plan, plan
         plan = " ".join(r[-1] for r in db.conn.execute(
-            "EXPLAIN QUERY PLAN SELECT source, segment FROM segments WHERE source = ? AND max_seq > ?", ("a", 5)))
+            "EXPLAIN QUERY PLAN SELECT id, body FROM points INDEXED BY points_by_segment_id WHERE source = ? AND "
+            "segment = ? AND id >= ? ORDER BY id", ("a", 0, 5)))
+        assert "USING INDEX points_by_segment_id (source=? AND segment=? AND rowid>?)" in plan, plan
+        assert "TEMP B-TREE" not in plan and "SCAN" not in plan, plan
+        plan = " ".join(r[-1] for r in db.conn.execute(
+            "EXPLAIN QUERY PLAN SELECT id, body FROM points WHERE id > ? ORDER BY id", (5,)))
+        assert "SEARCH points USING INTEGER PRIMARY KEY (rowid>?)" in plan, plan
+        plan = " ".join(r[-1] for r in db.conn.execute(
+            "EXPLAIN QUERY PLAN SELECT source, segment FROM segments WHERE max_seq > ? AND last_id > ? AND source = ?",
+            (5, 0, "a")))
         assert "SEARCH segments USING PRIMARY KEY (source=?)" in plan, plan
         assert db.conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         assert db.conn.execute("PRAGMA synchronous").fetchone()[0] == 1  # NORMAL
@@ -85,18 +94,26 @@ def test_since_seq_across_runs_and_sources_is_release_order(tmp_path):
         store.flush()
         for source in (None, "a", "b", "c"):
             for since in (-1, 0, 5, 9, 15, 28, 29, 40):
+                want = [(s, q) for s, q in released if q > since and (source is None or s == source)]
                 for limit in (1, 7, 1000):
-                    want = [(s, q) for s, q in released if q > since and (source is None or s == source)]
-                    docs, more = store.db.points(since, limit, source)
+                    docs, more, _ = store.db.points(since, limit, source)
                     got = [(p["source"], p["seq"]) for p in map(json.loads, docs)]
                     assert got == want[:limit] and more == (len(want) > limit), (source, since, limit)
+                    pages, after = [], 0  # paged by the cursor: the same points, each once
+                    while True:
+                        docs, more, nxt = store.db.points(since, limit, source, after)
+                        pages += [(p["source"], p["seq"]) for p in map(json.loads, docs)]
+                        if not more:
+                            break
+                        after = nxt
+                    assert pages == want, (source, since, limit)
     finally:
         store.close()
 
 
 def test_retention_by_count_deletes_the_oldest_in_batches(tmp_path, monkeypatch):
     monkeypatch.setattr(history, "RETENTION_BATCH", 30)
-    store = _store(tmp_path / "s.sqlite3", history=100)
+    store = _store(tmp_path / "s.sqlite3", retention_points=100)
     try:
         for i in range(200):
             store.add(_point(i, run=1), now_mono=0.0)
@@ -171,6 +188,8 @@ def test_store_settings_name_their_field(tmp_path):
         load(ApiSettings, max_seq_jump=100)
     with pytest.raises(ValueError, match="retention_s"):
         load(ApiSettings, retention_s=-1)
+    assert load(ApiSettings, history=500).retention_points == 500  # the old name still works
+    assert load(ApiSettings, history=500, retention_points=700).retention_points == 700
     made = tmp_path / "a" / "b" / "s.sqlite3"
     db = HistoryDB(made, retention_points=10)  # parents created
     db.close()
@@ -289,7 +308,7 @@ def _metrics(store: PointStore) -> str:
 def measure_throughput(path: Path | str, points: int = 20_000, batch: int = 500) -> float:
     """Points per second through the point store: ordering, counting and one commit per ``batch``
     points (as the receiver commits once per loop iteration), into the SQLite file ``path``."""
-    store = _store(path, history=points)
+    store = _store(path, retention_points=points)
     try:
         msgs = [_point(s, run=1) for s in range(points)]
         t0 = time.perf_counter()
