@@ -11,10 +11,13 @@ counted in ``mtcw_messages_malformed_total{reason}`` and skipped; so is one the 
 (``seq_jump``, ``end_run``, ``end_frames``, ``future_t_ns``, ``out_of_range``: see
 :mod:`services.ordering`).
 
-Counters add up: ``received = processed + rejected + held_for_reordering`` (late and repeated
-points are rejected with reason ``stale``); frames that never came are ``dropped``, including
-those after the last arrival of a run, once the acquisition node's end-of-run notice (forwarded
-by a worker) has said how many frames the run had. Refused messages are in none of these.
+Counters add up: ``received = processed + rejected + held_for_reordering`` (repeated points and
+points of an older run are rejected with reason ``stale``); frames that never came are
+``dropped``, including those after the last arrival of a run, once the acquisition node's
+end-of-run notice (forwarded by a worker) has said how many frames the run had; so
+``published = processed + rejected + dropped``. A point that comes after its frame was counted
+dropped is ``late``: counted apart (``mtcw_frames_late_total``), not again. Refused messages are
+in none of these.
 
 Restart: history, latest points, counters and each source's reorder state (with the points held
 for reordering) are read back at start-up. What a killed API had received after its last commit
@@ -29,9 +32,10 @@ process's clock; the worker's own time for the frame is the point's ``processing
 
 Health: ``/livez`` answers while the process serves; ``/readyz`` checks the receiver, the store
 (the last write succeeded, at most :data:`STORE_STALE_S` ago: the receiver writes at least every
-:data:`PROBE_S`) and that a frame arrived within ``stale_after_s``; ``/healthz`` (kept for existing users) is the receiver's state
-and the counts, 503 once the receiver has died. Under :func:`serve`, a dead receiver stops the
-process (exit status 3), so that its supervisor restarts it.
+:data:`PROBE_S`) and that a frame arrived within ``stale_after_s``; ``/healthz`` (kept for
+existing users) is the receiver's state and the counts, 503 once the receiver has died. Under
+:func:`serve`, a dead receiver stops the process (exit status 3), so that its supervisor
+restarts it.
 """
 
 from __future__ import annotations
@@ -128,6 +132,8 @@ class Metrics:
         self.processed = Counter("mtcw_frames_processed_total", "frames processed (ok or no_target)", registry=r)
         self.rejected = Counter("mtcw_frames_rejected_total", "frames rejected, by reason", ["reason"], registry=r)
         self.dropped = Counter("mtcw_frames_dropped_total", "frames that never arrived (seq gaps)", registry=r)
+        self.late = Counter("mtcw_frames_late_total", "points that came after their frame was counted dropped (not "
+                            "received, not counted again)", registry=r)
         self.stage = Histogram("mtcw_stage_duration_seconds", "chain stage duration", ["stage"], buckets=_BUCKETS,
                                registry=r)
         self.latency = Histogram("mtcw_frame_latency_seconds", "trigger to point at the API", buckets=_BUCKETS,
@@ -184,8 +190,8 @@ class PointStore:
         self.settings = settings
         self.m = metrics
         self.clock_ns = clock_ns
-        self.db = db if db is not None else HistoryDB(settings.store_path, settings.retention_points, settings.retention_s,
-                                                      on_bad_row=self._bad_row)
+        self.db = db if db is not None else HistoryDB(settings.store_path, settings.retention_points,
+                                                      settings.retention_s, on_bad_row=self._bad_row)
         self.lock = threading.Lock()  # guards the committed view below
         self.order: Reorderer[ServedPoint] = Reorderer(self._release, settings.reorder_timeout_s,
                                                         settings.reorder_max, settings.max_seq_jump)
@@ -252,10 +258,13 @@ class PointStore:
         outcome = self.order.add(point, now_mono)
         if outcome == "jump":
             self.refuse("seq_jump", f"point {msg.source!r} seq {msg.seq}: more than {self.order.max_jump} ahead of "
-                                    f"the next expected seq (kept aside until a second point confirms it)")
+                                    f"the next expected seq (believed once a second point confirms the jump)")
             return "refused"
-        self._count("received")
         self.last_arrival = now_mono
+        if outcome == "late":  # its frame is counted already, as dropped: not again
+            self._count("late")
+            return outcome
+        self._count("received")
         if outcome == "resync":
             log.warning("api: source %r jumped ahead to seq %d (confirmed by a second point); the gap is dropped",
                         msg.source, msg.seq)
@@ -396,14 +405,15 @@ class PointStore:
                 continue
             self._shown[key] = value
             name, _, reason = key.partition(":")
-            if key in ("received", "processed", "dropped"):
+            if key in ("received", "processed", "dropped", "late"):
                 getattr(self.m, key).inc(inc)
             elif name == "rejected" and reason:
                 self.m.rejected.labels(reason).inc(inc)
             elif name == "refused":
                 self.m.malformed.labels(reason).inc(inc)
         view = {k: self.counts[k] for k in BOOKS}
-        view.update(held_for_reordering=self.order.held(), awaited_after_end=self.order.awaited())
+        view.update(late=self.counts.get("late", 0), held_for_reordering=self.order.held(),
+                    awaited_after_end=self.order.awaited())
         with self.lock:
             self._view = view
         self.m.store_rows.set(self.db.rows)

@@ -19,7 +19,8 @@ Schema (version 1, ``PRAGMA user_version``)::
     segments (source, segment, run, last_id, max_seq; PRIMARY KEY (source, segment))
     latest   (source PRIMARY KEY, body)
     counters (name PRIMARY KEY, value INTEGER)
-    sources  (source PRIMARY KEY, next_seq, run, max_t_ns, floor_t_ns, end_seq)
+    sources  (source PRIMARY KEY, next_seq, run, max_t_ns, floor_t_ns, end_seq,
+              gaps, prev_run, prev_gaps)                -- given-up seq ranges (msgpack), to tell late points
     held     (source, seq, body; PRIMARY KEY (source, seq))
     meta     (key PRIMARY KEY, value)                 -- heartbeat_ns: the write probe
 
@@ -67,7 +68,7 @@ from urllib.parse import quote
 
 import msgspec
 
-from .ordering import SourceState
+from .ordering import Gaps, SourceState
 from .wire import ServedPoint
 
 log = logging.getLogger("mtcw.history")
@@ -111,7 +112,10 @@ CREATE TABLE sources (
     run INTEGER,
     max_t_ns INTEGER NOT NULL,
     floor_t_ns INTEGER NOT NULL,
-    end_seq INTEGER
+    end_seq INTEGER,
+    gaps BLOB NOT NULL,
+    prev_run INTEGER,
+    prev_gaps BLOB
 ) WITHOUT ROWID;
 CREATE TABLE held (
     source TEXT NOT NULL,
@@ -125,6 +129,15 @@ CREATE TABLE meta (key TEXT PRIMARY KEY, value) WITHOUT ROWID;
 _ENCODE = msgspec.msgpack.Encoder().encode
 _DECODE = msgspec.msgpack.Decoder(ServedPoint).decode
 _JSON = msgspec.json.Encoder().encode
+
+
+def _gaps(blob: bytes) -> Gaps:
+    """Given-up seq ranges as stored; an unreadable value is no ranges (late points then count as stale)."""
+    try:
+        return Gaps(msgspec.msgpack.decode(blob, type=list[tuple[int, int]]))
+    except Exception as err:
+        log.error("store: given-up seq ranges could not be read (%s); forgotten", err)
+        return Gaps()
 
 
 class StoreError(ValueError):
@@ -316,10 +329,12 @@ class HistoryDB:
                     out.bad_rows += 1
                 else:
                     out.latest[source] = p
-            for source, nxt, run, max_t, floor_t, end in c.execute(
-                    "SELECT source, next_seq, run, max_t_ns, floor_t_ns, end_seq FROM sources"):
+            for source, nxt, run, max_t, floor_t, end, gaps, prev_run, prev_gaps in c.execute(
+                    "SELECT source, next_seq, run, max_t_ns, floor_t_ns, end_seq, gaps, prev_run, prev_gaps "
+                    "FROM sources"):
                 out.sources[source] = SourceState(next_seq=nxt, run=run, max_t_ns=max_t, floor_t_ns=floor_t,
-                                                  end_seq=end, source=source)
+                                                  end_seq=end, source=source, gaps=_gaps(gaps), prev_run=prev_run,
+                                                  prev_gaps=None if prev_gaps is None else _gaps(prev_gaps))
             for source, seq, body in c.execute("SELECT source, seq, body FROM held"):
                 # every row is remembered as stored, so that the source's next write deletes the
                 # ones not put back in the reorderer
@@ -387,9 +402,10 @@ class HistoryDB:
             if counters:
                 c.executemany("INSERT OR REPLACE INTO counters (name, value) VALUES (?, ?)", counters.items())
             for s, st in sources.items():
-                c.execute("INSERT OR REPLACE INTO sources (source, next_seq, run, max_t_ns, floor_t_ns, end_seq) "
-                          "VALUES (?, ?, ?, ?, ?, ?)", (s, st.next_seq, st.run, st.max_t_ns, st.floor_t_ns,
-                                                        st.end_seq))
+                c.execute("INSERT OR REPLACE INTO sources (source, next_seq, run, max_t_ns, floor_t_ns, end_seq, "
+                          "gaps, prev_run, prev_gaps) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                          (s, st.next_seq, st.run, st.max_t_ns, st.floor_t_ns, st.end_seq, _ENCODE(st.gaps.ranges()),
+                           st.prev_run, None if st.prev_gaps is None else _ENCODE(st.prev_gaps.ranges())))
                 had = self._held.get(s, set())
                 gone, new = had - held_now[s], held_now[s] - had
                 if gone:

@@ -3,8 +3,10 @@
 Several workers finish frames out of order; the consumer releases them in ``seq`` order per
 source. A missing ``seq`` is waited for while the stream is stuck on it (no point arrived to
 fill the next slot) for up to a timeout, or until too many later points are held; then it is
-counted as dropped. A point that arrives after its slot was given up, or a repeat, is counted as
-stale and never released twice. A publisher restart starts a new run: the message's ``run`` id
+counted as dropped. A point that arrives after its slot was given up is ``late``: its frame is
+already counted (as dropped), so it is counted apart, never released and never counted twice
+(the given-up seqs are remembered, as at most :data:`MAX_GAPS` ranges per run, for the run in
+progress and the one before it). A repeat of a released point is stale. A publisher restart starts a new run: the message's ``run`` id
 changes (or, from a publisher that sends none, ``seq`` goes back while the trigger time ``t_ns``
 moves forward); a point of the previous run that arrives afterwards is stale, not new. An
 end-of-run notice (:meth:`Reorderer.end`) tells how many frames the run had, so that frames lost
@@ -38,6 +40,8 @@ while it was down is a seq gap, counted as dropped.
 
 from __future__ import annotations
 
+import bisect
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Callable, Generic, Optional, Protocol, TypeVar
 
@@ -64,6 +68,49 @@ M = TypeVar("M", bound=Sequenced)
 #: frames/s (the 1e6-sample bench rate) and 100 s at 1 kHz. Larger real jumps re-synchronise
 #: after a second point (one point lost); smaller ones are ordinary gaps.
 DEFAULT_MAX_JUMP = 100_000
+#: Ranges of given-up seqs remembered per run (the oldest forgotten first): a late point of an
+#: older range is counted stale (and its frame twice, as dropped and rejected).
+MAX_GAPS = 1024
+
+
+class Gaps:
+    """Seqs given up as dropped: sorted, disjoint half-open ranges ``[a, b)``, the newest
+    :data:`MAX_GAPS` of them.
+
+    Parameters
+    ----------
+    ranges : iterable of (int, int), optional
+        Ranges to start with (as :meth:`ranges` gave them).
+    """
+
+    def __init__(self, ranges: Iterable[tuple[int, int]] = ()) -> None:
+        self._r: list[list[int]] = [[int(a), int(b)] for a, b in ranges if a < b]
+
+    def add(self, a: int, b: int) -> None:
+        """Seqs ``a .. b - 1`` were given up (after every range already here: gaps come in order)."""
+        if a >= b:
+            return
+        if self._r and self._r[-1][1] == a:
+            self._r[-1][1] = b
+        else:
+            self._r.append([a, b])
+        if len(self._r) > MAX_GAPS:
+            del self._r[0]
+
+    def take(self, seq: int) -> bool:
+        """Whether ``seq`` was given up (and is not any more: a late point comes once)."""
+        i = bisect.bisect_right(self._r, seq, key=lambda r: r[0]) - 1
+        if i < 0 or not self._r[i][0] <= seq < self._r[i][1]:
+            return False
+        a, b = self._r[i]
+        self._r[i:i + 1] = [r for r in ([a, seq], [seq + 1, b]) if r[0] < r[1]]
+        return True
+
+    def ranges(self) -> list[tuple[int, int]]:
+        return [(a, b) for a, b in self._r]
+
+    def __len__(self) -> int:
+        return sum(b - a for a, b in self._r)
 
 
 @dataclass
@@ -93,6 +140,12 @@ class SourceState:
         ``(seq, t_ns)`` of the last point refused for jumping ahead, awaiting confirmation.
     source : str
         The source's name.
+    gaps : Gaps
+        Seqs of this run given up as dropped.
+    prev_run : int or None
+        The run before this one.
+    prev_gaps : Gaps or None
+        Its given-up seqs (None: no run before this one is known).
     """
 
     next_seq: int
@@ -105,6 +158,9 @@ class SourceState:
     progress_at: float = 0.0
     jump: tuple[int, int] | None = None
     source: str = ""
+    gaps: Gaps = field(default_factory=Gaps)
+    prev_run: int | None = None
+    prev_gaps: Gaps | None = None
 
     def horizon(self) -> int:
         """One past the highest seq seen (released or held)."""
@@ -130,9 +186,10 @@ class Reorderer(Generic[M]):
 
     Attributes
     ----------
-    dropped, stale, restarts, resyncs : int
-        Frames given up, points refused as late or repeated (or held beyond their run's end),
-        new runs, and confirmed jumps.
+    dropped, stale, late, restarts, resyncs : int
+        Frames given up; points refused as repeated, of an older run, or held beyond their run's
+        end; points that came after their slot was given up (already counted in ``dropped``);
+        new runs; confirmed jumps.
     dirty : set of str
         Sources whose state changed since the caller last cleared it (to persist them).
     """
@@ -148,6 +205,7 @@ class Reorderer(Generic[M]):
         self._src: dict[str, SourceState] = {}
         self.dropped = 0
         self.stale = 0
+        self.late = 0
         self.restarts = 0
         self.resyncs = 0
         self.dirty: set[str] = set()
@@ -159,22 +217,21 @@ class Reorderer(Generic[M]):
         -------
         str
             ``"held"``, ``"released"``, ``"restart"`` (a new run), ``"resync"`` (a confirmed jump),
-            ``"stale"`` (late, repeated or of an older run; counted in :attr:`stale`) or ``"jump"``
-            (refused: too far ahead; nothing counted here, the caller counts it).
+            ``"late"`` (its slot was given up: counted in :attr:`late`, its frame already in
+            :attr:`dropped`), ``"stale"`` (repeated or of an older run; counted in :attr:`stale`)
+            or ``"jump"`` (refused: too far ahead; nothing counted here, the caller counts it).
         """
         source, seq, t_ns, run = msg.source, int(msg.seq), int(msg.t_ns), msg.run
         st, kind = self._run_state(source, seq, run, t_ns, now)
-        if st is None:
-            self.stale += 1
-            return "stale"
+        if kind == "older":
+            return self._late_or_stale(st, st.prev_gaps if run == st.prev_run else None, seq)
         outcome = "restart" if kind == "restart" else "held"
         if kind == "same" and (seq < st.next_seq or seq in st.held):
             if run is None and t_ns > st.max_t_ns and seq not in st.held:
                 self._new_run(st, seq, run, now)  # no run ids: seq went back while time went on
                 outcome = "restart"
             else:
-                self.stale += 1
-                return "stale"
+                return self._late_or_stale(st, st.gaps, seq)
         elif kind == "same" and seq - st.next_seq > self.max_jump:
             c = st.jump
             if c is None or not (c[0] < seq <= c[0] + self.max_held and t_ns > c[1]):
@@ -221,6 +278,14 @@ class Reorderer(Generic[M]):
         self._check_limits(st, now)
         return "ended"
 
+    def _late_or_stale(self, st: SourceState, gaps: Gaps | None, seq: int) -> str:
+        if gaps is not None and gaps.take(seq):
+            self.late += 1
+            self.dirty.add(st.source)
+            return "late"
+        self.stale += 1
+        return "stale"
+
     def awaited(self) -> int:
         """Frames announced by an end-of-run notice that have neither arrived nor been given up."""
         return sum(max(s.end_seq - s.next_seq - len(s.held), 0) for s in self._src.values() if s.end_seq is not None)
@@ -251,11 +316,10 @@ class Reorderer(Generic[M]):
         self._src[source] = state
 
     # ------------------------------------------------------------------------------------------
-    def _run_state(self, source: str, seq: int, run: int | None, t_ns: int,
-                   now: float) -> tuple[SourceState | None, str]:
+    def _run_state(self, source: str, seq: int, run: int | None, t_ns: int, now: float) -> tuple[SourceState, str]:
         """The source's state for a message of run ``run`` triggered at ``t_ns``, and whether it
-        is ``"new"`` (first of the source), a ``"restart"`` (a new run: the old one is finished)
-        or the ``"same"`` run; ``(None, "stale")`` for a message of an earlier run."""
+        is ``"new"`` (first of the source), a ``"restart"`` (a new run: the old one is finished),
+        the ``"same"`` run or an ``"older"`` one."""
         st = self._src.get(source)
         if st is None:
             # a run's seq starts at 0: what came before the first arrival was lost (unless we
@@ -265,15 +329,16 @@ class Reorderer(Generic[M]):
             return st, "new"
         if run is not None and st.run is not None and run != st.run:
             if t_ns <= st.max_t_ns:  # a message of an earlier run, late
-                return None, "stale"
+                return st, "older"
             self._new_run(st, seq, run, now)
             return st, "restart"
         if run is None and t_ns <= st.floor_t_ns:
-            return None, "stale"
+            return st, "older"
         return st, "same"
 
     def _new_run(self, st: SourceState, seq: int, run: int | None, now: float) -> None:
         self._give_up(st, everything=True)  # finish the old run
+        st.prev_run, st.prev_gaps, st.gaps = st.run, st.gaps, Gaps()
         st.floor_t_ns = st.max_t_ns
         st.next_seq = 0 if seq <= self.max_held else seq
         st.run = run
@@ -287,6 +352,7 @@ class Reorderer(Generic[M]):
         point's slot, which is itself a gap: that point was not kept) and wait from there."""
         self._give_up(st, everything=True)
         self.dropped += seq - st.next_seq
+        st.gaps.add(st.next_seq, seq)
         st.next_seq = seq
         st.jump = None
         st.progress_at = now
@@ -309,6 +375,7 @@ class Reorderer(Generic[M]):
         if (st.end_seq is not None and not st.held and st.next_seq < st.end_seq
                 and now - st.end_at > self.timeout_s):
             self.dropped += st.end_seq - st.next_seq  # the tail of the run never came
+            st.gaps.add(st.next_seq, st.end_seq)
             st.next_seq = st.end_seq
             self.dirty.add(st.source)
 
@@ -317,6 +384,7 @@ class Reorderer(Generic[M]):
         while st.held:
             first = min(st.held)
             self.dropped += first - st.next_seq
+            st.gaps.add(st.next_seq, first)
             st.next_seq = first
             self._drain(st)
             if not everything:

@@ -267,6 +267,26 @@ def test_a_held_point_that_cannot_be_read_back_becomes_a_gap(tmp_path):
         b.close()
 
 
+def test_given_up_seqs_survive_a_restart_so_a_late_point_is_counted_once(tmp_path):
+    path = tmp_path / "s.sqlite3"
+    a = _store(path)
+    now = time.monotonic()
+    for s in (0, 1, 3):
+        a.add(_point(s, run=2), now_mono=now)
+    a.poll(now + 1.5)  # 2 given up: dropped
+    a.close()
+    b = _store(path)
+    try:
+        assert b.add(_point(2, run=2), now_mono=time.monotonic()) == "late"
+        assert b.add(_point(2, run=2), now_mono=time.monotonic()) == "stale"  # once late, then a repeat
+        b.flush()
+        snap = b.snapshot()
+        assert (snap["received"], snap["processed"], snap["rejected"], snap["dropped"], snap["late"]) == (4, 3, 1, 1, 1)
+        assert "mtcw_frames_late_total 1.0" in _metrics(b)
+    finally:
+        b.close()
+
+
 def test_what_was_not_committed_is_lost_and_counted_dropped_after_restart(tmp_path):
     """A kill loses what came after the last commit; the restarted store counts those frames as
     dropped (seq gaps), so that published = processed + rejected + dropped."""

@@ -41,9 +41,10 @@ def test_reorderer_counts_a_gap_after_the_timeout_and_ignores_the_late_point():
     assert out == [0, 1]
     r.poll(now=1.5)
     assert out == [0, 1, 3, 4] and r.dropped == 1
-    assert r.add(_msg(2), now=2.0) == "stale"  # arrived after its slot was given up: not released
+    assert r.add(_msg(2), now=2.0) == "late"  # arrived after its slot was given up: not released
+    assert r.add(_msg(2), now=2.0) == "stale"  # late once; then a repeat
     assert r.add(_msg(4), now=2.0) == "stale"  # a repeat
-    assert out == [0, 1, 3, 4] and r.stale == 2
+    assert out == [0, 1, 3, 4] and r.stale == 2 and r.late == 1 and r.dropped == 1  # frame 2: dropped, once
 
 
 def test_reorderer_gives_up_when_too_many_are_held():
@@ -62,7 +63,8 @@ def test_reorderer_follows_a_publisher_restart_and_refuses_old_frames():
     # a new run (new id, later trigger); its seq 1 overtakes its seq 0 (two workers)
     assert r.add(_msg(1, t_ns=501, run=8), now=0.1) == "restart"
     r.add(_msg(0, t_ns=500, run=8), now=0.1)
-    assert r.add(_msg(3, t_ns=103, run=7), now=0.1) == "stale"  # the previous run's frame, late: not new
+    assert r.add(_msg(3, t_ns=103, run=7), now=0.1) == "late"  # the previous run's frame, given up: not new
+    assert r.add(_msg(2, t_ns=102, run=7), now=0.1) == "stale"  # and one it released
     assert r.add(_msg(2, t_ns=502, run=8), now=0.1) == "released"
     assert out == [(0, 100), (1, 101), (2, 102), (4, 104), (0, 500), (1, 501), (2, 502)]
     assert r.restarts == 1 and r.dropped == 1  # seq 3 of the old run never made it in time
@@ -90,7 +92,7 @@ def test_reorderer_counts_the_lost_tail_of_a_run_after_its_end_notice():
     assert r.dropped == 0  # the timeout counts from the notice
     r.poll(now=1.3)
     assert out == [0, 1, 2, 3, 4] and r.dropped == 5 and r.awaited() == 0
-    assert r.add(_msg(7, run=7), now=1.4) == "stale"  # a tail frame after its slot was given up
+    assert r.add(_msg(7, run=7), now=1.4) == "late"  # a tail frame after its slot was given up
     assert r.end("s", 3, frames=4, t_ns=50, now=1.5) == "other_run"  # an older run's notice changes nothing
     assert r.dropped == 5
 
@@ -190,6 +192,39 @@ def test_gap_counter():
     g = GapCounter()
     gaps = [g.see("a", s) for s in [5, 6, 9, 10, 0, 1]]  # 0 after 10: restart, re-sync
     assert gaps == [0, 0, 2, 0, 0, 0] and g.dropped == 2 and g.received == 6
+
+
+def test_reorderer_counts_each_frame_once_when_points_come_after_their_gap_was_given_up():
+    """Overload: points delayed past the timeout. Each frame is released, or dropped (its point,
+    if it comes at all, is late): released + dropped = published, whatever the order."""
+    import random
+
+    rng = random.Random(3)
+    out = []
+    r = Reorderer(lambda m: out.append(m.seq), timeout_s=1.0, max_held=16)
+    n = 2000
+    arrivals = sorted((s * 0.01 + (rng.expovariate(1.0) if rng.random() < 0.2 else 0.0), s) for s in range(n)
+                      if rng.random() > 0.05)  # 5 % lost; 20 % delayed by ~1 s (many past the timeout)
+    for t, s in arrivals:
+        r.add(_msg(s, run=1), now=t)
+    r.end("s", 1, frames=n, t_ns=10**9, now=arrivals[-1][0])
+    r.poll(now=arrivals[-1][0] + 5)
+    assert r.late > 50 and r.stale == 0  # the test does what it says
+    assert len(out) + r.dropped == n and len(out) + r.late == len(arrivals)
+    assert out == sorted(set(out))
+
+
+def test_gaps_are_bounded_and_each_late_seq_counts_once():
+    from services.ordering import MAX_GAPS, Gaps
+
+    g = Gaps()
+    for i in range(MAX_GAPS + 10):
+        g.add(3 * i, 3 * i + 2)  # [0, 2), [3, 5), ...: separate ranges
+    assert len(g.ranges()) == MAX_GAPS and not g.take(0)  # the oldest forgotten
+    s = 3 * (MAX_GAPS + 9)
+    assert g.take(s) and not g.take(s) and g.take(s + 1) and not g.take(s + 2)
+    g.add(s + 2, s + 5)
+    assert g.ranges()[-1] == (s + 2, s + 5) and len(Gaps([(0, 4), (9, 9)])) == 4
 
 
 def test_reorderer_max_jump_is_at_least_max_held():
