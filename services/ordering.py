@@ -338,6 +338,9 @@ class Reorderer(Generic[M]):
 
     def _new_run(self, st: SourceState, seq: int, run: int | None, now: float) -> None:
         self._give_up(st, everything=True)  # finish the old run
+        if st.end_seq is not None and st.next_seq < st.end_seq:  # its notice came: its lost tail is known
+            self.dropped += st.end_seq - st.next_seq
+            st.gaps.add(st.next_seq, st.end_seq)
         st.prev_run, st.prev_gaps, st.gaps = st.run, st.gaps, Gaps()
         st.floor_t_ns = st.max_t_ns
         st.next_seq = 0 if seq <= self.max_held else seq

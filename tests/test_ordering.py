@@ -97,6 +97,18 @@ def test_reorderer_counts_the_lost_tail_of_a_run_after_its_end_notice():
     assert r.dropped == 5
 
 
+def test_a_new_run_right_after_an_end_notice_still_counts_the_old_runs_tail():
+    """A killed node, restarted, sends the killed run's notice and then its new run's frames at
+    once: the new run's first point comes before the tail's timeout, and must not lose it."""
+    r = Reorderer(lambda m: None, timeout_s=1.0)
+    for s in range(5):
+        r.add(_msg(s, t_ns=100 + s, run=1), now=0.0)
+    assert r.end("s", 1, frames=8, t_ns=200, now=0.1) == "ended"
+    assert r.add(_msg(0, t_ns=300, run=2), now=0.2) == "restart"
+    assert r.dropped == 3 and r.awaited() == 0
+    assert r.add(_msg(6, t_ns=106, run=1), now=0.3) == "late"  # a tail frame of the old run, after all
+
+
 def test_reorderer_refuses_the_end_notice_of_a_run_not_in_progress():
     """A notice of a run never seen (forged, or a run all of whose frames were lost) is refused:
     it starts no run and counts nothing; the run in progress goes on."""
