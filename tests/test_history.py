@@ -416,6 +416,11 @@ def test_api_process_stopped_cleanly_keeps_everything_and_counts_what_it_missed(
     for s in range(50):
         push.send_multipart(encode_points(_point(s, run=7)))
     a.wait(lambda h: h["processed"] == 50, "50 points")
+    second = subprocess.run([sys.executable, "-m", "services.cli", "api", "--port", "0"], cwd=ROOT, timeout=60,
+                            capture_output=True, text=True, env={**os.environ, "MTCW_STORE_PATH": str(store),
+                                                                 "MTCW_POINTS_ENDPOINT": "tcp://127.0.0.1:0"})
+    assert second.returncode != 0 and f"store_path: {store} is in use by another process (pid {a.proc.pid})" \
+        in second.stderr, second.stderr[-2000:]
     a.proc.send_signal(signal.SIGTERM)
     assert a.proc.wait(20) in (0, -signal.SIGTERM), a.log.read_text()[-2000:]
     push.close()
