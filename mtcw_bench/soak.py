@@ -144,10 +144,10 @@ class Stack:
 
 
 def _state(path: Path) -> Optional[dict]:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+    """The acquisition node's run ledger (source, run, frames stamped, ended)."""
+    from services.acquisition import RunLedger
+
+    return RunLedger.read(path)
 
 
 def _history(url: str) -> list[dict]:
