@@ -142,6 +142,8 @@ class Metrics:
         self.velocity = Gauge("mtcw_velocity_meters_per_second", "latest velocity", ["source"], registry=r)
         self.tone_snr = Gauge("mtcw_tone_snr_db", "latest post-integration SNR per tone", ["tone"], registry=r)
         self.age = Gauge("mtcw_last_frame_age_seconds", "seconds since the last point arrived", registry=r)
+        self.peers_refused = Counter("mtcw_peers_refused_total", "peers refused for an unknown CURVE key (not in "
+                                     "curve_dir/authorized), by socket", ["socket"], registry=r)
         self.malformed = Counter("mtcw_messages_malformed_total", "messages the API's receiver refused (malformed "
                                  "points and end notices; seq_jump, end_run, end_frames, future_t_ns, out_of_range: "
                                  "not believed), by reason", ["reason"], registry=r)
@@ -468,7 +470,8 @@ class PointReceiver(threading.Thread):
         self.ctx = ctx or zmq.Context.instance()
         self.on_death = on_death
         self.stop_event = threading.Event()
-        self.sock = open_socket(self.ctx, points_pull(settings))
+        self.sock = open_socket(self.ctx, points_pull(settings),
+                                on_refused=lambda socket: store.m.peers_refused.labels(socket).inc())
         self.endpoint = bound_endpoint(self.sock)
         self.messages = 0
         self.malformed = 0
@@ -581,13 +584,21 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
     metrics = Metrics()
     store = PointStore(settings, metrics, clock_ns)
 
+    # the points socket is bound now, so that an endpoint that cannot be bound (or CURVE keys that
+    # cannot be read) is an error of create_app naming the field, not a failed server start-up
+    try:
+        early = PointReceiver(store, settings, on_death=on_receiver_death) if start_receiver else None
+    except Exception:
+        store.close()
+        raise
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         recv = None
         try:
-            if start_receiver:
+            if early is not None:
                 log_settings("api", settings)
-                recv = app.state.receiver = PointReceiver(store, settings, on_death=on_receiver_death)
+                recv = app.state.receiver = early
                 recv.start()
                 http_url = getattr(app.state, "http_url", None)
                 report_endpoints(settings.endpoints_file, {"points_endpoint": recv.endpoint,
@@ -708,9 +719,10 @@ def serve(settings: ApiSettings) -> None:
 
     try:
         app = create_app(settings, on_receiver_death=receiver_died)
-    except StoreError as err:
-        raise SystemExit(f"error: {err}") from None
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning")
+    except (StoreError, ValueError) as err:  # ValueError: SocketError, CurveKeyError (they name the field)
+        raise SystemExit(f"error: settings: {err}" if not isinstance(err, StoreError) else f"error: {err}") from None
+    # log_config=None: uvicorn's own loggers go through the process's handler (text or JSON lines)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning", log_config=None)
     sock = config.bind_socket()
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     app.state.http_url = f"http://{host}:{sock.getsockname()[1]}"

@@ -376,3 +376,47 @@ def test_receiver_handle_never_raises():
     finally:
         recv.sock.close()
         app.state.store.close()
+
+
+def test_an_unbindable_points_endpoint_is_a_settings_error_naming_the_field(ctx):
+    from services.api import serve
+
+    squatter = ctx.socket(zmq.PULL)
+    port = squatter.bind_to_random_port("tcp://127.0.0.1")
+    try:
+        with pytest.raises(SystemExit, match=rf"^error: settings: points_endpoint: .*cannot bind tcp://127.0.0.1:{port}"):
+            serve(_settings(points_endpoint=f"tcp://127.0.0.1:{port}", port=0))
+    finally:
+        squatter.close(linger=0)
+
+
+def test_with_keys_a_stranger_pushing_points_is_refused_counted_and_never_served(tmp_path):
+    from services.auth import CurveClient, apply_client, client_keys, make_keys, server_keys, stop_authenticator
+    from services.sockets import open_socket, points_push
+
+    keys = tmp_path / "k"
+    make_keys(keys)
+    st = _settings(curve_dir=keys)
+    app = create_app(st)
+    c = zmq.Context()
+    try:
+        with TestClient(app) as client:
+            ep = app.state.receiver.endpoint
+            stranger = c.socket(zmq.PUSH)
+            pk, sk = zmq.curve_keypair()
+            apply_client(stranger, CurveClient(pk, sk, server_keys(keys).public))
+            stranger.connect(ep)
+            stranger.send_multipart(encode_points(_point(0, range_m=9.99)))  # queued; the handshake fails
+            worker = open_socket(c, points_push(_settings(curve_dir=keys, points_endpoint=ep)))
+            worker.send_multipart(encode_points(_point(0, range_m=1.5)))
+            _wait(lambda: client.get("/v1/points/latest").status_code == 200, "the allowed worker's point")
+            _wait(lambda: 'mtcw_peers_refused_total{socket="points"}' in client.get("/metrics").text,
+                  "the refusal counted")
+            assert client.get("/v1/points/latest").json()["points"]["bench"]["targets"][0]["range_m"] == 1.5
+            assert client.get("/healthz").json()["received"] == 1
+            assert client_keys(keys, "worker").public in server_keys(keys).allowed
+            for s in (stranger, worker):
+                s.close(linger=0)
+    finally:
+        stop_authenticator(zmq.Context.instance())
+        c.term()
