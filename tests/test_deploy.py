@@ -52,6 +52,10 @@ def test_compose_api_keeps_its_store_in_a_volume_and_checks_health_not_just_live
     mounts = dict(v.split(":")[::-1] for v in api["volumes"])  # mount point -> volume
     assert store.startswith("/data/") and mounts["/data"] in COMPOSE["volumes"], "the store must outlive the container"
     assert mounts["/keys"] == "mtcw-keys"
+    acq = COMPOSE["services"]["acquisition"]  # the run ledger outlives a killed container too
+    acq_mounts = dict(v.split(":")[::-1] for v in acq["volumes"])
+    assert acq["environment"]["MTCW_STATE_FILE"].startswith("/data/") and acq_mounts["/data"] in COMPOSE["volumes"]
+    assert acq_mounts["/data"] != mounts["/data"]
     # the image runs as nobody: /data must be made and handed to it before USER nobody
     dockerfile = (ROOT / "Dockerfile").read_text()
     made = re.search(r"^RUN .*mkdir [^&]*/data.*chown nobody [^&]*/data", dockerfile, re.M)
