@@ -29,7 +29,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta, Struct
 
-from mtcw_core.chain import FrameResult
+from mtcw_core.results import FrameResult  # a leaf: the API never imports the chain
 from mtcw_core.frame import SAMPLE_DTYPES, Frame, frame_from_dict, frame_to_dict
 
 VERSION = 1

@@ -114,3 +114,14 @@ def test_stage_vocabulary_is_one():
     assert res.status == "ok"
     assert list(res.stage_seconds) == [s for s in STAGE_NAMES if s != "gate"]  # a CW frame has no gate
     assert all(np.isfinite(v) and v >= 0 for v in res.stage_seconds.values())
+
+
+def test_the_api_starts_without_the_chain():
+    """The API only stores and serves points: importing it must not import the chain (numpy's
+    DSP, scipy), which cost a restarted API ~2 s of its recovery time under load."""
+    import subprocess
+    import sys
+
+    code = "import sys, services.api; print(sorted(m for m in ('mtcw_core.chain', 'scipy') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
