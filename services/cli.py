@@ -337,6 +337,8 @@ def acquire(
 ) -> None:
     """Acquisition node: publish frames (PUSH to workers, PUB to monitors)."""
     from services.acquisition import run_acquisition
+    from services.auth import CurveKeyError
+    from services.sockets import SocketError
     from services.settings import AcquisitionSettings
 
     _logging()
@@ -345,6 +347,8 @@ def acquire(
     stop = _stop_on_signals()
     try:
         run_acquisition(st, stop)
+    except (SocketError, CurveKeyError) as err:
+        _fail(f"settings: {err}")
     except (SceneError, RecordingError, ValueError) as err:
         _fail(str(err))
 
@@ -366,6 +370,8 @@ def worker(
         w = Worker(st)
     except CalibrationError as err:
         _fail(str(err))
+    except ValueError as err:  # SocketError, CurveKeyError: they name the settings field
+        _fail(f"settings: {err}")
     w.run(_stop_on_signals())
 
 
@@ -417,6 +423,8 @@ def record(
         sub = do_record(st, output, frames, stop, progress=lambda n: bar.update(1))
     except RecordingError as err:
         _fail(str(err))
+    except ValueError as err:  # SocketError, CurveKeyError: they name the settings field
+        _fail(f"settings: {err}")
     bar.close()
     typer.echo(json.dumps({"written": str(output), "frames": sub.gaps.received - sub.refused,
                            "dropped": sub.gaps.dropped, "malformed": sub.malformed, "refused": sub.refused}))

@@ -103,3 +103,17 @@ def test_info_and_a_malformed_recording_named_without_a_traceback(recording, tmp
         bad = CliRunner().invoke(app, args)
         assert bad.exit_code == 2 and "Traceback" not in bad.output, bad.output
         assert "bad.sigmf-meta: global.mtcw:frame_samples: Input should be a valid integer, got 'abc'" in bad.output
+
+
+@pytest.mark.parametrize("cmd", [["worker"], ["record", "-o", "unused", "-n", "1"], ["acquire", "--frames", "1"]])
+def test_an_endpoint_that_cannot_be_used_is_a_settings_error_naming_the_field(cmd, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    field = "monitor_endpoint" if cmd[0] == "record" else "frames_endpoint"
+    env = {**os.environ, f"MTCW_{field.upper()}": "tcp://127.0.0.1:x"}
+    r = subprocess.run([sys.executable, "-m", "services.cli", *cmd], env=env, capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"settings: {field}: " in r.stderr and "tcp://127.0.0.1:x" in r.stderr, r.stderr
