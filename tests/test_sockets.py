@@ -102,11 +102,15 @@ def test_maxmsgsize_refuses_an_oversized_message(ctx):
     st.points_endpoint = S.bound_endpoint(api)
     worker = S.open_socket(ctx, S.points_push(st))
     worker.send_multipart([b"points", b"x" * 5_000])  # the receiver drops the connection instead
-    worker.send_multipart([b"points", b"small"])
-    assert not api.poll(500)  # the big one was refused and the peer disconnected with what followed
+    worker.send_multipart([b"points", b"small"])  # may follow on the sender's reconnection, or be lost
     worker2 = S.open_socket(ctx, S.points_push(st))
     worker2.send_multipart([b"points", b"ok"])
-    assert api.poll(5000) and api.recv_multipart() == [b"points", b"ok"]
+    got = []
+    while api.poll(1000):
+        got.append(api.recv_multipart())
+    assert [b"points", b"ok"] in got  # the receiver goes on
+    assert all(len(p) <= 1_000 for m in got for p in m), "an oversized message reached the application"
+    assert set(map(tuple, got)) <= {(b"points", b"ok"), (b"points", b"small")}
     for s in (api, worker, worker2):
         s.close(linger=0)
 
