@@ -681,7 +681,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"mtcw-bench-honesty: {err}")
     bar.close()
     result["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
-    result["command"] = "mtcw bench --honesty " + " ".join(shlex.quote(a) for a in (argv if argv is not None
+    result["command"] = "mtcw-bench-honesty " + " ".join(shlex.quote(a) for a in (argv if argv is not None
                                                                                       else sys.argv[1:]))
     path = write_honesty_report(result, args.out)
     s = result["size"]
