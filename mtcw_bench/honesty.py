@@ -345,22 +345,40 @@ def self_beat_snr_db(scene: Scene, seed: int = 0) -> float | None:
     f = np.fft.rfftfreq(n, 1 / fs)
     band = (f > 0.8 * t.min()) & (f < min(1.1 * t.max(), 0.499 * fs))
     s2 = float(np.median(spec[band])) / (n * math.log(2))  # E|X_k|^2 = N s2; median = ln2 * mean
+    amp = self_beat_amplitude_v(one, seed)
+    return float(np.median(10 * np.log10(n * amp**2 / (2 * s2))))
+
+
+def self_beat_amplitude_v(scene: Scene, seed: int = 0) -> np.ndarray:
+    """Amplitude (V) of the first target's self-beat line at each tone, shape (T,), tone order.
+
+    A least-squares fit at ``f_i`` (jointly with the LO beats at ``f_i +- f_d``) of a noiseless
+    frame of a single photodiode: an ideal laser, the LO path matched, the target moving at 0.3x
+    the smallest tone spacing so that its LO beats leave ``f_i`` to the self-beat alone.
+    """
+    one = with_targets(scene, [scene.targets[0].model_dump()])
+    t = np.asarray(one.tones_hz, float)
     v = spacing_speed_mps(one, 0.3)
     clean = scene_variant(one, laser={"linewidth_hz": 0.0}, paths={"lo_path_difference_m": 0.0},
+                          receiver={"kind": "single"},
                           noise={"shot": False, "thermal": False, "rin_db_per_hz": None, "trigger_jitter_s": 0.0},
                           targets=[{"velocity_mps": v}], digitizer={"adc_bits": None})
     fr = Simulator(clean, seed).frame(0)
     fd = 2 * v / one.laser.wavelength_m
-    amp = np.abs(fit_lines(fr.volts("pd"), np.concatenate([t, t + fd, t - fd]), fs))[: t.size]
-    return float(np.median(10 * np.log10(n * amp**2 / (2 * s2))))
+    return np.abs(fit_lines(fr.volts("pd"), np.concatenate([t, t + fd, t - fd]), fr.fs_hz))[: t.size]
 
 
 def loss_shift_for(scene: Scene, snr_db: float, self_beat: bool) -> float:
     """The loss shift (dB, added to every target) that puts the first target's predicted line
-    SNR at ``snr_db``: linear for LO beats (1 dB per dB), by bisection for the self-beat."""
-    snr0 = predicted_snr_db(scene, self_beat)
+    SNR at ``snr_db``: for LO beats 1 dB per dB, corrected twice by the bound at the shifted loss
+    (at strong echoes the self-beat adds to a static target's lines); by bisection for the
+    self-beat."""
     if not self_beat:
-        return snr0 - snr_db
+        shift = 0.0
+        for _ in range(3):
+            shift += predicted_snr_db(shifted(scene, shift), False) - snr_db
+            shift = max(shift, -scene.targets[0].loss_db)
+        return shift
     lo, hi = -scene.targets[0].loss_db, 150.0
     for _ in range(14):
         mid = 0.5 * (lo + hi)
@@ -573,14 +591,23 @@ class MapSpec:
         return self.frames or (3 if self.quick else 16)
 
 
-def run_map(spec: MapSpec, progress=None) -> dict:
-    """Run the map; a JSON-able dict with the cells, the per-frame rows and the run's size and time."""
-    for p in spec.profiles:
-        get_profile(p)
+def map_configs(spec: MapSpec) -> list[Config]:
+    """The rows ``spec`` asks for: the grid's slices, and issue 12's cases (full map only)."""
     configs = grid(spec.quick, spec.slices)
     if spec.cases and not spec.quick and (spec.slices is None or "cases" in spec.slices):
         configs += case_configs()
-    groups = sorted(plan(configs, spec.frames_per_cell), key=lambda g: -g.cost)
+    return configs
+
+
+def run_map(spec: MapSpec, progress=None, groups: list[Group] | None = None) -> dict:
+    """Run the map (``groups``: its plan, if already made); a JSON-able dict with the cells, the
+    per-frame rows and the run's size and time. Raises ValueError naming an unknown profile."""
+    for p in spec.profiles:
+        get_profile(p)
+    configs = map_configs(spec)
+    if groups is None:
+        groups = plan(configs, spec.frames_per_cell)
+    groups = sorted(groups, key=lambda g: -g.cost)
     t0 = time.perf_counter()
     cells, rows, errors = [], [], []
     if spec.jobs <= 1:
@@ -665,18 +692,21 @@ def main(argv: list[str] | None = None) -> None:
                    slices=[s.strip() for s in args.slices.split(",")] if args.slices else None,
                    cases=not args.no_cases, jobs=max(1, args.jobs))
     try:
-        n_groups = len(plan(grid(spec.quick, spec.slices), spec.frames_per_cell)) + (
-            len(case_configs()) if spec.cases and not spec.quick and (not spec.slices or "cases" in spec.slices) else 0)
+        for p in spec.profiles:
+            get_profile(p)
+        t0 = time.perf_counter()
+        groups = plan(map_configs(spec), spec.frames_per_cell)
     except ValueError as err:
         sys.exit(f"mtcw-bench-honesty: {err}")
-    bar = tqdm(total=n_groups, unit="group", desc="honesty", file=sys.stderr)
+    print(f"honesty: {len(groups)} groups planned in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    bar = tqdm(total=len(groups), unit="group", desc="honesty", file=sys.stderr)
 
     def progress(g: Group) -> None:
         bar.set_postfix_str(f"{g.config.key} {g.rung}")
         bar.update(1)
 
     try:
-        result = run_map(spec, progress)
+        result = run_map(spec, progress, groups)
     except ValueError as err:
         sys.exit(f"mtcw-bench-honesty: {err}")
     bar.close()
@@ -688,9 +718,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {path} ({s['cells']} cells, {s['processed_frames']} processed frames, {result['wall_s']:.0f} s)")
 
 
-__all__ = ["Config", "Group", "MapSpec", "grid", "case_scenes", "case_configs", "plan", "run_group", "run_map",
+__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "plan", "run_group", "run_map",
            "summarise", "check_targets", "predicted_bound", "with_targets", "shifted", "bin_speed_mps",
-           "spacing_speed_mps", "base_scene", "self_beat_snr_db", "loss_shift_for", "read_result", "main"]
+           "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v", "loss_shift_for", "read_result", "main"]
 
 
 if __name__ == "__main__":

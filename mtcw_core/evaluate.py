@@ -227,7 +227,10 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
                 z_wrong: float = Z_WRONG) -> FrameVerdict:
     """Judge every point of ``res`` against every truth target, one point per truth.
 
-    Points and truths are paired greedily by speed difference (targets are told apart by their
+    A point *answers* a truth when it agrees with it on speed or on range (:func:`_answers`): a
+    point with the right speed and a wrong cycle, or the right range and a speed reported 0 for a
+    mover, answers it (and is wrong); a point wrong on both is a ghost. Points and truths that
+    answer each other are paired greedily by speed difference (targets are told apart by their
     Doppler), ties by range error; a point left over is a false target, a truth left over is
     missed. Only ``ok`` results have points; any other status misses every truth.
 
@@ -238,8 +241,9 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
     z_wrong : |z| above which a matched point is wrong
     """
     points = list(res.targets) if res.status == "ok" else []
-    pairs = sorted(((abs(speed_error_mps(p, t)), abs(range_error_m(p, res, t)), i, j)
-                    for i, p in enumerate(points) for j, t in enumerate(truths)))
+    pairs = sorted((abs(dv), abs(dr), i, j) for i, p in enumerate(points) for j, t in enumerate(truths)
+                   for dv, dr in [(speed_error_mps(p, t), range_error_m(p, res, t))]
+                   if _answers(p, t, dv, dr))
     owner: dict[int, int] = {}
     taken: set[int] = set()
     for _, _, i, j in pairs:
@@ -257,6 +261,19 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
         verdicts.append(PointVerdict(j, er, _z(er, p.range_sigma_m), ev, _z(ev, p.velocity_sigma_mps), measured,
                                      flags_of(p)))
     return FrameVerdict(res.status, tuple(verdicts), tuple(j for j in range(len(truths)) if j not in taken), z_wrong)
+
+
+#: a point agrees with a truth on speed within the larger of 5 of its sigmas, a quarter of the
+#: speed and this (m/s); on range within the larger of 5 of its sigmas and this (m)
+SPEED_AGREE_MPS, RANGE_AGREE_M = 0.01, 0.01
+
+
+def _answers(p: TargetPoint, t: TruthTarget, dv: float, dr: float) -> bool:
+    """Whether point ``p`` can be the chain's answer for truth ``t`` (speed error ``dv``, m/s;
+    range error ``dr``, m): close in speed, or close in range."""
+    close_v = abs(dv) <= max(Z_WRONG * p.velocity_sigma_mps, 0.25 * abs(t.velocity_mps), SPEED_AGREE_MPS)
+    close_r = abs(dr) <= max(Z_WRONG * p.range_sigma_m, RANGE_AGREE_M)
+    return close_v or close_r
 
 
 def _z(error: float, sigma: float) -> float:
