@@ -320,6 +320,8 @@ def write_honesty_report(result: dict, out: Path) -> Path:
         for v in sorted(mv, key=lambda v: -(v["found_short"] - v["found_long"]))[:30]:
             L.append(f"| {v['slice']} | {v['speed']} | {v['rung']} | {v['loss_db']:.0f} | {v['profile']} | "
                      f"{v['short']} → {v['long']} | {v['found_short']:.2f} → {v['found_long']:.2f} |")
+    if result.get("errors"):
+        L += ["", "## Groups that did not run", ""] + [f"- {e}" for e in result["errors"]]
     if figs:
         L += ["", "## Heat maps", ""] + [f"![{f}]({f})" for f in figs]
     L += ["", "## Files", "",

@@ -1,6 +1,9 @@
 """Judging results against truth: truth matching, error summaries, and the Cramér–Rao bounds.
 
-Shared by ``mtcw process`` (recordings with simulator truth) and the benchmark (``mtcw_bench``).
+Shared by ``mtcw process`` (recordings with simulator truth) and the benchmarks (``mtcw_bench``).
+:func:`judge_frame` pairs every point of a frame with the truth target it answers and says which
+are confident and wrong (issue 12's honesty rule: ``ok``, no flag, ``|z| > 5``), which are ghosts
+and which targets were missed.
 
 Bounds on range and speed come from a scene's true line amplitudes and noise, independent of the chain's own SNR estimates: the line amplitudes come from a least-squares fit
 of a *noiseless* frame of the scene at the known line frequencies, and the noise variance from
