@@ -703,7 +703,8 @@ def main(argv: list[str] | None = None) -> None:
         groups = plan(map_configs(spec), spec.frames_per_cell)
     except ValueError as err:
         sys.exit(f"mtcw-bench-honesty: {err}")
-    print(f"honesty: {len(groups)} groups planned in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    plan_s = time.perf_counter() - t0
+    print(f"honesty: {len(groups)} groups planned in {plan_s:.0f} s", file=sys.stderr)
     bar = tqdm(total=len(groups), unit="group", desc="honesty", file=sys.stderr)
 
     def progress(g: Group) -> None:
@@ -715,6 +716,7 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as err:
         sys.exit(f"mtcw-bench-honesty: {err}")
     bar.close()
+    result["plan_s"] = plan_s
     result["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
     result["command"] = "mtcw-bench-honesty " + " ".join(shlex.quote(a) for a in (argv if argv is not None
                                                                                       else sys.argv[1:]))
