@@ -48,9 +48,9 @@ near 25 dB at 0 dB loss, 2^16) are left out.
 Every cell's frames are simulated once and processed by every profile (``fast``, ``balanced``,
 ``accurate``; ``seed`` on request: ~1 s a frame). The nine failures of issue 12, at the sizes
 the issue gives, form one more slice, ``cases`` (:func:`case_scenes`). The full map (the
-command above without ``--quick``): 75 rows, 471 (row, loss) groups, 16 frames each (the cases
-4-16), ~7,700 simulated frames, ~23,000 processed; the quick map: 9 rows at 2^16, 2 rungs,
-3 frames, ~20 s on 2 cores.
+command above without ``--quick``): 73 rows, 471 (row, loss) groups, 16 frames each (the cases
+4-16), 7472 simulated frames, 22416 processed, 30 min on 2 cores; the quick map: 9 rows at 2^16,
+2 rungs, 3 frames, ~20 s.
 
 Per cell (:func:`summarise`): range and speed z-scores (error over the point's own sigma: mean,
 std, a robust std, largest ``|z|``), **confident-wrong frames** (status ok, a point answering a

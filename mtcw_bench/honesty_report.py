@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import gzip
+import io
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -51,7 +52,9 @@ def write_tables(result: dict, out: Path) -> None:
             w.writerow({k: _flat(c.get(k)) for k in CELL_COLS})
     rows = result["frames"]
     if rows:
-        with gzip.open(out / "frames.csv.gz", "wt", newline="") as fh:
+        # mtime 0: the same rows give the same bytes (a rewritten report leaves the file alone in git)
+        with open(out / "frames.csv.gz", "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as gz, \
+                io.TextIOWrapper(gz, newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
@@ -95,8 +98,7 @@ def _heatmap(cells: list[dict], profiles: list[str], value, path: Path, title: s
     im = None
     for ax, prof in zip(axes[0], profiles):
         _, _, m, notes = _matrix(cells, prof, value)
-        cm = plt.get_cmap(cmap).copy()
-        cm.set_bad("#d0d0d0")  # grey: no such cell (a rung the row does not have)
+        cm = plt.get_cmap(cmap).with_extremes(bad="#d0d0d0")  # grey: no such cell (a rung the row lacks)
         im = ax.imshow(np.ma.masked_invalid(m), aspect="auto", cmap=cm, vmin=vmin, vmax=vmax,
                        interpolation="nearest")
         for i in range(m.shape[0]):
