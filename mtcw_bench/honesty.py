@@ -201,7 +201,8 @@ def grid(quick: bool = False, slices: list[str] | None = None) -> list[Config]:
         cal = with_targets(b16, [_target(1.234, v, 20.0)])
         for n in lengths:
             sc = base_scene(n)
-            vv = v if lab in ("v=0", "v=1.62 m/s", "v=0.45 spacing") else bin_speed_mps(sc, float(lab.split("=")[1].split()[0]))
+            scaled = lab in ("v=0.5 bin", "v=6 bins")  # speeds in bins of this record; the others in m/s
+            vv = bin_speed_mps(sc, float(lab.split("=")[1].split()[0])) if scaled else v
             out.append(Config("length", f"N=2^{int(math.log2(n))} {lab}", with_targets(sc, [_target(1.234, vv, 20.0)]),
                               calibrate=cal, rungs_db=long_rungs))
     # receiver x speed
@@ -725,9 +726,10 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {path} ({s['cells']} cells, {s['processed_frames']} processed frames, {result['wall_s']:.0f} s)")
 
 
-__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "plan", "run_group", "run_map",
-           "summarise", "check_targets", "predicted_bound", "with_targets", "shifted", "bin_speed_mps",
-           "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v", "loss_shift_for", "read_result", "main"]
+__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "plan", "run_group",
+           "run_map", "summarise", "check_targets", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
+           "bin_speed_mps", "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v",
+           "loss_shift_for", "read_result", "main"]
 
 
 if __name__ == "__main__":
