@@ -1,6 +1,9 @@
 """Judging results against truth: truth matching, error summaries, and the Cramér–Rao bounds.
 
-Shared by ``mtcw process`` (recordings with simulator truth) and the benchmark (``mtcw_bench``).
+Shared by ``mtcw process`` (recordings with simulator truth) and the benchmarks (``mtcw_bench``).
+:func:`judge_frame` pairs every point of a frame with the truth target it answers and says which
+are confident and wrong (issue 12's honesty rule: ``ok``, no flag, ``|z| > 5``), which are ghosts
+and which targets were missed.
 
 Bounds on range and speed come from a scene's true line amplitudes and noise, independent of the chain's own SNR estimates: the line amplitudes come from a least-squares fit
 of a *noiseless* frame of the scene at the known line frequencies, and the noise variance from
@@ -74,21 +77,36 @@ def range_bound(scene: Scene, seed: int = 0) -> Bound | None:
     return Bound(sig_r, sig_v, float(np.median(-10 * np.log10(var))), s2)
 
 
+def range_error_m(point: TargetPoint, res: FrameResult, truth: TruthTarget) -> float:
+    """``point``'s range error against ``truth`` (m), wrapped into +-half the unambiguous range for
+    CW frames (a CW range is only known modulo it), plain for gated frames (the coarse range
+    removed the ambiguity)."""
+    e = point.range_m - truth.range_m
+    if res.coarse_range_m is None and res.unambiguous_range_m:
+        lu = res.unambiguous_range_m
+        e = (e + lu / 2) % lu - lu / 2
+    return e
+
+
+def speed_error_mps(point: TargetPoint, truth: TruthTarget) -> float:
+    """``point``'s speed error against ``truth`` (m/s): signed velocities when the point knows the
+    direction (IQ: ``receding``/``approaching``), else speeds ``|v|`` (a real detector sees
+    ``|f_d|``; a ``static`` point says 0)."""
+    if point.direction in ("receding", "approaching"):
+        return point.velocity_mps - truth.velocity_mps
+    return abs(point.velocity_mps) - abs(truth.velocity_mps)
+
+
 def match_truth(res: FrameResult, truth: TruthTarget) -> tuple[TargetPoint, float] | None:
     """The point that answers a simulator truth target, and its range error (m).
 
-    The point nearest in speed (several targets are told apart by Doppler); the error is wrapped
-    into +-half the unambiguous range for CW frames (a range is only known modulo it), plain for
-    gated frames (the coarse range removed the ambiguity). None when the result has no point.
+    The point nearest in speed (several targets are told apart by Doppler); the error is
+    :func:`range_error_m`. None when the result has no point.
     """
     if not res.targets:
         return None
     p = min(res.targets, key=lambda q: abs(abs(q.velocity_mps) - abs(truth.velocity_mps)))
-    e = p.range_m - truth.range_m
-    if res.coarse_range_m is None and res.unambiguous_range_m:
-        lu = res.unambiguous_range_m
-        e = (e + lu / 2) % lu - lu / 2
-    return p, e
+    return p, range_error_m(p, res, truth)
 
 
 @dataclass
@@ -133,4 +151,140 @@ class ErrorLog:
         }
 
 
-__all__ = ["Bound", "range_bound", "noise_variance", "match_truth", "ErrorLog"]
+#: The flags of a point that tell the user not to trust its number as stated.
+FLAGS: tuple[str, ...] = ("near_edge", "cycle_ambiguous", "blended")
+#: |z| above which an error is "wrong" (issue 12: a confident wrong answer is |z| > 5, unflagged).
+Z_WRONG = 5.0
+
+
+@dataclass(frozen=True)
+class PointVerdict:
+    """One reported point judged against the truth.
+
+    ``truth_index`` is the truth target it answers (None: a false target). Errors are in m and
+    m/s; z-scores are error over the point's own sigma. ``speed_measured`` is False for a point
+    that reports ``static`` (speed 0 with the smallest detectable speed as its sigma).
+    """
+
+    truth_index: int | None
+    range_error_m: float | None
+    range_z: float | None
+    speed_error_mps: float | None
+    speed_z: float | None
+    speed_measured: bool
+    flags: tuple[str, ...]
+
+    @property
+    def flagged(self) -> bool:
+        return bool(self.flags)
+
+    def wrong(self, z_wrong: float = Z_WRONG) -> bool:
+        """A false target, or a range or speed off by more than ``z_wrong`` of its own sigma."""
+        if self.truth_index is None:
+            return True
+        return abs(self.range_z) > z_wrong or abs(self.speed_z) > z_wrong
+
+
+@dataclass(frozen=True)
+class FrameVerdict:
+    """One frame's result judged against every truth target (:func:`judge_frame`).
+
+    ``missed``: truth indices no point answers. ``confident_wrong``: the issue's definition -- a
+    point answering a truth, status ``ok``, no flag, ``|z| > z_wrong`` on range or speed.
+    ``confident_false``: an unflagged point that answers no truth (a ghost). ``flagged_wrong``:
+    points that are wrong but carry a flag (a flag beside a wrong number).
+    """
+
+    status: str
+    points: tuple[PointVerdict, ...]
+    missed: tuple[int, ...]
+    z_wrong: float = Z_WRONG
+
+    @property
+    def false_targets(self) -> int:
+        return sum(p.truth_index is None for p in self.points)
+
+    @property
+    def flagged_points(self) -> int:
+        return sum(p.flagged for p in self.points)
+
+    @property
+    def confident_wrong(self) -> bool:
+        return any(p.truth_index is not None and not p.flagged and p.wrong(self.z_wrong) for p in self.points)
+
+    @property
+    def confident_false(self) -> bool:
+        return any(p.truth_index is None and not p.flagged for p in self.points)
+
+    @property
+    def flagged_wrong(self) -> int:
+        return sum(p.flagged and p.wrong(self.z_wrong) for p in self.points)
+
+
+def flags_of(point: TargetPoint) -> tuple[str, ...]:
+    """The names in :data:`FLAGS` that ``point`` raises."""
+    return tuple(f for f in FLAGS if getattr(point, f))
+
+
+def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTarget],
+                z_wrong: float = Z_WRONG) -> FrameVerdict:
+    """Judge every point of ``res`` against every truth target, one point per truth.
+
+    A point *answers* a truth when it agrees with it on speed or on range (:func:`_answers`): a
+    point with the right speed and a wrong cycle, or the right range and a speed reported 0 for a
+    mover, answers it (and is wrong); a point wrong on both is a ghost. Points and truths that
+    answer each other are paired greedily by speed difference (targets are told apart by their
+    Doppler), ties by range error; a point left over is a false target, a truth left over is
+    missed. Only ``ok`` results have points; any other status misses every truth.
+
+    Parameters
+    ----------
+    res : the chain's result for the frame
+    truths : the simulator's truth targets (range at the record's centre, m; velocity, m/s)
+    z_wrong : |z| above which a matched point is wrong
+    """
+    points = list(res.targets) if res.status == "ok" else []
+    pairs = sorted((abs(dv), abs(dr), i, j) for i, p in enumerate(points) for j, t in enumerate(truths)
+                   for dv, dr in [(speed_error_mps(p, t), range_error_m(p, res, t))]
+                   if _answers(p, t, dv, dr))
+    owner: dict[int, int] = {}
+    taken: set[int] = set()
+    for _, _, i, j in pairs:
+        if i not in owner and j not in taken:
+            owner[i] = j
+            taken.add(j)
+    verdicts = []
+    for i, p in enumerate(points):
+        j = owner.get(i)
+        measured = p.direction != "static"
+        if j is None:
+            verdicts.append(PointVerdict(None, None, None, None, None, measured, flags_of(p)))
+            continue
+        er, ev = range_error_m(p, res, truths[j]), speed_error_mps(p, truths[j])
+        verdicts.append(PointVerdict(j, er, _z(er, p.range_sigma_m), ev, _z(ev, p.velocity_sigma_mps), measured,
+                                     flags_of(p)))
+    return FrameVerdict(res.status, tuple(verdicts), tuple(j for j in range(len(truths)) if j not in taken), z_wrong)
+
+
+#: a point agrees with a truth on speed within the larger of 5 of its sigmas, a quarter of the
+#: speed and this (m/s); on range within the larger of 5 of its sigmas and this (m)
+SPEED_AGREE_MPS, RANGE_AGREE_M = 0.01, 0.01
+
+
+def _answers(p: TargetPoint, t: TruthTarget, dv: float, dr: float) -> bool:
+    """Whether point ``p`` can be the chain's answer for truth ``t`` (speed error ``dv``, m/s;
+    range error ``dr``, m): close in speed, or close in range."""
+    close_v = abs(dv) <= max(Z_WRONG * p.velocity_sigma_mps, 0.25 * abs(t.velocity_mps), SPEED_AGREE_MPS)
+    close_r = abs(dr) <= max(Z_WRONG * p.range_sigma_m, RANGE_AGREE_M)
+    return close_v or close_r
+
+
+def _z(error: float, sigma: float) -> float:
+    """error/sigma; an exact answer with a zero sigma is 0, a wrong one inf."""
+    if sigma > 0:
+        return error / sigma
+    return 0.0 if error == 0 else math.copysign(math.inf, error)
+
+
+__all__ = ["Bound", "range_bound", "noise_variance", "match_truth", "range_error_m", "speed_error_mps",
+           "ErrorLog", "FLAGS", "Z_WRONG", "PointVerdict", "FrameVerdict", "flags_of", "judge_frame"]

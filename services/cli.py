@@ -194,10 +194,24 @@ def bench(
     profiles: Optional[str] = typer.Option(None, help="comma-separated profiles"),
     losses: Optional[str] = typer.Option(None, help="comma-separated echo losses (dB)"),
     stream_json: Optional[Path] = typer.Option(None, help="include mtcw-bench-stream's stream.json in the report"),
+    honesty: bool = typer.Option(False, "--honesty", help="the honesty map instead (issue 12; --quick, -o, --frames, "
+                                                          "--profiles apply; more options: mtcw-bench-honesty --help)"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB."""
     import platform
     import shlex
+
+    if honesty:
+        from mtcw_bench.honesty import main as honesty_main
+
+        argv = (["--quick"] if quick else []) + ["-o", str(out)] + (["--frames", str(frames)] if frames else []) + (
+            ["--profiles", profiles] if profiles else [])
+        try:
+            honesty_main(argv)
+        except SystemExit as err:
+            if err.code not in (None, 0):
+                _fail(str(err.code))
+        return
 
     from mtcw_bench.grid import GridSpec, run_grid, simulation_costs
     from mtcw_bench.report import write_report

@@ -1,0 +1,340 @@
+"""The honesty map's output: ``cells.csv``/``cells.json``, ``frames.csv.gz``, heat maps and ``report.md``.
+
+Heat maps (one panel per profile; a row per configuration, a column per rung of the loss ladder,
+strongest echo on the left): the fraction of frames with a confident wrong or false answer (the
+count written in the cell), the range and speed z-score spread (log colour, 1 is honest) and
+the fraction of targets missed. The report lists the totals, the nine failure cases of issue 12,
+the issue's targets with what the map measured, the cells that miss them, and where more
+samples lost a target that fewer samples found.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .honesty import MUST_FIND_SNR_DB, Z_MEAN_MAX, Z_STD_RANGE, Z_WRONG, _rung_order  # noqa: E402
+
+CELL_COLS = ["slice", "config", "rung", "profile", "samples", "receiver", "linewidth_hz", "jitter_s", "n_targets",
+             "loss_db", "velocity_mps", "predicted_snr_db", "frames", "ok", "no_target", "rejected", "points",
+             "truths", "missed", "false_targets", "flagged_points", "confident_wrong", "confident_false",
+             "confident_any", "flagged_wrong", "range_z_n", "range_z_mean", "range_z_std", "range_z_std_robust",
+             "range_z_max", "speed_z_n", "speed_z_mean", "speed_z_std", "speed_z_std_robust", "speed_z_max",
+             "range_std_m", "crb_range_m", "range_std_over_crb", "crb_speed_mps", "chain_ms_median",
+             "sim_ms_per_frame", "seed", "misses"]
+
+
+def _flat(v):
+    if isinstance(v, list):
+        return ";".join(f"{x:g}" if isinstance(x, float) else str(x) for x in v)
+    return v
+
+
+def write_tables(result: dict, out: Path) -> None:
+    """``cells.json`` (everything but the frame rows), ``cells.csv`` and ``frames.csv.gz``."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "cells.json").write_text(json.dumps({k: v for k, v in result.items() if k != "frames"},
+                                               separators=(",", ":"), default=str))
+    with open(out / "cells.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=CELL_COLS, extrasaction="ignore")
+        w.writeheader()
+        for c in result["cells"]:
+            w.writerow({k: _flat(c.get(k)) for k in CELL_COLS})
+    rows = result["frames"]
+    if rows:
+        # mtime 0: the same rows give the same bytes (a rewritten report leaves the file alone in git)
+        with open(out / "frames.csv.gz", "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as gz, \
+                io.TextIOWrapper(gz, newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+
+def _fmt(v, spec: str = ".2f") -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "inf"
+    return format(v, spec)
+
+
+# -------------------------------------------------------------------------------------------
+# heat maps
+def _matrix(cells: list[dict], profile: str, value) -> tuple[list[str], list[str], np.ndarray, list[list]]:
+    rows = []
+    for c in cells:
+        k = f"{c['slice']}: {c['config']}"
+        if k not in rows:
+            rows.append(k)
+    rungs = sorted({c["rung"] for c in cells}, key=_rung_order)
+    m = np.full((len(rows), len(rungs)), np.nan)
+    notes = [[""] * len(rungs) for _ in rows]
+    for c in cells:
+        if c["profile"] != profile:
+            continue
+        i, j = rows.index(f"{c['slice']}: {c['config']}"), rungs.index(c["rung"])
+        v, note = value(c)
+        m[i, j] = np.nan if v is None else v
+        notes[i][j] = note
+    return rows, rungs, m, notes
+
+
+def _heatmap(cells: list[dict], profiles: list[str], value, path: Path, title: str, cmap: str, vmin: float,
+             vmax: float, cbar: str) -> None:
+    rows = list(dict.fromkeys(f"{c['slice']}: {c['config']}" for c in cells))
+    rungs = sorted({c["rung"] for c in cells}, key=_rung_order)
+    fig, axes = plt.subplots(1, len(profiles), figsize=(2.2 + 0.55 * len(rungs) * len(profiles) + 2.5,
+                                                         1.6 + 0.19 * len(rows)), squeeze=False, sharey=True)
+    im = None
+    for ax, prof in zip(axes[0], profiles):
+        _, _, m, notes = _matrix(cells, prof, value)
+        cm = plt.get_cmap(cmap).with_extremes(bad="#d0d0d0")  # grey: no such cell (a rung the row lacks)
+        im = ax.imshow(np.ma.masked_invalid(m), aspect="auto", cmap=cm, vmin=vmin, vmax=vmax,
+                       interpolation="nearest")
+        for i in range(m.shape[0]):
+            for j in range(m.shape[1]):
+                if notes[i][j]:
+                    ax.text(j, i, notes[i][j], ha="center", va="center", fontsize=5)
+        ax.set_xticks(range(len(rungs)), [r.replace("snr=", "") for r in rungs], fontsize=6, rotation=90)
+        ax.set_title(prof, fontsize=9)
+        ax.set_xlabel("rung: first target's line SNR (dB) / loss", fontsize=6)
+    axes[0][0].set_yticks(range(len(rows)), rows, fontsize=6)
+    fig.suptitle(title, fontsize=10)
+    if im is not None:
+        cb = fig.colorbar(im, ax=axes[0].tolist(), fraction=0.02, pad=0.01)
+        cb.set_label(cbar, fontsize=7)
+        cb.ax.tick_params(labelsize=6)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _cw(c: dict):
+    f = c["frames"]
+    return (c["confident_any"] / f if f else None), (str(c["confident_any"]) if c["confident_any"] else "")
+
+
+def _log_std(key: str):
+    def v(c: dict):
+        s = c.get(key)
+        if s is None or not np.isfinite(s) or s <= 0:
+            return None, ""
+        return float(np.log10(s)), (f"{s:.2g}" if not Z_STD_RANGE[0] <= s <= Z_STD_RANGE[1] else "")
+    return v
+
+
+def _missed(c: dict):
+    t = c["truths"]
+    return (c["missed"] / t if t else None), (str(c["missed"]) if c["missed"] else "")
+
+
+def plot_heatmaps(cells: list[dict], out: Path) -> list[str]:
+    """The four heat maps (PNG); returns their file names."""
+    grid_cells = [c for c in cells if c["slice"] != "cases"]
+    if not grid_cells:
+        return []
+    profiles = list(dict.fromkeys(c["profile"] for c in grid_cells))
+    _heatmap(grid_cells, profiles, _cw, out / "confident_wrong.png",
+             f"frames with a confident wrong or false answer (unflagged, |z| > {Z_WRONG:g} or no truth): fraction, "
+             "count written", "Reds", 0, 1, "fraction of frames")
+    _heatmap(grid_cells, profiles, _log_std("range_z_std"), out / "range_z_std.png",
+             "range z-score std (log10; 0 = honest; value written outside 0.8-1.25)", "RdBu_r", -2, 2,
+             "log10 std(z)")
+    _heatmap(grid_cells, profiles, _log_std("speed_z_std"), out / "speed_z_std.png",
+             "speed z-score std over measured speeds (log10; value written outside 0.8-1.25)", "RdBu_r", -2, 2,
+             "log10 std(z)")
+    _heatmap(grid_cells, profiles, _missed, out / "missed.png", "targets missed: fraction, count written",
+             "Purples", 0, 1, "fraction of truth targets")
+    return ["confident_wrong.png", "range_z_std.png", "speed_z_std.png", "missed.png"]
+
+
+# -------------------------------------------------------------------------------------------
+# the report
+def _totals(cells: list[dict]) -> dict:
+    keys = ("frames", "ok", "confident_wrong", "confident_false", "confident_any", "flagged_wrong", "missed",
+            "false_targets", "flagged_points", "truths")
+    return {k: sum(c[k] for c in cells) for k in keys}
+
+
+def monotonic_violations(cells: list[dict], drop: float = 0.25) -> list[dict]:
+    """Where a longer record found the (same) target in fewer frames than a shorter one, at the same
+    losses: the ``length`` and ``six-tone`` slices, and the 5.3 GHz static rows."""
+    by: dict[tuple, dict[int, dict]] = defaultdict(dict)
+    for c in cells:
+        label = c["config"]
+        if c["slice"] in ("length", "six-tone"):
+            speed = label.split(" ", 1)[1]
+            if speed in ("v=0.5 bin", "v=6 bins"):  # these speeds scale with N: not the same target
+                continue
+        elif c["slice"] == "laser" and label.startswith("5.3 GHz") and label.endswith(" v=0"):
+            speed = "5.3 GHz v=0"
+        else:
+            continue
+        by[(c["slice"], speed, c["rung"], c["profile"], tuple(c["loss_db"]))][c["samples"]] = c
+    out = []
+    for (sl, speed, rung, prof, loss), per_n in by.items():
+        ns = sorted(per_n)
+        for a, b in zip(ns, ns[1:]):
+            fa = 1 - per_n[a]["missed"] / per_n[a]["truths"]
+            fb = 1 - per_n[b]["missed"] / per_n[b]["truths"]
+            if fb < fa:
+                out.append({"slice": sl, "speed": speed, "rung": rung, "profile": prof, "loss_db": loss[0],
+                            "short": a, "long": b, "found_short": fa, "found_long": fb, "large": fa - fb >= drop})
+    return out
+
+
+def _z_cell(c: dict, k: str) -> str:
+    return f"{_fmt(c[f'{k}_z_mean'])} / {_fmt(c[f'{k}_z_std'])} / {_fmt(c[f'{k}_z_max'], '.1f')}"
+
+
+def write_honesty_report(result: dict, out: Path) -> Path:
+    """Tables, heat maps and ``report.md`` under ``out``; returns the report's path."""
+    write_tables(result, out)
+    cells = result["cells"]
+    figs = plot_heatmaps(cells, out)
+    grid_cells = [c for c in cells if c["slice"] != "cases"]
+    case_cells = [c for c in cells if c["slice"] == "cases"]
+    s = result["size"]
+    L = ["# Honesty map (issue 12)", "",
+         f"Command: `{result.get('command', 'mtcw bench --honesty')}`", "",
+         f"Machine: {result.get('machine', 'unknown')}; {s['jobs']} worker processes; wall time "
+         f"{result['wall_s'] / 60:.1f} min" + (f" (+ {result['plan_s'] / 60:.1f} min planning the loss ladder)"
+                                               if result.get("plan_s") else "") + ".", "",
+         f"Size: {s['configs']} configurations, {s['groups']} (configuration, loss) groups, {s['cells']} cells "
+         f"(x profiles {', '.join(s['profiles'])}); {s['simulated_frames']} simulated frames, "
+         f"{s['processed_frames']} processed frames (frame x profile).", "",
+         "## How to read it", "",
+         f"- **z** = (estimate - truth) / the point's own sigma; range errors are wrapped into +-half the "
+         f"unambiguous range (CW). Speed z compares |v| (signed v for IQ, which reports the direction); a point "
+         f"reported `static` says 0 with the smallest detectable speed as its sigma: its z counts for the largest "
+         f"|z| and for confident-wrong, not for the speed mean/std.",
+         f"- **confident wrong** (issue 12): status ok, no flag (`near_edge`, `cycle_ambiguous`, `blended`), "
+         f"|z| > {Z_WRONG:g} on range or speed. **confident false**: an unflagged point that answers no truth (a "
+         f"ghost). Points and truths are paired one to one, nearest in speed first. **flagged wrong**: a wrong "
+         f"number beside a flag (counted, not excused: issue 12 case 3).",
+         f"- **above threshold**: the bound's median line SNR of the first target (from the truth, white noise "
+         f"only) ≥ {MUST_FIND_SNR_DB:g} dB, 3 dB above the chain's line threshold. The z and missed targets are "
+         f"checked only there; the confident-wrong target everywhere.",
+         "- Rungs: `snr=X` is the loss at which the first target's predicted line SNR is X dB (at the 2^16 row for "
+         "`length`/`six-tone`, so longer records there are 6 and 12 dB stronger); `loss=X` a fixed loss; "
+         "`as is` the scene as the issue states it.", ""]
+    # totals
+    L += ["## Totals", "", "| part | profile | frames | confident wrong | confident false | either | flagged wrong "
+          "| missed / truths | false targets |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for part, cs in (("map", grid_cells), ("issue cases", case_cells)):
+        for prof in dict.fromkeys(c["profile"] for c in cs):
+            t = _totals([c for c in cs if c["profile"] == prof])
+            L.append(f"| {part} | {prof} | {t['frames']} | {t['confident_wrong']} | {t['confident_false']} | "
+                     f"{t['confident_any']} | {t['flagged_wrong']} | {t['missed']} / {t['truths']} | "
+                     f"{t['false_targets']} |")
+        if cs:
+            t = _totals(cs)
+            L.append(f"| {part} | **all** | {t['frames']} | **{t['confident_wrong']}** | **{t['confident_false']}** | "
+                     f"**{t['confident_any']}** | {t['flagged_wrong']} | {t['missed']} / {t['truths']} | "
+                     f"{t['false_targets']} |")
+    L.append("")
+    if case_cells:
+        L += ["## Issue 12's nine failures (as the issue states them)", "",
+              "| case | profile | frames | ok | confident wrong | confident false | flagged wrong | missed | "
+              "range z mean / std / max | speed z mean / std / max |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for c in case_cells:
+            L.append(f"| {c['config']} ({c['note']}) | {c['profile']} | {c['frames']} | {c['ok']} | "
+                     f"{c['confident_wrong']} | {c['confident_false']} | {c['flagged_wrong']} | {c['missed']} | "
+                     f"{_z_cell(c, 'range')} | {_z_cell(c, 'speed')} |")
+        L.append("")
+    # targets
+    L += ["## Issue 12's targets", "", "| target | measured | met? |", "| --- | --- | --- |"]
+    t = _totals(cells)
+    L.append(f"| 0 confident-wrong frames over the whole map | {t['confident_wrong']} confident wrong + "
+             f"{t['confident_false']} confident false ({t['confident_any']} frames) of {t['frames']} | "
+             f"{'met' if t['confident_any'] == 0 else 'missed'} |")
+    L.append(f"| ≥ 20,000 frames in the full run | {s['processed_frames']} processed ({s['simulated_frames']} "
+             f"simulated) | {'met' if s['processed_frames'] >= 20000 else 'missed'} |")
+    above = [c for c in grid_cells if c.get("predicted_snr_db") is not None and c["predicted_snr_db"] >= MUST_FIND_SNR_DB]
+    for k, name in (("range_z", "range"), ("speed_z", "speed")):
+        judged = [c for c in above if c[f"{k}_n"] >= 5 and c[f"{k}_std"] is not None]
+        bad = [c for c in judged if k in c["misses"]]
+        L.append(f"| {name}: abs(mean z) < {Z_MEAN_MAX} and z std {Z_STD_RANGE[0]}–{Z_STD_RANGE[1]} in every cell "
+                 f"above threshold | {len(judged) - len(bad)} of {len(judged)} cells within (median z std "
+                 f"{_fmt(float(np.median([c[f'{k}_std'] for c in judged])) if judged else None)}) | "
+                 f"{'met' if not bad else f'missed in {len(bad)} cells'} |")
+    mm = [c for c in above if "missed" in c["misses"]]
+    L.append(f"| no missed target at line SNR ≥ {MUST_FIND_SNR_DB:g} dB | {sum(c['missed'] for c in mm)} targets "
+             f"missed in {len(mm)} of {len(above)} cells | {'met' if not mm else 'missed'} |")
+    mv = monotonic_violations(cells)
+    L.append(f"| more samples never lose a target | {len(mv)} (record, rung, profile) pairs found fewer frames at "
+             f"the longer record ({sum(v['large'] for v in mv)} by ≥ 25 points) | {'met' if not mv else 'missed'} |")
+    crb = [c for c in cells if c["profile"] == "balanced" and c.get("first_moves") and c.get("range_std_over_crb")
+           and 40 <= c["loss_db"][0] <= 80 and c["slice"] != "jitter"]
+    if crb:
+        worst = max(crb, key=lambda c: c["range_std_over_crb"])
+        L.append(f"| `balanced` sigma ≤ 1.3× CRB on movers at 40–80 dB | {sum(c['range_std_over_crb'] <= 1.3 for c in crb)}"
+                 f" of {len(crb)} cells; median {np.median([c['range_std_over_crb'] for c in crb]):.2f}×, worst "
+                 f"{worst['range_std_over_crb']:.1f}× ({worst['slice']}: {worst['config']}, {worst['rung']}) | "
+                 f"{'met' if worst['range_std_over_crb'] <= 1.3 else 'missed'} |")
+    lc = [c for c in cells if c["linewidth_hz"] >= 1e9 and c["n_targets"] == 1 and c["velocity_mps"][0] == 0
+          and c["profile"] == "balanced"]
+    if lc:
+        reach: dict[int, float] = {}
+        for c in lc:
+            if c["ok"] == c["frames"] and c["confident_any"] == 0 and c["range_std_m"] is not None \
+                    and c["range_std_m"] <= 0.01:
+                reach[c["samples"]] = max(reach.get(c["samples"], -1.0), c["loss_db"][0])
+        parts = [f"{n} samples: {v:.0f} dB" for n, v in sorted(reach.items())]
+        L.append(f"| 5.3 GHz, 500× L_coh: sigma ≤ 1 cm to ≥ 40 dB in one frame | `balanced`, largest loss with every "
+                 f"frame ok, range std ≤ 1 cm, nothing confident wrong: {', '.join(parts) or 'none'} | "
+                 f"{'met' if any(v >= 40 for v in reach.values()) else 'missed'} |")
+    L.append("")
+    # cells that miss
+    L += ["## Cells that miss a target, by slice and profile", "",
+          "| slice | profile | cells | confident wrong | confident false | missed | range z | speed z | crb |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for sl in dict.fromkeys(c["slice"] for c in cells):
+        for prof in dict.fromkeys(c["profile"] for c in cells):
+            cs = [c for c in cells if c["slice"] == sl and c["profile"] == prof]
+            if not cs:
+                continue
+            n = {k: sum(k in c["misses"] for c in cs) for k in
+                 ("confident_wrong", "confident_false", "missed", "range_z", "speed_z", "crb")}
+            L.append(f"| {sl} | {prof} | {len(cs)} | {n['confident_wrong']} | {n['confident_false']} | {n['missed']} | "
+                     f"{n['range_z']} | {n['speed_z']} | {n['crb']} |")
+    L += ["", "### Worst cells (most confident wrong or false frames)", "",
+          "| slice | config | rung | profile | loss dB | pred. SNR | ok/frames | conf. wrong | conf. false | "
+          "range z mean / std / max | speed z mean / std / max | misses |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    worst = sorted((c for c in grid_cells if c["confident_any"]), key=lambda c: -c["confident_any"])[:40]
+    for c in worst:
+        L.append(f"| {c['slice']} | {c['config']} | {c['rung']} | {c['profile']} | "
+                 f"{'/'.join(f'{x:.0f}' for x in c['loss_db'])} | {_fmt(c['predicted_snr_db'], '.0f')} | "
+                 f"{c['ok']}/{c['frames']} | {c['confident_wrong']} | {c['confident_false']} | {_z_cell(c, 'range')} | "
+                 f"{_z_cell(c, 'speed')} | {', '.join(c['misses'])} |")
+    if mv:
+        L += ["", "### More samples lost a target", "",
+              "| slice | speed | rung | loss dB | profile | N short → long | found short → long |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+        for v in sorted(mv, key=lambda v: -(v["found_short"] - v["found_long"]))[:30]:
+            L.append(f"| {v['slice']} | {v['speed']} | {v['rung']} | {v['loss_db']:.0f} | {v['profile']} | "
+                     f"{v['short']} → {v['long']} | {v['found_short']:.2f} → {v['found_long']:.2f} |")
+    if result.get("errors"):
+        L += ["", "## Groups that did not run", ""] + [f"- {e}" for e in result["errors"]]
+    if figs:
+        L += ["", "## Heat maps", ""] + [f"![{f}]({f})" for f in figs]
+    L += ["", "## Files", "",
+          "`cells.csv` / `cells.json`: one row per cell (all the numbers above); `frames.csv.gz`: one row per "
+          "processed frame (status, points, missed, false, flags, largest |z|, the chain's reason).", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(L) + "\n")
+    return path
+
+
+__all__ = ["write_honesty_report", "write_tables", "plot_heatmaps", "monotonic_violations"]
