@@ -289,7 +289,11 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
         recv = app.state.receiver
         return recv.status() if recv is not None else {"state": "not_started"}
 
-    @app.get("/v1/points/latest", summary="newest result per source")
+    @app.get("/v1/points/latest", summary="newest result per source",
+             responses={404: {"description": "no point yet (from this source, when one is named)",
+                              "content": {"application/json": {"schema": {
+                                  "type": "object", "properties": {"detail": {"type": "string"}},
+                                  "required": ["detail"]}}}}})
     def latest(source: Optional[str] = Query(None, min_length=1, max_length=200)) -> dict:
         with store.lock:
             if source is not None:
@@ -309,7 +313,9 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
         return {"points": [served_json(p) for p in sel[:limit]], "count": min(len(sel), limit),
                 "more": len(sel) > limit}
 
-    @app.get("/healthz", summary="alive, and the points receiver's state")
+    @app.get("/healthz", summary="alive, and the points receiver's state",
+             responses={503: {"description": "the points receiver has died (status receiver_dead)",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
     def healthz(response: Response) -> dict:
         recv = receiver_status()
         dead = recv["state"] == "dead"
@@ -317,7 +323,9 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
             response.status_code = 503
         return {"status": "receiver_dead" if dead else "alive", "receiver": recv, **store.snapshot()}
 
-    @app.get("/readyz", summary="receiver alive and a frame arrived recently")
+    @app.get("/readyz", summary="receiver alive and a frame arrived recently",
+             responses={503: {"description": "not ready: no recent frame, or the receiver is not alive",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
     def readyz(response: Response) -> dict:
         snap = store.snapshot()
         recv = receiver_status()
