@@ -25,11 +25,13 @@ reader is fuzzed with the recording tests.
 
 from __future__ import annotations
 
+import atexit
 import copy
 import json
 import math
 import os
 import re
+import shutil
 import tempfile
 import time
 import tomllib
@@ -632,7 +634,8 @@ _TOML_TOKENS = ["nan", "inf", "-inf", "+inf", "-nan", "1e999", "-1", "0", "1e-40
                 "{}", "{ a = 1 }", "true", "1979-05-27T07:32:00Z", "07:32:00", "9223372036854775807",
                 "9223372036854775808", "0x7fffffffffffffff", "-0.0", "1_000", '"""', "[[]]"]
 _ASSIGN = re.compile(r"^(\s*)([A-Za-z_][\w-]*)(\s*=\s*)(.*)$")
-_tmp = Path(tempfile.mkdtemp(prefix="mtcw-fuzz-"))
+_tmp = Path(tempfile.mkdtemp(prefix="mtcw-fuzz-"))  # the files the loaders read (rewritten per case)
+atexit.register(shutil.rmtree, _tmp, True)
 
 
 @given(name=st.sampled_from(sorted(_SCENE_TEXTS)), data=st.data())
