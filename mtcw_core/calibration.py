@@ -16,6 +16,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .scene import field_path  # the one rendering of an error's field path
+
 
 FORMAT_VERSION = 1
 
@@ -72,11 +74,11 @@ class Calibration(BaseModel):
         """
         try:
             text = Path(path).read_bytes()
-        except OSError as err:
+        except (OSError, ValueError) as err:  # ValueError: a NUL in the path
             raise CalibrationError(f"cannot read calibration {path}: {err}") from None
         try:
             return cls.model_validate_json(text)
         except ValidationError as err:
             e = err.errors()[0]
-            loc = ".".join(str(x) for x in e["loc"]) or "(file)"
+            loc = field_path(e["loc"]) or "(file)"
             raise CalibrationError(f"calibration {path}: {loc}: {e['msg']}") from None

@@ -10,11 +10,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from .scene import field_path  # the one rendering of an error's field path
+
 
 class ChainSettings(BaseModel):
     """Choices of every stage. A profile is a named ChainSettings."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and inf are refused: a NaN bound or threshold compares false and switches a check off
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     profile: str = "custom"
     # -- validate
@@ -96,7 +99,7 @@ def get_profile(name: str, **overrides) -> ChainSettings:
     ValueError
         Unknown profile, or an override that is not a valid setting (the message names it).
     """
-    if name not in PROFILES:
+    if not isinstance(name, str) or name not in PROFILES:
         raise ValueError(f"profile: unknown {name!r} (one of {', '.join(PROFILES)})")
     base = PROFILES[name]
     if not overrides:
@@ -105,4 +108,4 @@ def get_profile(name: str, **overrides) -> ChainSettings:
         return ChainSettings.model_validate({**base.model_dump(), **overrides})
     except ValidationError as err:
         e = err.errors()[0]
-        raise ValueError(f"profile {name}: {'.'.join(map(str, e['loc']))}: {e['msg']}") from None
+        raise ValueError(f"profile {name}: {field_path(e['loc'])}: {e['msg']}") from None

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -53,8 +54,10 @@ class Modulator(_Model):
     @model_validator(mode="after")
     def _distinct(self) -> "Modulator":
         f = [t.frequency_hz for t in self.tones]
-        if len(set(f)) != len(f):
-            raise ValueError("tones: frequencies must be distinct")
+        for i, x in enumerate(f):
+            if x in f[:i]:
+                raise ValueError(f"tones.{i}.frequency_hz: {x:g} Hz repeats tones.{f.index(x)}: "
+                                 f"frequencies must be distinct")
         return self
 
     @property
@@ -128,7 +131,7 @@ class Frames(_Model):
 class Scene(_Model):
     name: str = "scene"
     description: str = ""
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="of the simulator's random generator (numpy needs it >= 0)")
     laser: Laser = Laser()
     lo_fraction: float = Field(0.1, gt=0, lt=1, description="coupler fraction beta to the LO")
     modulator: Modulator
@@ -148,7 +151,7 @@ class Scene(_Model):
             if t.frequency_hz >= nyq:
                 raise ValueError(
                     f"modulator.tones.{i}.frequency_hz: {t.frequency_hz:g} Hz is at or above "
-                    f"Nyquist ({nyq:g} Hz)"
+                    f"Nyquist ({nyq:g} Hz, half digitizer.sample_rate_hz)"
                 )
         return self
 
@@ -157,10 +160,19 @@ class Scene(_Model):
         return self.modulator.tones_hz
 
 
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def field_path(loc: tuple) -> str:
+    """A pydantic error location as a dotted field path (``targets.0.loss_db``); a key that is not a
+    plain word (an unknown key such as ``""`` or ``"a b"``) is quoted, so that it is still visible."""
+    return ".".join(str(x) if isinstance(x, int) or _PLAIN_KEY.fullmatch(str(x)) else repr(x) for x in loc)
+
+
 def _format_validation(err: ValidationError, origin: str) -> str:
     lines = [f"invalid scene {origin}:"]
     for e in err.errors():
-        loc = ".".join(str(x) for x in e["loc"]) or "(root)"
+        loc = field_path(e["loc"]) or "(root)"
         lines.append(f"  {loc}: {e['msg']}")
     return "\n".join(lines)
 
@@ -217,8 +229,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
     """Load and validate a scene from TOML/JSON or a bundled scene name."""
     path = resolve_scene_path(name_or_path)
     try:
-        text = path.read_text()
+        text = path.read_bytes().decode("utf-8")
         data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except (OSError, tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        raise SceneError(f"cannot read scene {path}: {err}") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise SceneError(f"cannot read scene {path}: {type(err).__name__}: {err}") from None
     return scene_from_dict(data, origin=str(path))

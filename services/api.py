@@ -624,7 +624,11 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
         recv = app.state.receiver
         return recv.status() if recv is not None else {"state": "not_started"}
 
-    @app.get("/v1/points/latest", summary="newest result per source")
+    @app.get("/v1/points/latest", summary="newest result per source",
+             responses={404: {"description": "no point yet (from this source, when one is named)",
+                              "content": {"application/json": {"schema": {
+                                  "type": "object", "properties": {"detail": {"type": "string"}},
+                                  "required": ["detail"]}}}}})
     def latest(source: Optional[str] = Query(None, min_length=1, max_length=200)) -> dict:
         with store.lock:
             if source is not None:
@@ -652,7 +656,9 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
     def livez() -> dict:
         return {"status": "alive", "uptime_s": time.monotonic() - store.started}
 
-    @app.get("/healthz", summary="the points receiver's state and the counts (503 once the receiver died)")
+    @app.get("/healthz", summary="the points receiver's state and the counts (503 once the receiver died)",
+             responses={503: {"description": "the points receiver has died (status receiver_dead)",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
     def healthz(response: Response) -> dict:
         recv = receiver_status()
         dead = recv["state"] == "dead"
@@ -660,7 +666,10 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
             response.status_code = 503
         return {"status": "receiver_dead" if dead else "alive", "receiver": recv, **store.snapshot()}
 
-    @app.get("/readyz", summary="receiver alive, store writable, a frame arrived recently (?verbose: each check)")
+    @app.get("/readyz", summary="receiver alive, store writable, a frame arrived recently (?verbose: each check)",
+             responses={503: {"description": "not ready: the first failing check is the reason (receiver, store, "
+                                             "frames)",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
     def readyz(response: Response, verbose: Optional[str] = Query(None, description="list every check (?verbose, "
                                                                                      "=1, =true)")) -> dict:
         show = _flag(verbose, "verbose")

@@ -1,6 +1,6 @@
 """Hostile or malformed input to the core: refused early with a reason naming the field, never a
-long computation, a huge allocation or a raw traceback. (Services-level fuzzing lives with the
-wire tests.)"""
+long computation, a huge allocation or a raw traceback. (Fuzzing of every parser, services
+included: tests/test_fuzz.py.)"""
 
 from __future__ import annotations
 

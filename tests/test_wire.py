@@ -7,14 +7,12 @@ import math
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 from msgspec import to_builtins
 
 from mtcw_core.chain import FrameResult, TargetPoint, process_frame
 from mtcw_core.frame import Frame, PulseInfo, TruthTarget
 from mtcw_core.simulate import simulate_frame
-from services.wire import (END_TOPIC, FRAME_TOPIC, POINTS_TOPIC, VERSION, EndMessage, FrameHeader, PointMessage,
+from services.wire import (END_TOPIC, FRAME_TOPIC, POINTS_TOPIC, VERSION, EndMessage, PointMessage,
                            TargetMessage, WireError, decode_end, decode_frame, decode_points, encode_end,
                            encode_frame, encode_points, end_message, frame_header, point_from_result,
                            rejected_point, rejection_point)
@@ -251,16 +249,8 @@ def test_end_message_checks():
 
 
 # ---------------------------------------------------------------------------------------------
-# total decoders: anything in, a typed message or a WireError out
+# total decoders: anything in, a typed message or a WireError out (fuzzed in tests/test_fuzz.py)
 _DECODERS = [(decode_frame, FRAME_TOPIC, 3), (decode_points, POINTS_TOPIC, 2), (decode_end, END_TOPIC, 2)]
-_FIELDS = sorted(set(FrameHeader.__struct_fields__) | set(PointMessage.__struct_fields__)
-                 | set(EndMessage.__struct_fields__) | set(TargetMessage.__struct_fields__))
-_leaf = (st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.floats() | st.text(max_size=8)
-         | st.binary(max_size=8))
-_value = st.recursive(_leaf, lambda kids: st.lists(kids, max_size=4)
-                      | st.dictionaries(st.sampled_from(_FIELDS) | st.text(max_size=4), kids, max_size=4),
-                      max_leaves=12)
-_fuzz = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def _total(decode, parts):
@@ -271,46 +261,6 @@ def _total(decode, parts):
         return None
     assert isinstance(out, (Frame, PointMessage, EndMessage))
     return out
-
-
-@_fuzz
-@given(which=st.sampled_from(_DECODERS), body=st.binary(max_size=256), extra=st.lists(st.binary(max_size=16),
-                                                                                      max_size=4))
-def test_decoders_are_total_on_arbitrary_bytes(which, body, extra):
-    decode, topic, n = which
-    _total(decode, [topic, body, *([b""] * (n - 2))])
-    _total(decode, [topic, body, *extra])
-    _total(decode, [body, *extra])
-
-
-@_fuzz
-@given(which=st.sampled_from(_DECODERS), m=st.dictionaries(st.sampled_from(_FIELDS), _value, max_size=12),
-       v=st.sampled_from([1, 1, 2, None]))
-def test_decoders_are_total_on_arbitrary_msgpack_maps(which, m, v):
-    decode, topic, n = which
-    if v is not None:
-        m["v"] = v
-    _total(decode, [topic, msgpack.packb(m, use_bin_type=True), *([b"\0" * 8] * (n - 2))])
-
-
-_VALID = {"points": lambda: _point_map(), "end": lambda: to_builtins(end_message("s", 1, 2, 3, 0)),
-          "frame": lambda: to_builtins(frame_header(_synthetic()))}
-
-
-@_fuzz
-@given(kind=st.sampled_from(sorted(_VALID)), key=st.sampled_from(_FIELDS), value=_value, drop=st.booleans())
-def test_decoders_are_total_on_valid_messages_with_one_field_changed(kind, key, value, drop):
-    m = _VALID[kind]()
-    if drop:
-        m.pop(key, None)
-    else:
-        m[key] = value
-    body = msgpack.packb(m, use_bin_type=True)
-    if kind == "frame":
-        _total(decode_frame, [FRAME_TOPIC, body, encode_frame(_synthetic())[2]])
-    else:
-        _total(decode_points if kind == "points" else decode_end, [POINTS_TOPIC if kind == "points" else END_TOPIC,
-                                                                   body])
 
 
 @pytest.mark.parametrize("which", _DECODERS)

@@ -2,9 +2,9 @@
 
 A frame that fails raises :class:`~mtcw_core.results.Rejected` with a short reason key
 (``bad_fs``, ``bad_shape``, ``too_short``, ``too_long``, ``length_mismatch``, ``tone_plan``,
-``calibration_mismatch``, ``bad_channels``, ``non_finite``, ``flat``, ``clipped``). The limits on
-what a frame may ask for (tones, record length, cycle-search grid) are checked first, before any
-work that grows with them.
+``calibration_mismatch``, ``bad_channels``, ``non_finite``, ``bad_scale``, ``bad_pulse``, ``flat``,
+``clipped``). The limits on what a frame may ask for (tones, record length, cycle-search grid,
+gate periods) are checked first, before any work that grows with them.
 """
 
 from __future__ import annotations
@@ -60,16 +60,35 @@ def search_grid_points(tones_hz, settings: ChainSettings, pulsed: bool, l_unamb:
     return span / step
 
 
+#: tones (and the lowest tone from 0) at least this many bins of the record apart
+MIN_TONE_GAP_BINS = 2
+#: quasi-CW gate timing the gate stage can work with: a period of at least this many samples ...
+MIN_PERIOD_SAMPLES = 64
+#: ... and at most this many gate periods in one record (the gate stage loops over them)
+MAX_GATES = 4096
+
+
 def _check_limits(frame: Frame, settings: ChainSettings) -> None:
     """What a frame may ask of a worker, before anything is computed."""
     if frame.n > settings.max_samples:
         raise Rejected("too_long", f"{frame.n} samples per channel (limit {settings.max_samples})")
+    if frame.pulse is not None and settings.gate != "off" and math.isfinite(frame.fs_hz):
+        # the gate stage correlates over one period and walks every gate in the record: a period
+        # of a fraction of a sample, or of days, would hold a worker for ever
+        per = frame.pulse.period_s * frame.fs_hz
+        if not (max(MIN_PERIOD_SAMPLES, frame.n / MAX_GATES) <= per <= settings.max_samples):
+            raise Rejected("bad_pulse", f"gate period {frame.pulse.period_s:.3g} s is {per:.3g} samples (from "
+                                        f"{MIN_PERIOD_SAMPLES} and {frame.n / MAX_GATES:.3g} = n/{MAX_GATES} "
+                                        f"to {settings.max_samples})")
     tones = frame.tones_hz
     if len(tones) > settings.max_tones:
         raise Rejected("tone_plan", f"{len(tones)} tones (limit {settings.max_tones})")
     if not all(isinstance(f, (int, float)) and math.isfinite(f) for f in tones) or len(set(tones)) != len(tones):
         raise Rejected("tone_plan", f"tones {list(tones)} must be finite and distinct")
     if len(tones) >= 2 and all(0 < f < frame.fs_hz / 2 for f in tones):
+        t = sorted(tones)
+        if min(b - a for a, b in zip(t, t[1:])) < 1.0:  # the plan's gcd is taken on a 1 Hz grid
+            raise Rejected("tone_plan", f"tones {list(tones)} are less than 1 Hz apart")
         l_unamb = plan_unambiguous_range(tones)
         pts = search_grid_points(tones, settings, frame.pulse is not None, l_unamb)
         if pts > settings.max_grid_points:
@@ -95,6 +114,11 @@ def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration 
         raise Rejected("tone_plan", "at least two tones are needed for pair phases")
     if any(not (0 < f < frame.fs_hz / 2) for f in tones):
         raise Rejected("tone_plan", f"tones {list(tones)} must lie in (0, fs/2)")
+    gap = min(min(tones), *(b - a for a, b in zip(sorted(tones), sorted(tones)[1:])))
+    if gap < MIN_TONE_GAP_BINS * frame.fs_hz / frame.n:
+        raise Rejected("tone_plan", f"tones {list(tones)} are {gap:.3g} Hz from each other or from 0: less than "
+                                    f"{MIN_TONE_GAP_BINS} bins of a {frame.n}-sample record at {frame.fs_hz:.3g} S/s "
+                                    f"(their lines cannot be told apart)")
     if settings.expected_tones_hz is not None and tuple(tones) != tuple(settings.expected_tones_hz):
         raise Rejected("tone_plan", f"frame tones {list(tones)} != configured {list(settings.expected_tones_hz)}")
     if calibration is not None and tuple(calibration.tones_hz) != tuple(tones):
@@ -103,6 +127,26 @@ def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration 
         raise Rejected("bad_channels", "iq receiver needs channels 'i' and 'q'")
     if frame.receiver != "iq" and "pd" not in frame.channels:
         raise Rejected("bad_channels", "channel 'pd' missing")
+
+
+#: volts (code*scale + offset) a record may reach, and the least span of its samples: far beyond
+#: any digitizer, and within what the chain's spectra hold (the Doppler spectrum may be single
+#: precision: line powers over 2^25 samples must neither overflow nor underflow float32)
+MAX_VOLTS = 1e6
+MIN_SPAN_VOLTS = 1e-12
+
+
+def _check_volts(frame: Frame, hi: float, lo: float) -> None:
+    """The extreme codes ``hi``, ``lo`` in volts (linear, so they bound every sample): finite,
+    within :data:`MAX_VOLTS`, and apart by at least :data:`MIN_SPAN_VOLTS`."""
+    v = [c * frame.scale + frame.offset for c in (hi, lo)]
+    peak, span = max(abs(v[0]), abs(v[1])), abs(v[0] - v[1])
+    if not peak <= MAX_VOLTS:  # NaN-safe
+        raise Rejected("bad_scale", f"scale {frame.scale:g}, offset {frame.offset:g} put samples at {peak:.3g} V "
+                                    f"(limit {MAX_VOLTS:g} V)")
+    if not span >= MIN_SPAN_VOLTS:
+        raise Rejected("flat" if span == 0 else "bad_scale",
+                       f"scale {frame.scale:g}: the samples span {span:.3g} V (at least {MIN_SPAN_VOLTS:g} V needed)")
 
 
 def validate(frame: Frame, settings: ChainSettings, calibration: Calibration | None) -> tuple[np.ndarray, float]:
@@ -127,6 +171,7 @@ def validate(frame: Frame, settings: ChainSettings, calibration: Calibration | N
         hi, lo = r.max(), r.min()
         if hi == lo:
             raise Rejected("flat", "all samples equal (no signal)")
+        _check_volts(frame, float(hi), float(lo))
         clip = max(clip, rail_fraction(r, hi), rail_fraction(r, lo))
     if clip > settings.max_clip_fraction:
         raise Rejected("clipped", f"{clip:.2%} of samples at the rails (max {settings.max_clip_fraction:.2%})")
