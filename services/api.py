@@ -557,6 +557,10 @@ _TRUE = {"", "1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 
 
+#: what a boolean query parameter may be, in the OpenAPI schema too (FastAPI refuses the rest with 422)
+_FLAG_PATTERN = r"^(|1|0|[Tt]rue|TRUE|[Ff]alse|FALSE|[Yy]es|YES|[Nn]o|NO|[Oo]n|ON|[Oo]ff|OFF)$"
+
+
 def _flag(value: Optional[str], name: str) -> bool:
     """A boolean query parameter: absent = false; ``?name``, ``=1``, ``=true`` (yes, on) = true."""
     if value is None:
@@ -611,7 +615,9 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
             if recv is not None:
                 recv.stop()
                 recv.join(timeout=5)
-            if recv is None or not recv.is_alive():
+            # the store is the app's while its receiver runs; without one (tests, an ASGI
+            # harness that enters and leaves the lifespan per request) it stays open with the app
+            if recv is not None and not recv.is_alive():
                 store.close()
 
     app = FastAPI(title="mtcw", version="1", lifespan=lifespan,
@@ -670,8 +676,8 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
              responses={503: {"description": "not ready: the first failing check is the reason (receiver, store, "
                                              "frames)",
                               "content": {"application/json": {"schema": {"type": "object"}}}}})
-    def readyz(response: Response, verbose: Optional[str] = Query(None, description="list every check (?verbose, "
-                                                                                     "=1, =true)")) -> dict:
+    def readyz(response: Response, verbose: Optional[str] = Query(
+            None, pattern=_FLAG_PATTERN, description="list every check (?verbose, =1, =true)")) -> dict:
         show = _flag(verbose, "verbose")
         snap = store.snapshot()
         recv = receiver_status()

@@ -22,6 +22,18 @@ from .sockets import (DEFAULT_FRAME_HWM, DEFAULT_FRAME_LINGER_MS, DEFAULT_MAX_FR
 
 log = logging.getLogger("mtcw")
 
+#: the longest wait a setting may ask for (s): a day; longer ones overflow ZeroMQ's poll timeouts
+MAX_WAIT_S = 86_400.0
+#: the highest frame rate a setting may ask for (frames/s)
+MAX_RATE_HZ = 1e6
+
+
+def _path_given(v):
+    """An empty path (``MTCW_ENDPOINTS_FILE=""``) would be the current directory: refused."""
+    if isinstance(v, str) and not v.strip():
+        raise ValueError("an empty path")
+    return v
+
 
 class TransportSettings(BaseSettings):
     """ZeroMQ endpoints and queue policy shared by the services.
@@ -32,7 +44,7 @@ class TransportSettings(BaseSettings):
     socket options are named, with their reasons, in :mod:`services.sockets`.
     """
 
-    model_config = SettingsConfigDict(env_prefix="MTCW_", extra="forbid", validate_default=True)
+    model_config = SettingsConfigDict(env_prefix="MTCW_", extra="forbid", validate_default=True, allow_inf_nan=False)
 
     frames_endpoint: str = Field("tcp://127.0.0.1:5555", description="acquisition PUSH -> workers (bind: port 0 "
                                                                       "takes a free one)")
@@ -68,6 +80,8 @@ class TransportSettings(BaseSettings):
             raise ValueError(f"{v!r} is not a ZeroMQ endpoint (tcp://host:port, ipc://path)")
         return v
 
+    _paths = field_validator("endpoints_file", "curve_dir", mode="before")(_path_given)
+
     @field_validator("curve_dir")
     @classmethod
     def _keys(cls, v: Optional[Path]) -> Optional[Path]:
@@ -91,26 +105,33 @@ class AcquisitionSettings(TransportSettings):
     source: str = Field("sim", description="sim | replay | module:Class (a FrameSource plug-in)")
     scene: str = Field("cw-bench", description="scene file or bundled scene name (source sim)")
     recording: Optional[Path] = Field(None, description="SigMF recording (source replay)")
-    rate_hz: float = Field(0.0, ge=0, description="frames per second; 0 = as fast as the source goes")
+    rate_hz: float = Field(0.0, ge=0, le=MAX_RATE_HZ, description="frames per second; 0 = as fast as the source goes")
     loop: bool = Field(True, description="replay: start again at the end")
     frames: int = Field(0, ge=0, description="stop after this many frames (0 = run until stopped)")
     source_name: str = Field("bench", min_length=1, description="the `source` field of every frame")
     seed: Optional[int] = None
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
-    wait_for_worker_s: float = Field(5.0, ge=0, description="before the first frame, wait this long for the "
+    wait_for_worker_s: float = Field(5.0, ge=0, le=MAX_WAIT_S, description="before the first frame, wait this long for the "
                                                             "workers (wait_for_workers of them)")
     wait_for_workers: int = Field(1, ge=1, le=1024, description="how many workers to wait for before the first frame")
-    end_timeout_s: float = Field(5.0, ge=0, description="at the end of a run, wait this long to hand the "
+    end_timeout_s: float = Field(5.0, ge=0, le=MAX_WAIT_S, description="at the end of a run, wait this long to hand the "
                                                         "end-of-run notice (and queued frames) to a worker")
     state_file: Optional[Path] = Field(None, description="the run's frame count, kept current before every send "
                                        "(a memory-mapped file): a node restarted after a kill sends the killed "
                                        "run's end-of-run notice, so its lost tail is counted")
 
+    _acq_paths = field_validator("recording", "state_file", mode="before")(_path_given)
+
     @field_validator("recording")
     @classmethod
     def _exists(cls, v: Optional[Path]) -> Optional[Path]:
-        if v is not None and not (v.exists() or v.with_suffix(".sigmf-meta").exists()
-                                  or Path(str(v) + ".sigmf-meta").exists()):
+        if v is None:
+            return v
+        try:
+            found = v.exists() or v.with_suffix(".sigmf-meta").exists() or Path(str(v) + ".sigmf-meta").exists()
+        except (OSError, ValueError) as err:  # a name too long for the file system, a NUL
+            raise ValueError(f"cannot be a file name ({getattr(err, 'strerror', None) or err})") from None
+        if not found:
             raise ValueError(f"{v} does not exist")
         return v
 
@@ -120,6 +141,8 @@ class WorkerSettings(TransportSettings):
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
+
+    _worker_paths = field_validator("calibration", mode="before")(_path_given)
 
     @field_validator("profile")
     @classmethod
@@ -144,7 +167,7 @@ class ApiSettings(TransportSettings):
                                    "(MTCW_HISTORY); retention_points wins when both are set")
     retention_s: float = Field(0.0, ge=0, description="also delete points served longer ago than this "
                                                       "(s; 0 = no age limit)")
-    reorder_timeout_s: float = Field(2.0, gt=0, description="wait this long for a missing seq before "
+    reorder_timeout_s: float = Field(2.0, gt=0, le=MAX_WAIT_S, description="wait this long for a missing seq before "
                                                             "counting it dropped")
     reorder_max: int = Field(256, ge=1, description="points held for reordering before gaps are declared")
     max_seq_jump: int = Field(DEFAULT_MAX_JUMP, ge=1, description="the largest seq gap one message may declare "
@@ -152,7 +175,7 @@ class ApiSettings(TransportSettings):
                               "further beyond what was seen, is refused until a second point confirms the jump")
     max_future_s: float = Field(60.0, gt=0, description="refuse points and notices triggered more than this "
                                                         "ahead of the API's clock (s)")
-    stale_after_s: float = Field(5.0, gt=0, description="/readyz fails when the last frame is older")
+    stale_after_s: float = Field(5.0, gt=0, le=MAX_WAIT_S, description="/readyz fails when the last frame is older")
 
     @field_validator("store_path")
     @classmethod

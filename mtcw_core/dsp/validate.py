@@ -66,6 +66,9 @@ MIN_TONE_GAP_BINS = 2
 MIN_PERIOD_SAMPLES = 64
 #: ... and at most this many gate periods in one record (the gate stage loops over them)
 MAX_GATES = 4096
+#: ... and a gate on, and off, for at least this many samples of each period (its edges are timed
+#: on 16-sample blocks of the envelope; a duty of 1 never switches off)
+MIN_GATE_SAMPLES = 16
 
 
 def _check_limits(frame: Frame, settings: ChainSettings) -> None:
@@ -80,6 +83,10 @@ def _check_limits(frame: Frame, settings: ChainSettings) -> None:
             raise Rejected("bad_pulse", f"gate period {frame.pulse.period_s:.3g} s is {per:.3g} samples (from "
                                         f"{MIN_PERIOD_SAMPLES} and {frame.n / MAX_GATES:.3g} = n/{MAX_GATES} "
                                         f"to {settings.max_samples})")
+        on, off = frame.pulse.duty * per, (1.0 - frame.pulse.duty) * per
+        if min(on, off) < MIN_GATE_SAMPLES:  # no edge to time: a gate that never switches (duty 1)
+            raise Rejected("bad_pulse", f"gate on for {on:.3g} and off for {off:.3g} samples per period (each must "
+                                        f"be at least {MIN_GATE_SAMPLES} samples to show its edges)")
     tones = frame.tones_hz
     if len(tones) > settings.max_tones:
         raise Rejected("tone_plan", f"{len(tones)} tones (limit {settings.max_tones})")
