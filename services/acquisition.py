@@ -32,7 +32,7 @@ from mtcw_core.simulate import Simulator
 
 from .auth import terminate
 from .settings import AcquisitionSettings, log_settings
-from .sockets import bound_endpoint, frames_push, monitor_pub, open_socket, report_endpoints
+from .sockets import bound_endpoint, frames_push, monitor_pub, open_sockets, report_endpoints
 from .wire import encode_end, encode_frame, end_message
 
 log = logging.getLogger("mtcw.acquisition")
@@ -179,17 +179,8 @@ class Publisher:
         self.clock_ns = clock_ns
         self.peers_refused: collections.Counter[str] = collections.Counter()
         self._on_refused = on_refused
-        try:
-            self.push = open_socket(self.ctx, frames_push(settings), self._refused)
-            try:
-                self.pub = open_socket(self.ctx, monitor_pub(settings), self._refused)
-            except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
-                self.push.close()
-                raise
-        except (zmq.ZMQError, ValueError):
-            if self._own_ctx:
-                terminate(self.ctx)
-            raise
+        self.push, self.pub = open_sockets(self.ctx, [frames_push(settings), monitor_pub(settings)], self._own_ctx,
+                                           self._refused)
         # watch for workers from the moment of binding, so that none connects unseen before wait_for_worker
         self._monitor: zmq.Socket | None = self.push.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
         self.run = secrets.randbits(63)  # tells this run's frames from a previous run's

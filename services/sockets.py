@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Callable, Optional, Union
 
 import zmq
 
-from .auth import CurveClient, CurveServer, apply_client, apply_server, client_keys, server_keys
+from .auth import CurveClient, CurveServer, apply_client, apply_server, client_keys, server_keys, terminate
 
 if TYPE_CHECKING:
     from .settings import TransportSettings
@@ -170,6 +170,28 @@ def open_socket(ctx: zmq.Context, spec: SocketSpec,
                                       f"{err}", err.errno) from None
     log.info("socket %s: %s", spec.role, json.dumps(socket_options(sock)))
     return sock
+
+
+def open_sockets(ctx: zmq.Context, specs: list[SocketSpec], own_ctx: bool,
+                 on_refused: Optional[Callable[[str], None]] = None) -> list[zmq.Socket]:
+    """Open ``specs`` in order (:func:`open_socket`); if one fails, close those already open and,
+    when the service made ``ctx`` itself (``own_ctx``), terminate it, then re-raise.
+
+    Raises
+    ------
+    SocketError, CurveKeyError, zmq.ZMQError
+    """
+    opened: list[zmq.Socket] = []
+    try:
+        for spec in specs:
+            opened.append(open_socket(ctx, spec, on_refused))
+    except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
+        for sock in opened:
+            sock.close(linger=0)
+        if own_ctx:
+            terminate(ctx)
+        raise
+    return opened
 
 
 def socket_options(sock: zmq.Socket) -> dict:

@@ -21,7 +21,7 @@ from mtcw_core.chain import get_profile, process_frame
 
 from .auth import terminate
 from .settings import WorkerSettings, log_settings
-from .sockets import frames_pull, open_socket, points_push
+from .sockets import frames_pull, open_sockets, points_push
 from .wire import END_TOPIC, PointMessage, WireError, decode_frame, encode_points, point_from_result, rejection_point, \
     rejected_point, topic
 
@@ -47,17 +47,7 @@ class Worker:
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
         self._own_ctx = ctx is None
         self.ctx = zmq.Context() if ctx is None else ctx
-        try:
-            self.pull = open_socket(self.ctx, frames_pull(settings))
-            try:
-                self.push = open_socket(self.ctx, points_push(settings))
-            except (zmq.ZMQError, ValueError):  # SocketError, CurveKeyError
-                self.pull.close()
-                raise
-        except (zmq.ZMQError, ValueError):
-            if self._own_ctx:
-                terminate(self.ctx)
-            raise
+        self.pull, self.push = open_sockets(self.ctx, [frames_pull(settings), points_push(settings)], self._own_ctx)
         self.received = self.sent = self.unsent = 0
         self._metrics = _exporter(settings.metrics_port, settings.metrics_host, settings.name)
 
