@@ -108,15 +108,20 @@ class RunLedger:
 
     SLOT = 256
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, pending: Optional[dict] = None) -> None:
         import mmap
 
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a+b") as fh:
-            fh.truncate(2 * self.SLOT)
-            self._map = mmap.mmap(fh.fileno(), 2 * self.SLOT)
-        self._map[:] = b" " * (2 * self.SLOT)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "a+b") as fh:
+                fh.truncate(3 * self.SLOT)
+                self._map = mmap.mmap(fh.fileno(), 3 * self.SLOT)
+        except (OSError, ValueError) as err:
+            raise ValueError(f"state_file: cannot keep the run ledger in {path}: {err}") from None
+        self._map[:] = b" " * (3 * self.SLOT)
+        if pending is not None:  # an earlier run whose notice is still not delivered: kept for the next start
+            self._map[2 * self.SLOT:] = json.dumps(pending).encode()[: self.SLOT].ljust(self.SLOT)
 
     def record(self, source: str, run: int, frames: int, ended: bool = False) -> None:
         """Run ``run`` of ``source`` has stamped ``frames`` frames (``ended``: its notice is sent)."""
@@ -130,24 +135,30 @@ class RunLedger:
         self._map.close()
 
     @classmethod
-    def read(cls, path: Path) -> Optional[dict]:
-        """The last state a run left in ``path`` (``source``, ``run``, ``frames``, ``ended``), or
-        None when there is no readable one."""
+    def read(cls, path: Path) -> list[dict]:
+        """The runs ``path`` holds whose end-of-run notice was not sent (``source``, ``run``,
+        ``frames``, ``ended``): the last run's state from slots 0 and 1 (the valid one with the
+        larger count) and one carried-over run from slot 2; empty when there is none."""
         try:
             raw = Path(path).read_bytes()
         except OSError:
-            return None
-        best = None
-        for i in range(0, len(raw), cls.SLOT):
+            return []
+
+        def parse(chunk: bytes) -> Optional[dict]:
             try:
-                d = json.loads(raw[i:i + cls.SLOT])
-                ok = (isinstance(d, dict) and isinstance(d.get("source"), str) and isinstance(d.get("run"), int)
-                      and isinstance(d.get("frames"), int) and d["frames"] >= 0)
+                d = json.loads(chunk)
             except ValueError:
-                continue
-            if ok and (best is None or (d["run"] == best["run"] and d["frames"] > best["frames"])):
+                return None
+            ok = (isinstance(d, dict) and isinstance(d.get("source"), str) and isinstance(d.get("run"), int)
+                  and isinstance(d.get("frames"), int) and d["frames"] >= 0)
+            return d if ok else None
+
+        best = None
+        for d in (parse(raw[i:i + cls.SLOT]) for i in (0, cls.SLOT)):
+            if d is not None and (best is None or (d["run"] == best["run"] and d["frames"] > best["frames"])):
                 best = d
-        return best
+        carried = parse(raw[2 * cls.SLOT: 3 * cls.SLOT])
+        return [d for d in (carried, best) if d is not None and not d.get("ended")]
 
 
 class Publisher:
@@ -187,13 +198,10 @@ class Publisher:
         self.seq = 0
         self.published = 0
         self.dropped = 0
-        path = settings.state_file
-        self.unfinished = RunLedger.read(path) if path is not None else None  # a killed run's last state
-        if self.unfinished is not None and self.unfinished.get("ended"):
-            self.unfinished = None
-        self.ledger = RunLedger(path) if path is not None else None
-        if self.ledger is not None:
-            self.ledger.record(settings.source_name, self.run, 0)
+        # runs killed before their end-of-run notice: the file is left as it is until their notices
+        # are handed over (or this run's first frame), so a stop or a kill before then loses nothing
+        self.unfinished: list[dict] = RunLedger.read(settings.state_file) if settings.state_file else []
+        self.ledger: Optional[RunLedger] = None
 
     def _refused(self, socket: str) -> None:
         """A peer with an unknown CURVE key was refused on ``socket`` (the ZAP handler's thread)."""
@@ -240,7 +248,9 @@ class Publisher:
         """
         frame = frame.with_(source=self.settings.source_name, seq=self.seq, t_ns=self.clock_ns(), run=self.run)
         self.seq += 1
-        if self.ledger is not None:  # counted before it leaves: a kill now leaves it counted, as dropped
+        if self.settings.state_file is not None:  # counted before it leaves: a kill now leaves it counted
+            if self.ledger is None:
+                self._open_ledger()
             self.ledger.record(self.settings.source_name, self.run, self.seq)
         parts = encode_frame(frame)
         # PUB never blocks: a slow subscriber loses frames and sees the seq gap
@@ -253,17 +263,35 @@ class Publisher:
         self.published += 1
         return True
 
-    def finish_unfinished(self, timeout_s: float) -> bool:
-        """Send the end-of-run notice that a killed previous run of this node never sent (its frame
-        count from the ledger); True if a worker took it, False if there was none to send."""
-        prev = self.unfinished
-        self.unfinished = None
-        if prev is None:
-            return False
-        log.warning("acquisition: the previous run %d of %r ended without its end-of-run notice (killed?) after "
-                    "%d frames; sending it now", prev["run"], prev["source"], prev["frames"])
-        return self._send_end(end_message(prev["source"], prev["run"], prev["frames"], self.clock_ns(), 0),
-                              timeout_s)
+    def finish_unfinished(self, timeout_s: float) -> int:
+        """Send the end-of-run notices that killed earlier runs of this node never sent (their
+        frame counts from the ledger); returns how many a worker took. A notice no worker took is
+        carried over in the ledger, for the next start to send."""
+        sent = 0
+        carry = []
+        for prev in self.unfinished:
+            log.warning("acquisition: run %d of %r ended without its end-of-run notice (killed?) after %d frames; "
+                        "sending it now", prev["run"], prev["source"], prev["frames"])
+            if self._send_end(end_message(prev["source"], prev["run"], prev["frames"], self.clock_ns(), 0),
+                              timeout_s):
+                sent += 1
+            else:
+                carry.append(prev)
+        self.unfinished = carry
+        if self.settings.state_file is not None:
+            self._open_ledger()
+        return sent
+
+    def _open_ledger(self) -> None:
+        """Start this run's ledger, carrying over the one notice still undelivered (if several
+        are, the others are logged as lost: their tails will not be counted)."""
+        for lost in self.unfinished[1:]:
+            log.error("acquisition: the end-of-run notice of run %d (%d frames) could not be delivered and is lost",
+                      lost["run"], lost["frames"])
+        self.ledger = RunLedger(self.settings.state_file, self.unfinished[0] if self.unfinished else None)
+        if self.seq:
+            self.ledger.record(self.settings.source_name, self.run, self.seq)
+        self.unfinished = []
 
     def finish(self, timeout_s: float) -> bool:
         """Send the end-of-run notice to a worker (waiting up to ``timeout_s``); True if handed over.

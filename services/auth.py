@@ -143,7 +143,14 @@ def server_keys(directory: Path) -> CurveServer:
     auth_dir = directory / AUTHORIZED_DIR
     if not auth_dir.is_dir():
         raise CurveKeyError(f"curve_dir: {auth_dir} is missing (the allow-list of client keys)")
-    allowed = frozenset(zmq.auth.load_certificates(auth_dir))
+    try:
+        allowed = frozenset(zmq.auth.load_certificates(auth_dir))
+    except (OSError, ValueError) as err:
+        raise CurveKeyError(f"curve_dir: {auth_dir}: {err}") from None
+    bad = sorted(k for k in allowed if len(k) != 40)  # a Z85 public key is 40 characters
+    if bad:
+        raise CurveKeyError(f"curve_dir: {auth_dir} holds a key that is not a 40-character Z85 public key: "
+                            f"{bad[0][:50]!r}")
     if not allowed:
         log.warning("auth: %s allows no client: every peer will be refused", auth_dir)
     return CurveServer(pub, sec, allowed)  # type: ignore[arg-type]
@@ -196,6 +203,7 @@ def apply_server(ctx: zmq.Context, sock: zmq.Socket, keys: CurveServer, domain: 
     gate = Gate(domain, keys.allowed, on_refused)
     authenticator(ctx).configure_curve_callback(domain, credentials_provider=gate)
     sock.setsockopt(zmq.ZAP_DOMAIN, domain.encode())
+    sock.setsockopt(zmq.ZAP_ENFORCE_DOMAIN, 1)  # no ZAP handler (stopped) = no peer, never any peer
     sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
     sock.setsockopt(zmq.CURVE_PUBLICKEY, keys.public)
     sock.setsockopt(zmq.CURVE_SERVER, 1)

@@ -108,7 +108,7 @@ class AcquisitionSettings(TransportSettings):
     rate_hz: float = Field(0.0, ge=0, le=MAX_RATE_HZ, description="frames per second; 0 = as fast as the source goes")
     loop: bool = Field(True, description="replay: start again at the end")
     frames: int = Field(0, ge=0, description="stop after this many frames (0 = run until stopped)")
-    source_name: str = Field("bench", min_length=1, description="the `source` field of every frame")
+    source_name: str = Field("bench", min_length=1, max_length=150, description="the `source` field of every frame")
     seed: Optional[int] = None
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
     wait_for_worker_s: float = Field(5.0, ge=0, le=MAX_WAIT_S, description="before the first frame, wait this long for the "

@@ -143,50 +143,63 @@ def test_ledger_keeps_the_count_and_survives_a_torn_slot(tmp_path):
     from services.acquisition import RunLedger
 
     path = tmp_path / "state"
-    assert RunLedger.read(path) is None
+    assert RunLedger.read(path) == []
     led = RunLedger(path)
     for n in range(1, 8):
         led.record("bench", 42, n)
-    assert RunLedger.read(path) == {"source": "bench", "run": 42, "frames": 7, "ended": False}
+    assert RunLedger.read(path) == [{"source": "bench", "run": 42, "frames": 7, "ended": False}]
     raw = bytearray(path.read_bytes())
     raw[RunLedger.SLOT + 5: RunLedger.SLOT + 9] = b"\x00\xff{]"  # the write of frame 7 torn by a kill
     path.write_bytes(bytes(raw))
-    assert RunLedger.read(path)["frames"] == 6  # the other slot: one frame less, never garbage
+    assert RunLedger.read(path)[0]["frames"] == 6  # the other slot: one frame less, never garbage
     led.record("bench", 42, 8, ended=True)
-    assert RunLedger.read(path)["ended"] is True
+    assert RunLedger.read(path) == []  # ended: nothing to send
+    led.close()
+    carried = {"source": "bench", "run": 41, "frames": 3, "ended": False}
+    led = RunLedger(path, pending=carried)
+    led.record("bench", 43, 1)
+    assert RunLedger.read(path) == [carried, {"source": "bench", "run": 43, "frames": 1, "ended": False}]
     led.close()
     path.write_bytes(b"\x00" * 10)
-    assert RunLedger.read(path) is None
+    assert RunLedger.read(path) == []
+
+
+def _st_ledger(tmp_path, policy: str = "block") -> AcquisitionSettings:
+    return AcquisitionSettings(frames_endpoint="tcp://127.0.0.1:0", monitor_endpoint="tcp://127.0.0.1:0",
+                               drop_policy=policy, state_file=tmp_path / "acq.state")
+
+
+def _killed_run(ctx, st, frames: int) -> int:
+    """A run that stamps ``frames`` frames and is then 'killed' (no finish, the file left as it is)."""
+    pub = Publisher(st, ctx)
+    pull = ctx.socket(zmq.PULL)
+    pull.connect(pub.frames_endpoint)
+    assert pub.wait_for_worker(10)
+    for _ in range(frames):
+        pub.send(_frame())
+        pull.recv_multipart()
+    pull.close(linger=0)
+    pub.ledger = None  # as after SIGKILL: the mapping left as it was
+    pub.push.close(linger=0)
+    pub.pub.close(linger=0)
+    return pub.run
 
 
 def test_a_restarted_node_sends_the_end_notice_its_killed_run_never_sent(ctx, tmp_path):
-    """Run 1 is 'killed' after 5 frames (its publisher is dropped without finish); the next
-    publisher on the same state file first sends run 1's notice with those 5 frames."""
-    st = AcquisitionSettings(frames_endpoint="tcp://127.0.0.1:0", monitor_endpoint="tcp://127.0.0.1:0",
-                             drop_policy="block", state_file=tmp_path / "acq.state")
-    first = Publisher(st, ctx)
-    pull = ctx.socket(zmq.PULL)
-    pull.connect(first.frames_endpoint)
-    assert first.wait_for_worker(10)
-    for _ in range(5):
-        first.send(_frame())
-    killed_run = first.run
-    for _ in range(5):
-        pull.recv_multipart()
-    pull.close()
-    first.ledger = None  # as after SIGKILL: no finish, the mapping left as it was
-    first.push.close(linger=0)
-    first.pub.close(linger=0)
+    """Run 1 is 'killed' after 5 frames; the next publisher on the same state file first sends run
+    1's notice with those 5 frames, once."""
+    st = _st_ledger(tmp_path)
+    killed_run = _killed_run(ctx, st, 5)
     second = Publisher(st, ctx)
-    assert second.unfinished == {"source": "bench", "run": killed_run, "frames": 5, "ended": False}
+    assert second.unfinished == [{"source": "bench", "run": killed_run, "frames": 5, "ended": False}]
     pull = ctx.socket(zmq.PULL)
     pull.connect(second.frames_endpoint)
     try:
         assert second.wait_for_worker(10)
-        assert second.finish_unfinished(5.0)
+        assert second.finish_unfinished(5.0) == 1
         end = decode_end(pull.recv_multipart())
         assert (end.run, end.frames, end.source) == (killed_run, 5, "bench")
-        assert not second.finish_unfinished(5.0)  # once
+        assert RunLedger_read(st) == []  # delivered: not sent again
         second.send(_frame())
         assert second.finish(5.0)
         pull.recv_multipart()
@@ -195,8 +208,35 @@ def test_a_restarted_node_sends_the_end_notice_its_killed_run_never_sent(ctx, tm
         pull.close(linger=0)
         second.close()
     third = Publisher(st, ctx)  # run 2 ended cleanly: nothing to send for it
-    assert third.unfinished is None
+    assert third.unfinished == []
     third.close()
+
+
+def RunLedger_read(st):
+    from services.acquisition import RunLedger
+
+    return RunLedger.read(st.state_file)
+
+
+def test_a_notice_no_worker_took_or_a_stop_before_it_is_kept_for_the_next_start(ctx, tmp_path):
+    """The killed run's record is never overwritten before its notice is handed over: a start
+    stopped before sending it, or one whose notice no worker took, leaves it for the next."""
+    st = _st_ledger(tmp_path)
+    killed_run = _killed_run(ctx, st, 4)
+    want = [{"source": "bench", "run": killed_run, "frames": 4, "ended": False}]
+    stopped = Publisher(st, ctx)  # stopped while waiting for workers: never got to the notice
+    stopped.close()
+    assert RunLedger_read(st) == want
+    lonely = Publisher(_st_ledger(tmp_path, "drop"), ctx)  # no worker: the notice is not taken
+    assert lonely.finish_unfinished(0.2) == 0
+    lonely.send(_frame())  # its own first frame (dropped: no worker) is counted beside the carried record
+    assert RunLedger_read(st) == [want[0], {"source": "bench", "run": lonely.run, "frames": 1, "ended": False}]
+    lonely.ledger = None  # killed too
+    lonely.push.close(linger=0)
+    lonely.pub.close(linger=0)
+    last = Publisher(st, ctx)
+    assert [r["run"] for r in last.unfinished] == [killed_run, lonely.run]
+    last.close()
 
 
 def test_a_stranger_is_refused_by_the_frames_socket_and_counted(tmp_path):

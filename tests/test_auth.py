@@ -137,3 +137,27 @@ def test_a_worker_without_its_key_file_is_a_settings_error(keys):
     st = _st(keys, curve_client="nobody")
     with pytest.raises(A.CurveKeyError, match=r"^curve_dir: cannot read .*nobody.key_secret"):
         S.frames_pull(st)
+
+
+def test_a_malformed_allow_list_is_a_key_error_naming_curve_dir(keys):
+    (keys / "authorized" / "broken.key").write_text("metadata\n")
+    with pytest.raises(A.CurveKeyError, match=r"^curve_dir: .*authorized"):
+        A.server_keys(keys)
+    (keys / "authorized" / "broken.key").write_text('curve\n    public-key = "abc"\n')
+    with pytest.raises(A.CurveKeyError, match="40-character"):
+        A.server_keys(keys)
+
+
+def test_without_its_zap_handler_a_curve_server_lets_nobody_in(actx, keys):
+    """ZAP_ENFORCE_DOMAIN: a server socket whose handler was stopped refuses every peer (libzmq's
+    default would let any CURVE client in, allow-list or not)."""
+    pull = S.open_socket(actx, S.points_pull(_st(keys)))
+    A.stop_authenticator(actx)
+    pk, sk = zmq.curve_keypair()
+    stranger = actx.socket(zmq.PUSH)
+    A.apply_client(stranger, A.CurveClient(pk, sk, A.server_keys(keys).public))
+    stranger.connect(S.bound_endpoint(pull))
+    stranger.send_multipart([b"points", b"forged"])
+    assert _recv(pull, 1000) is None
+    for s in (pull, stranger):
+        s.close(linger=0)

@@ -242,3 +242,18 @@ def test_gaps_are_bounded_and_each_late_seq_counts_once():
 def test_reorderer_max_jump_is_at_least_max_held():
     with pytest.raises(ValueError, match="max_jump"):
         Reorderer(lambda m: None, max_held=256, max_jump=100)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 11 follow-up: an end notice of the previous run that arrives after the "
+                                       "new run's first point is refused (other_run), so that run's lost tail is "
+                                       "not counted; a restarted publisher's late notice can race its new frames "
+                                       "through different workers")
+def test_a_late_notice_of_the_previous_run_still_counts_its_tail():
+    out = []
+    r = Reorderer(lambda m: out.append((m.run, m.seq)), timeout_s=1.0)
+    for s in range(5):
+        r.add(_msg(s, t_ns=100 + s, run=1), now=0.0)
+    r.add(_msg(0, t_ns=1000, run=2), now=0.1)  # the restarted publisher's first frame overtakes ...
+    assert r.end("s", 1, 10, 1001, now=0.2) == "ended"  # ... the killed run's notice (10 frames)
+    r.poll(5.0)
+    assert r.dropped == 5  # seqs 5..9 of run 1
