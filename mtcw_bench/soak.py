@@ -143,11 +143,15 @@ class Stack:
         return p.pid if p is not None and p.poll() is None else None
 
 
-def _state(path: Path) -> Optional[dict]:
-    """The acquisition node's run ledger (source, run, frames stamped, ended)."""
+def _ledger_runs(path: Path, runs: dict[int, dict]) -> None:
+    """Add what the acquisition node's run ledger holds (every run in it, the ended one too) to
+    ``runs`` (run id -> its record with the largest frame count)."""
     from services.acquisition import RunLedger
 
-    return RunLedger.read(path)
+    for rec in RunLedger.read(path, include_ended=True):
+        old = runs.get(rec["run"])
+        if old is None or rec["frames"] > old["frames"]:
+            runs[rec["run"]] = rec
 
 
 def _history(url: str) -> list[dict]:
@@ -179,6 +183,7 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
     slot = seconds / (kills + 1)
     t_kill = [slot * (i + 1) + rng.uniform(-0.3, 0.3) * slot for i in range(kills)]
     rss: list[tuple[float, float]] = []
+    runs: dict[int, dict] = {}  # the acquisition node's runs: id -> ledger record (frames stamped)
     stack.start()
     t0 = time.monotonic()
     try:
@@ -203,7 +208,7 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
                 t_k = time.monotonic()
                 stack.kill(name)
                 if kind == "acquisition":
-                    res.runs.append({"killed": True, **(_state(stack.state_file) or {})})
+                    _ledger_runs(stack.state_file, runs)
                 stack.restart(name)
                 rec = None
                 while time.monotonic() - t_k < 30:
@@ -220,8 +225,9 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
         acq = stack.child("acquisition").proc
         acq.send_signal(signal.SIGTERM)
         res.checks["acquisition_clean_stop"] = acq.wait(30) == 0
-        res.runs.append({"killed": False, **(_state(stack.state_file) or {})})
-        res.published = sum(int(r.get("frames", 0)) for r in res.runs)
+        _ledger_runs(stack.state_file, runs)
+        res.runs = list(runs.values())
+        res.published = sum(int(r["frames"]) for r in res.runs)
         deadline = time.monotonic() + 10 * reorder_timeout_s + 10
         while time.monotonic() < deadline:
             h = stack.health()

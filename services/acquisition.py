@@ -135,10 +135,11 @@ class RunLedger:
         self._map.close()
 
     @classmethod
-    def read(cls, path: Path) -> list[dict]:
+    def read(cls, path: Path, include_ended: bool = False) -> list[dict]:
         """The runs ``path`` holds whose end-of-run notice was not sent (``source``, ``run``,
         ``frames``, ``ended``): the last run's state from slots 0 and 1 (the valid one with the
-        larger count) and one carried-over run from slot 2; empty when there is none."""
+        larger count) and one carried-over run from slot 2; empty when there is none
+        (``include_ended``: runs whose notice was sent too)."""
         try:
             raw = Path(path).read_bytes()
         except OSError:
@@ -158,7 +159,7 @@ class RunLedger:
             if d is not None and (best is None or (d["run"] == best["run"] and d["frames"] > best["frames"])):
                 best = d
         carried = parse(raw[2 * cls.SLOT: 3 * cls.SLOT])
-        return [d for d in (carried, best) if d is not None and not d.get("ended")]
+        return [d for d in (carried, best) if d is not None and (include_ended or not d.get("ended"))]
 
 
 class Publisher:

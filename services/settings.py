@@ -85,7 +85,11 @@ class TransportSettings(BaseSettings):
     @field_validator("curve_dir")
     @classmethod
     def _keys(cls, v: Optional[Path]) -> Optional[Path]:
-        if v is not None and not ((v / f"{SERVER}.key").is_file() and (v / AUTHORIZED_DIR).is_dir()):
+        try:
+            found = v is None or ((v / f"{SERVER}.key").is_file() and (v / AUTHORIZED_DIR).is_dir())
+        except (OSError, ValueError) as err:  # a name too long for the file system, a NUL
+            raise ValueError(f"cannot be a directory name ({getattr(err, 'strerror', None) or err})") from None
+        if not found:
             raise ValueError(f"{v} holds no CurveZMQ keys ({SERVER}.key, {AUTHORIZED_DIR}/): make them with "
                              f"`mtcw keys {v}`")
         return v
