@@ -264,7 +264,9 @@ def grid(quick: bool = False, slices: list[str] | None = None) -> list[Config]:
 
 # -------------------------------------------------------------------------------------------
 # the nine failures of issue 12, at the sizes the issue gives
-def _issue_scene(targets: list[dict], samples: int, tones=(500e6, 700e6, 950e6), **over) -> Scene:
+def issue_scene(targets: list[dict], samples: int, tones=(500e6, 700e6, 950e6), **over) -> Scene:
+    """Issue 12's set-up: 1064 nm, 100 kHz linewidth, shot + thermal noise, 5 GS/s; ``over`` as
+    :func:`~mtcw_core.scene.scene_variant` takes it."""
     data = {"name": "issue-12", "laser": {"wavelength_m": 1.064e-6, "power_w": 0.05, "linewidth_hz": 100e3},
             "modulator": {"tones": [{"frequency_hz": f} for f in tones]}, "targets": targets,
             "noise": {"shot": True, "thermal": True}, "digitizer": {"sample_rate_hz": 5e9, "samples": samples}}
@@ -282,17 +284,17 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
     low = load_scene("low-coherence")
     mt = load_scene("moving-target")
     return {
-        "1 3-tone 70 dB": ("velocity bias at low SNR (3 tones, 2^18)", _issue_scene(t1, 2**18), 16),
-        "1 6-tone 70 dB": ("velocity bias at low SNR (6 tones, 2^18)", _issue_scene(t1, 2**18, SIX_TONES), 16),
-        "2 6-tone 1e6": ("more data loses the target (6 tones, 1e6)", _issue_scene(t1, 1_000_000, SIX_TONES), 12),
-        "3 static+mover": ("static beside a mover (1e6)", _issue_scene(
+        "1 3-tone 70 dB": ("velocity bias at low SNR (3 tones, 2^18)", issue_scene(t1, 2**18), 16),
+        "1 6-tone 70 dB": ("velocity bias at low SNR (6 tones, 2^18)", issue_scene(t1, 2**18, SIX_TONES), 16),
+        "2 6-tone 1e6": ("more data loses the target (6 tones, 1e6)", issue_scene(t1, 1_000_000, SIX_TONES), 12),
+        "3 static+mover": ("static beside a mover (1e6)", issue_scene(
             [_target(0.81, 0.0, 20.0), _target(2.46, 0.35, 26.0)], 1_000_000), 12),
         "4 low-coherence mover": ("5.3 GHz laser, mover at 10 cm/s (1e6)", with_targets(
             low, [_target(1.12, 0.10, 20.0)]), 12),
-        "5 PE fast mover": ("50 m at 30 m/s, 75/500/1900/2450 MHz, 2^22 at 16.384 GS/s", _issue_scene(
+        "5 PE fast mover": ("50 m at 30 m/s, 75/500/1900/2450 MHz, 2^22 at 16.384 GS/s", issue_scene(
             [_target(50.0, 30.0, 20.0)], 2**22, PE_TONES, laser={"wavelength_m": 1e-6},
             digitizer={"sample_rate_hz": 16.384e9}), 4),
-        "6 small Doppler": ("3.5 cm/s at 1550 nm, 10 kHz bins (45 kHz)", _issue_scene(
+        "6 small Doppler": ("3.5 cm/s at 1550 nm, 10 kHz bins (45 kHz)", issue_scene(
             [_target(1.5, 0.035, 30.0)], 500_000, laser={"wavelength_m": 1.55e-6}), 12),
         "7 timing jitter": ("60 ps trigger jitter (cw-bench, 1e6)", scene_variant(
             load_scene("cw-bench"), noise={"trigger_jitter_s": JITTER_S}), 12),
@@ -726,7 +728,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {path} ({s['cells']} cells, {s['processed_frames']} processed frames, {result['wall_s']:.0f} s)")
 
 
-__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "plan", "run_group",
+__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "issue_scene", "plan", "run_group",
            "run_map", "summarise", "check_targets", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
            "bin_speed_mps", "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v",
            "loss_shift_for", "read_result", "main"]

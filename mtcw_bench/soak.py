@@ -187,7 +187,7 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
     stack.start()
     t0 = time.monotonic()
     try:
-        while stack.health() is None or stack.health()["processed"] == 0:
+        while not (stack.health() or {}).get("processed"):
             if time.monotonic() - t0 > 60:
                 raise RuntimeError("no frame processed within 60 s")
             time.sleep(0.2)

@@ -169,6 +169,13 @@ def _st_ledger(tmp_path, policy: str = "block") -> AcquisitionSettings:
                                drop_policy=policy, state_file=tmp_path / "acq.state")
 
 
+def _ledger(st: AcquisitionSettings) -> list[dict]:
+    """The unsent runs the node's state file holds."""
+    from services.acquisition import RunLedger
+
+    return RunLedger.read(st.state_file)
+
+
 def _killed_run(ctx, st, frames: int) -> int:
     """A run that stamps ``frames`` frames and is then 'killed' (no finish, the file left as it is)."""
     pub = Publisher(st, ctx)
@@ -199,7 +206,7 @@ def test_a_restarted_node_sends_the_end_notice_its_killed_run_never_sent(ctx, tm
         assert second.finish_unfinished(5.0) == 1
         end = decode_end(pull.recv_multipart())
         assert (end.run, end.frames, end.source) == (killed_run, 5, "bench")
-        assert RunLedger_read(st) == []  # delivered: not sent again
+        assert _ledger(st) == []  # delivered: not sent again
         second.send(_frame())
         assert second.finish(5.0)
         pull.recv_multipart()
@@ -212,12 +219,6 @@ def test_a_restarted_node_sends_the_end_notice_its_killed_run_never_sent(ctx, tm
     third.close()
 
 
-def RunLedger_read(st):
-    from services.acquisition import RunLedger
-
-    return RunLedger.read(st.state_file)
-
-
 def test_a_notice_no_worker_took_or_a_stop_before_it_is_kept_for_the_next_start(ctx, tmp_path):
     """The killed run's record is never overwritten before its notice is handed over: a start
     stopped before sending it, or one whose notice no worker took, leaves it for the next."""
@@ -226,11 +227,11 @@ def test_a_notice_no_worker_took_or_a_stop_before_it_is_kept_for_the_next_start(
     want = [{"source": "bench", "run": killed_run, "frames": 4, "ended": False}]
     stopped = Publisher(st, ctx)  # stopped while waiting for workers: never got to the notice
     stopped.close()
-    assert RunLedger_read(st) == want
+    assert _ledger(st) == want
     lonely = Publisher(_st_ledger(tmp_path, "drop"), ctx)  # no worker: the notice is not taken
     assert lonely.finish_unfinished(0.2) == 0
     lonely.send(_frame())  # its own first frame (dropped: no worker) is counted beside the carried record
-    assert RunLedger_read(st) == [want[0], {"source": "bench", "run": lonely.run, "frames": 1, "ended": False}]
+    assert _ledger(st) == [want[0], {"source": "bench", "run": lonely.run, "frames": 1, "ended": False}]
     lonely.ledger = None  # killed too
     lonely.push.close(linger=0)
     lonely.pub.close(linger=0)

@@ -17,23 +17,15 @@ import numpy as np
 import pytest
 
 from mtcw_bench.honesty import JITTER_S, PE_TONES, SIX_TONES, case_scenes, with_targets
+from mtcw_bench.honesty import issue_scene as scene
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.evaluate import FrameVerdict, judge_frame, range_bound
 from mtcw_core.frame import Frame
 from mtcw_core.results import FrameResult
-from mtcw_core.scene import Scene, load_scene, scene_from_dict, scene_variant
+from mtcw_core.scene import Scene, load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
 Z = 5.0
-
-
-def scene(targets: list[dict], samples: int, tones=(500e6, 700e6, 950e6), **over) -> Scene:
-    """Issue 12's set-up: 1064 nm, 100 kHz linewidth, shot + thermal noise, 5 GS/s."""
-    data = {"name": "case", "laser": {"wavelength_m": 1.064e-6, "power_w": 0.05, "linewidth_hz": 100e3},
-            "modulator": {"tones": [{"frequency_hz": f} for f in tones]}, "targets": targets,
-            "noise": {"shot": True, "thermal": True}, "digitizer": {"sample_rate_hz": 5e9, "samples": samples}}
-    sc = scene_from_dict(data)
-    return scene_variant(sc, **over) if over else sc
 
 
 def tgt(range_m: float, v: float, loss: float) -> dict:
