@@ -53,7 +53,8 @@ class RangeSolution:
     seed_sigma_k_m: float | None = None  # the dissertation's row standard deviation (seed only)
 
 
-def _cost(obs: Observations, tau0_s: float):
+def cost_function(obs: Observations, tau0_s: float):
+    """``J(L)`` of :func:`resolve_ml` as a function of range (m, array) -> shape (len(L),), in [-1, 1]."""
     k = 2 * np.pi * obs.df_hz
     wsum = float(np.sum(obs.weight))
 
@@ -99,7 +100,7 @@ def resolve_ml(
     lo, hi = interval_m
     step = float(np.min(obs.synthetic_wavelengths_m)) / points_per_cycle
     grid = np.arange(lo, hi + step, step)
-    j = _cost(obs, tau0_s)
+    j = cost_function(obs, tau0_s)
     # evaluate in blocks to bound memory for long intervals
     vals = np.concatenate([j(grid[i : i + 65536]) for i in range(0, grid.size, 65536)])
     ib = int(np.argmax(vals))
@@ -125,14 +126,15 @@ def resolve_ml(
     return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge))
 
 
-def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0) -> RangeSolution:
-    """The dissertation's candidate-matrix triangulation.
+def candidate_matrix(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The seed's candidate matrix (see :func:`resolve_seed`), its row spreads and the wavelengths.
 
-    For every observation l with synthetic wavelength ``Lambda_l`` the residual ``r_l`` is the
-    range its wrapped phase gives in the first cycle. Column 1 holds the finest observation's
-    candidates ``r_1 + n*Lambda_1`` for ``n = 0..n_max`` (``n_max`` from the largest expected
-    range); every other column holds, per row, its own candidate nearest to column 1. The row
-    of least plain standard deviation gives the range as its column-1 value.
+    Returns
+    -------
+    m : ndarray, shape (K, P), candidate ranges (m); column 0 the finest observation's cycles
+    sigma_k : ndarray, shape (K,), plain row standard deviation (m)
+    lam : ndarray, shape (P,), the columns' synthetic wavelengths (m), finest first
     """
     lam = obs.synthetic_wavelengths_m
     # residual range in the first cycle, after removing the internal delay tau0
@@ -146,7 +148,20 @@ def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range
     m[:, 0] = col1
     for i in range(1, lam.size):
         m[:, i] = r[i] + np.rint((col1 - r[i]) / lam[i]) * lam[i]
-    sigma_k = np.std(m, axis=1)  # plain, unweighted, ddof = 0 as published
+    return m, np.std(m, axis=1), lam  # plain, unweighted, ddof = 0 as published
+
+
+def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0) -> RangeSolution:
+    """The dissertation's candidate-matrix triangulation.
+
+    For every observation l with synthetic wavelength ``Lambda_l`` the residual ``r_l`` is the
+    range its wrapped phase gives in the first cycle. Column 1 holds the finest observation's
+    candidates ``r_1 + n*Lambda_1`` for ``n = 0..n_max`` (``n_max`` from the largest expected
+    range); every other column holds, per row, its own candidate nearest to column 1. The row
+    of least plain standard deviation gives the range as its column-1 value.
+    """
+    m, sigma_k, lam = candidate_matrix(obs, tau0_s, max_range_m, min_range_m)
+    col1 = m[:, 0]
     k = int(np.argmin(sigma_k))
     s_sorted = np.sort(sigma_k)
     margin = float(1 - s_sorted[0] / s_sorted[1]) if s_sorted.size > 1 and s_sorted[1] > 0 else 1.0
