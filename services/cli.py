@@ -163,6 +163,44 @@ def process(
 
 
 @app.command()
+def explain(
+    recording: Path = typer.Argument(..., help="SigMF recording"),
+    frame: int = typer.Option(0, "--frame", "-k", help="frame index (negative counts from the end)"),
+    output: Path = typer.Option(Path("out/explain"), "-o", "--output", help="directory for the PNGs and explain.json"),
+    profile: str = typer.Option("balanced", help="fast | balanced | accurate | seed"),
+    method: Optional[str] = typer.Option(None, help="override cycle resolution: ml | seed"),
+    calibration: Optional[Path] = typer.Option(None, help="calibration file from `mtcw calibrate`"),
+) -> None:
+    """One frame's triangulation made visible: spectrum with every line marked, J(L) with the chosen
+    peak and the runner-up, the seed's candidate matrix and sigma_k (PNGs and explain.json)."""
+    from mtcw_core.calibration import Calibration, CalibrationError
+    from mtcw_core.explain import explain_frame
+    from services.explain_plot import write_explain
+
+    rec = _open(recording)
+    settings = _settings(profile, method)
+    try:
+        fr = rec.frame(frame)
+    except IndexError as err:
+        _fail(f"--frame: {err}")
+    except RecordingError as err:
+        _fail(str(err))
+    cal = None
+    if calibration is not None:
+        try:
+            cal = Calibration.load(calibration)
+        except CalibrationError as err:
+            _fail(str(err))
+    d = explain_frame(fr, settings, cal)
+    written = write_explain(d, output)
+    summary = {"frame": frame, "seq": d["seq"], "status": d["status"], "reason": d["reason"],
+               "targets": [{"range_m": t["range_m"], "range_sigma_m": t["range_sigma_m"], "margin": t["margin"]}
+                           for t in d["targets"]],
+               "truth": d["truth"], "written": [str(p) for p in written]}
+    typer.echo(json.dumps(summary, indent=2))
+
+
+@app.command()
 def calibrate(
     recording: Path = typer.Argument(..., help="SigMF recording of a reflector at a known range"),
     known_range: float = typer.Option(..., "--known-range", help="range of the reflector (m)"),
