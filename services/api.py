@@ -40,6 +40,8 @@ restarts it.
 
 from __future__ import annotations
 
+import asyncio
+import json
 import logging
 import platform
 import sys
@@ -52,11 +54,15 @@ from typing import Callable, Optional
 
 import msgspec
 import zmq
-from fastapi import FastAPI, HTTPException, Query, Response
+from fastapi import FastAPI, HTTPException, Query, Request, Response
+from fastapi.responses import FileResponse, StreamingResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.concurrency import run_in_threadpool
 from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, GCCollector, Histogram,
                                PlatformCollector, ProcessCollector, generate_latest)
 
 from .history import INT64_MAX, HistoryDB, Segment
+from .monitor import ViewFeed
 from .ordering import Reorderer
 from .settings import ApiSettings, log_settings
 from .sockets import bound_endpoint, open_socket, points_pull, report_endpoints
@@ -154,6 +160,16 @@ class Metrics:
                                       registry=r)
         self.store_errors = Counter("mtcw_store_errors_total", "store failures: commit (batch kept and retried), "
                                     "bad_row (a stored point that cannot be read, skipped)", ["kind"], registry=r)
+        self.view_frames = Counter("mtcw_view_frames_total", "monitor frames seen by the live view's feed, by "
+                                   "outcome (explained; passed_over: rate bound; lost: dropped before it by ZeroMQ)",
+                                   ["outcome"], registry=r)
+        self.view_skipped = Counter("mtcw_view_diagnostics_skipped_total", "live-view explanations a slow page never "
+                                    "got (a newer one replaced them first)", registry=r)
+        self.view_clients = Gauge("mtcw_view_streams", "open /v1/points/stream connections", registry=r)
+        self.view_explain = Histogram("mtcw_view_explain_seconds", "one live-view explanation (spectrum, J(L), seed "
+                                      "matrix) of a monitor frame", buckets=_BUCKETS, registry=r)
+        for outcome in ("explained", "passed_over", "lost"):
+            self.view_frames.labels(outcome)
         self.rejected.labels("stale")  # present from the start, so that sums are complete
         for kind in ("commit", "bad_row"):
             self.store_errors.labels(kind)
@@ -208,6 +224,7 @@ class PointStore:
         self.latest: dict[str, ServedPoint] = {}
         self._shown: dict[str, int] = {}
         self._view: dict = {}
+        self._reasons: dict = {"rejected": {}, "refused": {}}
         self.last_write: Optional[float] = None  # monotonic time of the last successful commit
         self.write_error: Optional[str] = None
         self.commits = 0
@@ -416,8 +433,14 @@ class PointStore:
         view = {k: self.counts[k] for k in BOOKS}
         view.update(late=self.counts.get("late", 0), held_for_reordering=self.order.held(),
                     awaited_after_end=self.order.awaited())
+        reasons = {"rejected": {}, "refused": {}}
+        for key, value in self.counts.items():
+            name, _, reason = key.partition(":")
+            if reason and name in reasons:
+                reasons[name][reason] = value
         with self.lock:
             self._view = view
+            self._reasons = reasons
         self.m.store_rows.set(self.db.rows)
 
     def snapshot(self) -> dict:
@@ -428,6 +451,11 @@ class PointStore:
             view = dict(self._view)
         last = self.last_arrival
         return {**view, "last_frame_age_s": None if last is None else now - last, "uptime_s": now - self.started}
+
+    def reasons(self) -> dict:
+        """The committed counts of rejected points by reason and of refused messages by reason."""
+        with self.lock:
+            return {k: dict(v) for k, v in self._reasons.items()}
 
     def store_status(self, receiver_running: bool) -> tuple[bool, str]:
         """Whether the store takes writes: the last commit succeeded, and (with a receiver running)
@@ -573,6 +601,135 @@ def _flag(value: Optional[str], name: str) -> bool:
     raise HTTPException(422, f"{name}: {value!r} is not a boolean (1, true, yes, on; 0, false, no, off)")
 
 
+
+#: the live view's page and its vendored scripts (package data)
+WEB_DIR = Path(__file__).resolve().parent / "web"
+#: points per ``points`` event of the stream at most
+STREAM_BATCH = 500
+#: how often (s) a stream looks for new commits, a newer explanation and the time to send status
+STREAM_POLL_S = 0.05
+#: a comment line this often (s) keeps proxies and browsers from closing a quiet stream
+STREAM_KEEPALIVE_S = 15.0
+
+
+def _last_ids(db: HistoryDB, tail: int) -> int:
+    """The cursor before the last ``tail`` points of the history (0 when it holds fewer), read on
+    the calling thread's reader connection."""
+    conn = db._reader()  # the store's per-thread read connection (WAL: beside the writer)
+    row = conn.execute("SELECT id FROM points ORDER BY id DESC LIMIT 1 OFFSET ?", (tail,)).fetchone()
+    return int(row[0]) if row is not None else 0
+
+
+def _sse(event: str, data: bytes, event_id: Optional[int] = None) -> bytes:
+    """One Server-Sent Event (``data`` is one line of JSON)."""
+    head = (b"id: %d\n" % event_id) if event_id is not None else b""
+    return head + b"event: " + event.encode() + b"\ndata: " + data + b"\n\n"
+
+
+def _add_view(app: FastAPI, store: PointStore, settings: ApiSettings, metrics: Metrics, feed: Optional[ViewFeed],
+              receiver_status: Callable[[], dict]) -> None:
+    """The live view at ``/``, its files under ``/web``, the push stream and the view's JSON."""
+    app.mount("/web", StaticFiles(directory=WEB_DIR), name="web")
+    closing: threading.Event = app.state.closing
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+
+    def status_doc() -> dict:
+        recv = receiver_status()
+        return {"books": store.snapshot(), "reasons": store.reasons(), "receiver": recv["state"],
+                "receiver_error": recv.get("last_error"), "store": store.store_status(recv["state"] == "alive")[1],
+                "view": feed.stats() if feed is not None else None, "stale_after_s": settings.stale_after_s}
+
+    @app.get("/v1/view/status", summary="counts (with rejections and refusals by reason), receiver, store and the "
+                                        "live view's feed, as the page shows them")
+    def view_status() -> dict:
+        return status_doc()
+
+    @app.get("/v1/view/diagnostics", summary="the live view's newest explained frame: spectrum with every line "
+                                             "marked, J(L) with chosen peak and runner-up, the seed's candidate "
+                                             "matrix (mtcw explain's JSON)",
+             responses={404: {"description": "none yet (the feed is off, or starts now: ask again)",
+                              "content": {"application/json": {"schema": {
+                                  "type": "object", "properties": {"detail": {"type": "string"}},
+                                  "required": ["detail"]}}}}})
+    def diagnostics() -> Response:
+        if feed is None:
+            raise HTTPException(404, "the live view's feed is off (view_rate_hz = 0, or no receiver)")
+        feed.want()
+        got = feed.latest()
+        if got is None:
+            raise HTTPException(404, f"no frame explained yet (the feed subscribes to {settings.monitor_endpoint} "
+                                     f"while asked; ask again)")
+        return Response(got[1], media_type="application/json")
+
+    @app.get("/v1/points/stream", include_in_schema=False)
+    async def stream(request: Request,
+                     source: Optional[str] = Query(None, min_length=1, max_length=200),
+                     after: Optional[int] = Query(None, ge=0, le=INT64_MAX),
+                     tail: int = Query(0, ge=0, le=10_000),
+                     diagnostics: Optional[str] = Query(None, pattern=_FLAG_PATTERN),
+                     status: Optional[str] = Query(None, pattern=_FLAG_PATTERN)) -> StreamingResponse:
+        last = request.headers.get("last-event-id")
+        if last is not None:
+            try:
+                after = int(last.strip())
+                if not 0 <= after <= INT64_MAX:
+                    raise ValueError
+            except ValueError:
+                raise HTTPException(422, f"Last-Event-ID: {last[:40]!r} is not a cursor (an integer "
+                                         f"0..{INT64_MAX}, the id of an event of this stream)") from None
+        want_diag = _flag(diagnostics, "diagnostics") and feed is not None
+        want_status = _flag(status, "status")
+        cursor = after if after is not None else await run_in_threadpool(_last_ids, store.db, tail)
+
+        async def events():
+            nonlocal cursor
+            metrics.view_clients.inc()
+            if want_diag:
+                feed.subscribe()
+            try:
+                yield b"retry: 1000\n\n"
+                seen_commit, sent_diag, sent_status, sent_any = -1, 0, 0.0, time.monotonic()
+                while not closing.is_set():
+                    now = time.monotonic()
+                    if store.commits != seen_commit:
+                        seen_commit = store.commits
+                        more = True
+                        while more:
+                            docs, more, nxt = await run_in_threadpool(store.db.points, -1, STREAM_BATCH, source,
+                                                                      cursor)
+                            if not docs:
+                                break
+                            cursor = nxt
+                            yield _sse("points", b'{"points":[%s]}' % b",".join(docs), cursor)
+                            sent_any = now
+                    if want_diag:
+                        got = feed.latest()
+                        if got is not None and got[0] > sent_diag:
+                            if sent_diag:
+                                metrics.view_skipped.inc(got[0] - sent_diag - 1)
+                            sent_diag = got[0]
+                            yield _sse("diagnostics", got[1])
+                            sent_any = now
+                    if want_status and now - sent_status >= 1.0:
+                        sent_status = now
+                        yield _sse("status", json.dumps(status_doc(), default=str).encode())
+                        sent_any = now
+                    if now - sent_any >= STREAM_KEEPALIVE_S:
+                        sent_any = now
+                        yield b": keep-alive\n\n"
+                    await asyncio.sleep(STREAM_POLL_S)
+            finally:
+                metrics.view_clients.dec()
+                if want_diag:
+                    feed.unsubscribe()
+
+        return StreamingResponse(events(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
 def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
                clock_ns: Callable[[], int] = time.time_ns,
                on_receiver_death: Optional[Callable[[str], None]] = None) -> FastAPI:
@@ -596,9 +753,20 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
         store.close()
         raise
 
+    feed = None
+    if start_receiver and settings.view_rate_hz > 0:
+        m = metrics
+
+        def explained(dt: float) -> None:
+            m.view_explain.observe(dt)
+
+        feed = ViewFeed(settings, settings.view_rate_hz, settings.view_profile, on_explained=explained)
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         recv = None
+        if feed is not None:
+            feed.start()
         try:
             if early is not None:
                 log_settings("api", settings)
@@ -612,6 +780,10 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
                          else ":memory: (nothing kept across restarts)")
             yield
         finally:
+            app.state.closing.set()
+            if feed is not None:
+                feed.stop()
+                feed.join(timeout=5)
             if recv is not None:
                 recv.stop()
                 recv.join(timeout=5)
@@ -625,10 +797,15 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
     app.state.store = store
     app.state.settings = settings
     app.state.receiver = None
+    app.state.feed = feed
+    app.state.closing = threading.Event()  # set when the server stops: open streams end
 
     def receiver_status() -> dict:
         recv = app.state.receiver
         return recv.status() if recv is not None else {"state": "not_started"}
+
+    _add_view(app, store, settings, metrics, feed, receiver_status)
+    view_shown: dict[str, int] = {}
 
     @app.get("/v1/points/latest", summary="newest result per source",
              responses={404: {"description": "no point yet (from this source, when one is named)",
@@ -705,9 +882,37 @@ def create_app(settings: ApiSettings | None = None, start_receiver: bool = True,
         last = store.last_arrival
         if last is not None:
             metrics.age.set(time.monotonic() - last)
+        if feed is not None:  # the feed's own counts, brought up to date here
+            for outcome in ("explained", "passed_over", "lost"):
+                inc = feed.counts[outcome] - view_shown.get(outcome, 0)
+                if inc > 0:
+                    metrics.view_frames.labels(outcome).inc(inc)
+                    view_shown[outcome] = feed.counts[outcome]
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
     return app
+
+
+def _streaming_server():
+    import uvicorn
+
+    class _Server(uvicorn.Server):
+        """uvicorn's server that, on shutdown, first tells the open streams to end (uvicorn waits
+        for every running response, and a stream never ends by itself)."""
+
+        async def shutdown(self, sockets=None) -> None:
+            app = self.config.app
+            closing = getattr(getattr(app, "state", None), "closing", None)
+            if closing is not None:
+                closing.set()
+            await super().shutdown(sockets)
+
+    return _Server
+
+
+def StreamingServer(config):  # noqa: N802 - a class made on first use (uvicorn is imported lazily)
+    """A ``uvicorn.Server`` for this app: open ``/v1/points/stream`` responses end on shutdown."""
+    return _streaming_server()(config)
 
 
 def serve(settings: ApiSettings) -> None:
@@ -741,7 +946,7 @@ def serve(settings: ApiSettings) -> None:
     sock = config.bind_socket()
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     app.state.http_url = f"http://{host}:{sock.getsockname()[1]}"
-    server = uvicorn.Server(config)
+    server = StreamingServer(config)
     server.run(sockets=[sock])
     if died:
         sys.exit(EXIT_RECEIVER_DEAD)

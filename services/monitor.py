@@ -1,4 +1,5 @@
-"""Subscribers to the raw frame stream (PUB/SUB): the recorder behind ``mtcw record``.
+"""Subscribers to the raw frame stream (PUB/SUB): the recorder behind ``mtcw record``, and the
+live view's feed of spectra and cost curves (:class:`ViewFeed`).
 
 A subscriber never slows the workers: when it falls behind, ZeroMQ drops frames at its
 high-water mark, and the subscriber counts them from the ``seq`` gaps. The recorder skips and
@@ -9,8 +10,10 @@ fields the SigMF reader would refuse) and goes on; its recording stays readable 
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
+import time
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -22,7 +25,7 @@ from mtcw_core.recording import RecordingError, RecordingWriter
 from .ordering import GapCounter
 from .settings import TransportSettings
 from .sockets import monitor_sub, open_socket
-from .wire import FRAME_TOPIC, WireError, decode_frame
+from .wire import FRAME_TOPIC, WireError, decode_frame, decode_header
 
 log = logging.getLogger("mtcw.monitor")
 
@@ -88,3 +91,155 @@ def record(settings: TransportSettings, output: Path, count: int, stop: threadin
     finally:
         sub.close()
     return sub
+
+
+class ViewFeed(threading.Thread):
+    """Spectra and cost curves for the live view (``mtcw_core.explain``), from the monitor stream.
+
+    Never slows the pipeline: it is one more subscriber of the acquisition node's PUB socket,
+    which drops frames for a slow subscriber rather than wait (its queue holds ``rcvhwm``
+    frames). It is connected only while a page wants diagnostics (and ``idle_s`` after the last
+    one left); it takes every frame that arrives, keeps the newest, and explains one at most every
+    ``1/rate_hz`` seconds, only the newest: the frames passed over are counted (``passed_over``),
+    and so are the frames ZeroMQ dropped before they reached it (``lost``, from the seq gaps).
+    Each explanation replaces the previous one (:meth:`latest`): a page that takes them slower
+    than they come gets the newest and skips the rest (the API counts those).
+
+    Parameters
+    ----------
+    settings : TransportSettings
+        ``monitor_endpoint`` and the CurveZMQ keys.
+    rate_hz : float
+        Explanations per second at most.
+    profile : str
+        Chain profile of the explanations.
+    idle_s : float
+        Stay connected this long after the last subscriber left.
+    on_explained : callable(seconds), optional
+        Called with the time each explanation took (the API's histogram).
+    """
+
+    def __init__(self, settings: TransportSettings, rate_hz: float = 1.0, profile: str = "balanced",
+                 idle_s: float = 5.0, rcvhwm: int = 2, ctx: zmq.Context | None = None,
+                 on_explained: Callable[[float], None] | None = None) -> None:
+        super().__init__(name="view-feed", daemon=True)
+        self.settings = settings
+        self.period_s = 1.0 / rate_hz
+        self.profile = profile
+        self.idle_s = idle_s
+        self.rcvhwm = rcvhwm
+        self.ctx = ctx or zmq.Context.instance()
+        self.on_explained = on_explained
+        self.stop_event = threading.Event()
+        self._lock = threading.Lock()
+        self._subscribers = 0
+        self._wanted_until = 0.0  # monotonic
+        self._latest: tuple[int, bytes] | None = None  # (version, JSON)
+        self.counts = {"received": 0, "explained": 0, "passed_over": 0, "lost": 0, "malformed": 0, "errors": 0}
+        self.connected = False
+
+    # -- the HTTP side -------------------------------------------------------------------------
+    def subscribe(self) -> None:
+        with self._lock:
+            self._subscribers += 1
+
+    def unsubscribe(self) -> None:
+        with self._lock:
+            self._subscribers -= 1
+            self._wanted_until = time.monotonic() + self.idle_s
+
+    def want(self) -> None:
+        """A one-off request (``GET /v1/view/diagnostics``): stay connected for ``idle_s``."""
+        with self._lock:
+            self._wanted_until = max(self._wanted_until, time.monotonic() + self.idle_s)
+
+    def latest(self) -> tuple[int, bytes] | None:
+        """The newest explanation as (version, JSON bytes); versions count up from 1."""
+        return self._latest
+
+    def subscribers(self) -> int:
+        return self._subscribers
+
+    def stats(self) -> dict:
+        return {**self.counts, "connected": self.connected, "subscribers": self._subscribers,
+                "rate_hz": 1.0 / self.period_s, "profile": self.profile}
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    # -- the thread ----------------------------------------------------------------------------
+    def _wanted(self) -> bool:
+        with self._lock:
+            return self._subscribers > 0 or time.monotonic() < self._wanted_until
+
+    def _explain(self, parts) -> None:
+        from mtcw_core.explain import explain_frame  # the chain: imported when a page first asks
+
+        try:
+            fr = decode_frame(parts)
+        except WireError as err:
+            self.counts["malformed"] += 1
+            log.warning("view: malformed frame message: %s", err)
+            return
+        t0 = time.perf_counter()
+        try:
+            d = explain_frame(fr, self.profile)
+            body = json.dumps(d, allow_nan=False).encode()
+        except Exception:  # a chain bug must not stop the view; the workers are not affected
+            self.counts["errors"] += 1
+            log.exception("view: explain failed on seq %d", fr.seq)
+            return
+        dt = time.perf_counter() - t0
+        version = (self._latest[0] if self._latest else 0) + 1
+        self._latest = (version, body)
+        self.counts["explained"] += 1
+        if self.on_explained:
+            self.on_explained(dt)
+
+    def run(self) -> None:
+        sub: Subscriber | None = None
+        gaps = GapCounter()
+        next_due = 0.0
+        try:
+            while not self.stop_event.is_set():
+                if not self._wanted():
+                    if sub is not None:
+                        sub.close()
+                        sub, self.connected = None, False
+                    self.stop_event.wait(0.2)
+                    continue
+                if sub is None:
+                    sub = Subscriber(self.settings, self.ctx, rcvhwm=self.rcvhwm)
+                    gaps, self.connected = GapCounter(), True  # frames before connecting are not lost
+                if not sub.sock.poll(100):
+                    continue
+                newest = None
+                while True:  # take what is queued; only the newest may be explained
+                    try:
+                        parts = sub.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    self.counts["received"] += 1
+                    if newest is not None:
+                        self.counts["passed_over"] += 1
+                    newest = parts
+                    try:
+                        hdr = decode_header(parts[1]) if len(parts) > 1 else None
+                    except WireError:
+                        hdr = None
+                    if hdr is not None:
+                        self.counts["lost"] += gaps.see(hdr.source, hdr.seq)
+                now = time.monotonic()
+                if newest is None:
+                    continue
+                if now < next_due:
+                    self.counts["passed_over"] += 1
+                    continue
+                next_due = now + self.period_s
+                self._explain(newest)
+        except Exception:
+            log.exception("view: the feed stopped")
+        finally:
+            if sub is not None:
+                sub.close()
+            self.connected = False

@@ -180,6 +180,10 @@ class ApiSettings(TransportSettings):
     max_future_s: float = Field(60.0, gt=0, description="refuse points and notices triggered more than this "
                                                         "ahead of the API's clock (s)")
     stale_after_s: float = Field(5.0, gt=0, le=MAX_WAIT_S, description="/readyz fails when the last frame is older")
+    view_rate_hz: float = Field(1.0, ge=0, le=50, description="live view (/): spectra and cost curves explained "
+                                "per second at most, from the monitor stream, while a page is open (0 = none)")
+    view_profile: Literal["fast", "balanced", "accurate", "seed"] = Field(
+        "balanced", description="chain profile of the live view's explanations")
 
     @field_validator("store_path")
     @classmethod
