@@ -711,7 +711,7 @@ def _add_view(app: FastAPI, store: PointStore, settings: ApiSettings, metrics: M
                             if sent_diag:
                                 metrics.view_skipped.inc(got[0] - sent_diag - 1)
                             sent_diag = got[0]
-                            yield _sse("diagnostics", got[1])
+                            yield _sse("diagnostics", b'{"version":%d,"explain":%s}' % got)
                             sent_any = now
                     if want_status and now - sent_status >= 1.0:
                         sent_status = now

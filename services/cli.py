@@ -494,14 +494,16 @@ def run(
 ) -> None:
     """All-in-one: simulator + worker(s) + API on loopback. Ctrl-C or SIGTERM stops everything."""
     from services.settings import WorkerSettings
-    from services.supervisor import Supervisor
+    from services.supervisor import Supervisor, free_ports
 
     try:
         sc = load_scene(scene)
     except SceneError as err:
         _fail(str(err))
     _service_settings(WorkerSettings, profile=profile)  # a bad profile fails here, not in a child
-    ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, 0, 0)
+    # with --base-port 0 the services bind free ports and report them, except the monitor port: the
+    # API (started first) subscribes to it for the live view's spectra, so it is chosen here
+    ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, free_ports(1)[0], 0)
     env = {f"MTCW_{k}_ENDPOINT": f"tcp://127.0.0.1:{p}" for k, p in zip(("FRAMES", "MONITOR", "POINTS"), ports)}
     sup = Supervisor(env=env)
     # the binding ends first, each reporting its endpoints; the workers connect to them
@@ -514,6 +516,7 @@ def run(
     def banner(s: Supervisor) -> None:
         url = s.endpoints["http_url"]
         typer.echo(f"mtcw run: scene {sc.name} ({sc.description}); {workers} worker(s), profile {profile}\n"
+                   f"  live view    : {url}/\n"
                    f"  latest point : curl {url}/v1/points/latest\n"
                    f"  history      : curl '{url}/v1/points?limit=10'\n"
                    f"  health       : curl {url}/readyz\n"
