@@ -616,8 +616,9 @@ def _last_ids(db: HistoryDB, tail: int) -> int:
     """The cursor before the last ``tail`` points of the history (0 when it holds fewer), read on
     the calling thread's reader connection."""
     conn = db._reader()  # the store's per-thread read connection (WAL: beside the writer)
-    row = conn.execute("SELECT id FROM points ORDER BY id DESC LIMIT 1 OFFSET ?", (tail,)).fetchone()
-    return int(row[0]) if row is not None else 0
+    # fetchall: a statement left unfinished would hold this connection's read snapshot open
+    rows = conn.execute("SELECT id FROM points ORDER BY id DESC LIMIT 1 OFFSET ?", (tail,)).fetchall()
+    return int(rows[0][0]) if rows else 0
 
 
 def _sse(event: str, data: bytes, event_id: Optional[int] = None) -> bytes:
