@@ -26,7 +26,17 @@ $(PROM_STAMP): | $(STAMP)
 	  echo "note: Debian package prometheus not installed; its test will be skipped"; }
 	@touch $@
 
-test: $(STAMP) $(PROM_STAMP)
+# The browser test drives Debian's chromium (Playwright, from the test extras, uses the system browser:
+# no browser download); install it where we may (root + apt), else its test is skipped.
+CHROMIUM_STAMP := $(VENV)/.chromium
+$(CHROMIUM_STAMP): | $(STAMP)
+	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1 || \
+	    { apt-get update -q >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1; }; } || \
+	  echo "note: Debian package chromium not installed; the browser test (tests/test_browser.py) will be skipped"; }
+	@touch $@
+
+test: $(STAMP) $(PROM_STAMP) $(CHROMIUM_STAMP)
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)
