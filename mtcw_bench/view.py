@@ -23,6 +23,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import psutil
 
 from services.supervisor import Supervisor, free_ports
 
@@ -46,6 +47,21 @@ def deploy(recording: Path, profile: str) -> Supervisor:
     return sup
 
 
+def _cpu_s(procs: dict[str, list[psutil.Process]]) -> dict[str, float]:
+    """CPU seconds (user + system) used so far by each group of processes."""
+    out = {}
+    for name, ps in procs.items():
+        total = 0.0
+        for p in ps:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except psutil.Error:
+                pass
+        out[name] = total
+    return out
+
+
 def measure(recording: Path, pages: int, seconds: float, profile: str, pw) -> dict:
     sup = deploy(recording, profile)
     sup.start()
@@ -61,11 +77,16 @@ def measure(recording: Path, pages: int, seconds: float, profile: str, pw) -> di
                 p.goto(f"{url}/")
                 open_pages.append(p)
         time.sleep(3.0)  # warm-up: pages loaded and streaming, queues filled
+        kids = {c.name: psutil.Process(c.proc.pid) for c in sup.children}
+        procs = {"worker": [kids["w0"]], "api": [kids["api"]], "acquisition": [kids["acq"]],
+                 "browser": [p for p in psutil.Process().children(recursive=True) if "chrom" in p.name().lower()]}
+        c0 = _cpu_s(procs)
         h0 = httpx.get(f"{url}/healthz").json()
         t0 = time.monotonic()
         time.sleep(seconds)
         h1 = httpx.get(f"{url}/healthz").json()
         dt = time.monotonic() - t0
+        c1 = _cpu_s(procs)
         status = httpx.get(f"{url}/v1/view/status").json()
         lat = []
         for p in open_pages:
@@ -79,6 +100,7 @@ def measure(recording: Path, pages: int, seconds: float, profile: str, pw) -> di
             "frames_per_s": (h1["processed"] + h1["rejected"] - h0["processed"] - h0["rejected"]) / dt,
             "trigger_to_pixel_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
             "trigger_to_pixel_p95_ms": float(np.percentile(lat, 95)) if lat.size else None,
+            "cpu_cores": {k: round((c1[k] - c0[k]) / dt, 3) for k in c0}, "load_avg_1min": psutil.getloadavg()[0],
             "feed": status["view"]}
 
 
@@ -106,13 +128,15 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "view.json").write_text(json.dumps({"command": "mtcw-bench-view " + " ".join(sys.argv[1:]),
                                                     "rows": rows}, indent=1))
-    print("\n| pages open | worker frames/s | trigger-to-pixel p50 / p95 (ms) | spectra explained / frames passed over |"
-          "\n|---|---|---|---|")
+    print("\n| pages open | worker frames/s | trigger-to-pixel p50 / p95 (ms) | spectra explained / frames passed over "
+          "| CPU cores used: worker / API / browser | load (1 min) |\n|---|---|---|---|---|---|")
     for r in rows:
         f = r["feed"] or {}
         lat = "–" if r["trigger_to_pixel_p50_ms"] is None else \
             f"{r['trigger_to_pixel_p50_ms']:.0f} / {r['trigger_to_pixel_p95_ms']:.0f}"
-        print(f"| {r['pages']} | {r['frames_per_s']:.2f} | {lat} | {f.get('explained', 0)} / {f.get('passed_over', 0)} |")
+        c = r["cpu_cores"]
+        print(f"| {r['pages']} | {r['frames_per_s']:.2f} | {lat} | {f.get('explained', 0)} / {f.get('passed_over', 0)} "
+              f"| {c['worker']:.2f} / {c['api']:.2f} / {c['browser']:.2f} | {r['load_avg_1min']:.1f} |")
 
 
 if __name__ == "__main__":

@@ -134,7 +134,7 @@ def test_live_view_in_chromium(playwright, live):
         first_s = time.monotonic() - t0
         _wait_js(page, "mtcwView.diagnostics >= 1 && mtcwView.status !== null", 20, "a spectrum and the counts")
         # the same range as /v1/points/latest: the page's newest point of the source, same seq
-        for _ in range(100):
+        for _ in range(400):  # the page's text follows at 4 Hz, the points at 10/s: look until they meet
             api = httpx.get(f"{live}/v1/points/latest").json()["points"]
             src, p = next(iter(api.items()))
             shown = page.evaluate(f"""(() => {{ const e = document.querySelector('#latest .src[data-source="{src}"]');

@@ -4,6 +4,7 @@
 "use strict";
 
 const KEEP = 600;                 // points per source on the time plots
+const TEXT_EVERY_MS = 250;        // the text panels (numbers, bars, tables) at most 4 times a second
 const COLOURS = ["#4c78a8", "#f58518", "#54a24b", "#b279a2", "#e45756", "#72b7b2"];
 const MARKS = {                   // line kinds of the explained spectrum
   tone: ["#4c78a8", "static line f_i (S)"],
@@ -24,6 +25,7 @@ const sources = new Map();        // source -> {t, r, rlo, rhi, rflag, v, vlo, v
 let dirty = { series: false, diag: false, status: false, latest: false };
 let pendingLatency = [];          // trigger times (ms) of the points drawn in this animation frame
 let stageHist = [];
+let lastText = 0, lastLatText = 0;
 
 function el(id) { return document.getElementById(id); }
 function fmt(x, d = 4) { return x === null || x === undefined || !isFinite(x) ? "–" : Number(x).toPrecision(d); }
@@ -251,18 +253,26 @@ function frame() {
         const now = Date.now();
         for (const t of drawnTriggers) view.latencies.push(now - t);
         if (view.latencies.length > 1000) view.latencies.splice(0, view.latencies.length - 1000);
-        const l = [...view.latencies].sort((a, b) => a - b);
-        if (l.length) el("lat").textContent = `trigger→pixel p50 ${l[Math.floor(l.length / 2)].toFixed(0)} ms`;
+        if (now - lastLatText >= 1000 && view.latencies.length) {
+          lastLatText = now;
+          const l = [...view.latencies].sort((a, b) => a - b);
+          el("lat").textContent = `trigger→pixel p50 ${l[Math.floor(l.length / 2)].toFixed(0)} ms`;
+        }
       });
     }
-    if (dirty.latest) drawLatest();
     if (dirty.diag && diag) { drawSpectrum(); drawCost(); }
-    if (dirty.status) drawStatus();
+    dirty.series = dirty.diag = false;
+    const now = performance.now();
+    if (now - lastText >= TEXT_EVERY_MS && (dirty.latest || dirty.status)) {
+      lastText = now;
+      if (dirty.latest) drawLatest();
+      if (dirty.status) drawStatus();
+      dirty.latest = dirty.status = false;
+    }
   } catch (e) {
     view.errors.push(String(e));
     throw e;
   } finally {
-    dirty = { series: false, diag: false, status: false, latest: false };
     requestAnimationFrame(frame);
   }
 }
