@@ -145,18 +145,35 @@ STAGES: tuple[Stage, ...] = (
 )
 STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 
+#: One stage table per technique (``ChainSettings.technique``); ``pb`` is :data:`STAGES`.
+TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES}
+
+
+def stages_of(technique: str) -> tuple[Stage, ...]:
+    """The stage table of ``technique``.
+
+    Raises
+    ------
+    Rejected
+        ``technique``: no stage table for it in this build.
+    """
+    try:
+        return TECHNIQUES[technique]
+    except KeyError:
+        raise Rejected("technique", f"{technique!r} is not available (one of {', '.join(TECHNIQUES)})") from None
+
 
 def _start(frame: Frame, settings: ChainSettings | str, calibration: Calibration | None) -> FrameState:
     if isinstance(settings, str):
         settings = get_profile(settings)
-    res = FrameResult(status="rejected", profile=settings.profile, seq=frame.seq, t_ns=frame.t_ns,
+    res = FrameResult(status="rejected", profile=settings.profile, technique=settings.technique, seq=frame.seq, t_ns=frame.t_ns,
                       source=frame.source, calibrated=calibration is not None)
     return FrameState(frame, settings, calibration, res)
 
 
 def _walk(state: FrameState, until: str | None = None) -> None:
     """Run the stages that apply, in order, timing each into ``result.stage_seconds``."""
-    for stage in STAGES:
+    for stage in stages_of(state.settings.technique):
         if stage.applies(state):
             t0 = time.perf_counter()
             try:
@@ -175,9 +192,10 @@ def run_stages(frame: Frame, settings: ChainSettings | str = "balanced", calibra
     stages do (for tools that need the intermediate lines, e.g. calibration);
     :func:`process_frame` is the total version.
     """
-    if until is not None and until not in STAGE_NAMES:
-        raise ValueError(f"until: unknown stage {until!r} (one of {', '.join(STAGE_NAMES)})")
     state = _start(frame, settings, calibration)
+    names = [st.name for st in stages_of(state.settings.technique)]
+    if until is not None and until not in names:
+        raise ValueError(f"until: unknown stage {until!r} (one of {', '.join(names)})")
     _walk(state, until)
     return state
 
@@ -199,5 +217,5 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
     return res
 
 
-__all__ = ["STAGES", "STAGE_NAMES", "Stage", "FrameState", "run_stages", "process_frame", "ChainSettings",
+__all__ = ["STAGES", "STAGE_NAMES", "TECHNIQUES", "stages_of", "Stage", "FrameState", "run_stages", "process_frame", "ChainSettings",
            "PROFILES", "get_profile", "FrameResult", "TargetPoint", "Rejected", "NoTarget", "Status", "Direction"]

@@ -20,6 +20,10 @@ class ChainSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     profile: str = "custom"
+    technique: Literal["pb", "ab", "pe", "ptof"] = Field(
+        "pb", description="pb: phase-based MTCW (the chain below); ab: amplitude-based, pe: phase-extraction "
+                          "(modulated reference arm), ptof: pulsed time of flight (the dissertation's Ch. 3-4); "
+                          "each has its own stage table in mtcw_core.chain.TECHNIQUES")
     # -- validate
     max_clip_fraction: float = Field(1e-3, ge=0, le=1)
     expected_tones_hz: tuple[float, ...] | None = None

@@ -91,6 +91,7 @@ class FrameResult:
 
     status: Status
     profile: str
+    technique: str = "pb"
     seq: int = 0
     t_ns: int = 0
     source: str = ""

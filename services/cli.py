@@ -88,11 +88,14 @@ def _open(recording: Path):
         _fail(str(err))
 
 
-def _settings(profile: str, method: Optional[str]):
+def _settings(profile: str, method: Optional[str], technique: str = "pb"):
     from mtcw_core.chain import get_profile
 
+    over = {"method": method} if method else {}
+    if technique != "pb":
+        over["technique"] = technique
     try:
-        return get_profile(profile, **({"method": method} if method else {}))
+        return get_profile(profile, **over)
     except ValueError as err:
         _fail(str(err))
 
@@ -112,8 +115,10 @@ def process(
     profile: str = typer.Option("balanced", help="fast | balanced | accurate | seed"),
     method: Optional[str] = typer.Option(None, help="override cycle resolution: ml | seed"),
     calibration: Optional[Path] = typer.Option(None, help="calibration file from `mtcw calibrate`"),
+    technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
 ) -> None:
-    """Run the PB-MTCW chain on every frame of a recording: one point per frame and target."""
+    """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
+    target."""
     import csv
 
     import numpy as np
@@ -123,7 +128,7 @@ def process(
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
-    settings = _settings(profile, method)
+    settings = _settings(profile, method, technique)
     cal = None
     if calibration is not None:
         try:
@@ -372,14 +377,16 @@ def worker(
     profile: Optional[str] = typer.Option(None, help="chain profile [MTCW_PROFILE; default balanced]"),
     calibration: Optional[Path] = typer.Option(None, help="calibration file [MTCW_CALIBRATION]"),
     name: Optional[str] = typer.Option(None, help="worker name in logs [MTCW_NAME]"),
+    technique: Optional[str] = typer.Option(None, help="ranging technique pb | ab | pe | ptof [MTCW_TECHNIQUE; "
+                                                       "default pb]"),
 ) -> None:
-    """Worker: frames in, PB-MTCW chain, points out."""
+    """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
     from services.settings import WorkerSettings
     from services.worker import Worker
 
     _logging()
-    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name)
+    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique)
     try:
         w = Worker(st)
     except CalibrationError as err:
@@ -448,6 +455,7 @@ def record(
 def run(
     scene: str = typer.Option("cw-bench", help="scene file or bundled scene name"),
     profile: str = typer.Option("balanced", help="chain profile of the workers"),
+    technique: str = typer.Option("pb", help="ranging technique of the workers: pb | ab | pe | ptof"),
     workers: int = typer.Option(1, min=1, max=64, help="number of worker processes"),
     rate: float = typer.Option(5.0, help="frames/s from the simulator (0 = as fast as it goes)"),
     port: int = typer.Option(8000, min=0, max=65535, help="HTTP port of the API (127.0.0.1; 0 = a free one)"),
@@ -462,7 +470,7 @@ def run(
         sc = load_scene(scene)
     except SceneError as err:
         _fail(str(err))
-    _service_settings(WorkerSettings, profile=profile)  # a bad profile fails here, not in a child
+    _service_settings(WorkerSettings, profile=profile, technique=technique)  # bad ones fail here, not in a child
     ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, 0, 0)
     env = {f"MTCW_{k}_ENDPOINT": f"tcp://127.0.0.1:{p}" for k, p in zip(("FRAMES", "MONITOR", "POINTS"), ports)}
     sup = Supervisor(env=env)
@@ -471,7 +479,7 @@ def run(
     sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate), reports=True,
             env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
-        sup.add(f"worker-{i}", "worker", "--profile", profile, "--name", f"worker-{i}")
+        sup.add(f"worker-{i}", "worker", "--profile", profile, "--technique", technique, "--name", f"worker-{i}")
 
     def banner(s: Supervisor) -> None:
         url = s.endpoints["http_url"]
