@@ -54,7 +54,8 @@ class ChainSettings(BaseModel):
     doppler_refine: Literal["parabolic", "phase", "exact"] = Field(
         "parabolic", description="below one Doppler-spectrum bin: parabola through the search scores, then "
                                  "(phase) the phase advance of the lines across record quarters, or (exact) "
-                                 "maximising the exact line power")
+                                 "that, then maximising the windowed exact line power (its stated error is "
+                                 "the phase refinement's)")
     max_targets: int = Field(3, ge=1, le=8, description="Doppler lines (moving targets) looked for")
     # -- extract
     extraction: Literal["ls", "filter"] = "ls"
@@ -71,6 +72,9 @@ class ChainSettings(BaseModel):
     points_per_cycle: int = Field(16, ge=4)
     range_min_m: float = -0.05
     range_max_m: float | None = None
+    timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description=(
+        "the digitizer's known rms trigger/timing jitter (s): it shifts every tone phase alike, as a range "
+        "shift of c*dt/2 that one frame cannot see, so it enters the range sigma in quadrature"))
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
     # -- select
@@ -86,8 +90,9 @@ PROFILES: dict[str, ChainSettings] = {
                           doppler_refine="phase", doppler_phase_lines=3),
     # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
     "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0, spectrum_single=True, doppler_refine="phase"),
-    # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
-    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="exact",
+    # Full-record float64 spectrum, phase-advance Doppler refinement over all lines, MZM products
+    # modelled in the LS fit, ML on a 32-point grid.
+    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="phase",
                               model_products=True, points_per_cycle=32),
     # The dissertation: resample to 2^23, 1 MHz 2nd-order Butterworth filtfilt per line,
     # correlation with zero-phase cosines, candidate-matrix triangulation.

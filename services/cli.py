@@ -88,12 +88,14 @@ def _open(recording: Path):
         _fail(str(err))
 
 
-def _settings(profile: str, method: Optional[str], technique: str = "pb"):
+def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0):
     from mtcw_core.chain import get_profile
 
     over = {"method": method} if method else {}
     if technique != "pb":
         over["technique"] = technique
+    if timing_jitter_s:
+        over["timing_jitter_s"] = timing_jitter_s
     try:
         return get_profile(profile, **over)
     except ValueError as err:
@@ -116,6 +118,8 @@ def process(
     method: Optional[str] = typer.Option(None, help="override cycle resolution: ml | seed"),
     calibration: Optional[Path] = typer.Option(None, help="calibration file from `mtcw calibrate`"),
     technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
+    timing_jitter_s: float = typer.Option(0.0, "--timing-jitter-s", help="the digitizer's known rms timing jitter "
+                                                                         "(s); enters every range sigma"),
 ) -> None:
     """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
     target."""
@@ -128,7 +132,7 @@ def process(
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
-    settings = _settings(profile, method, technique)
+    settings = _settings(profile, method, technique, timing_jitter_s)
     cal = None
     if calibration is not None:
         try:
@@ -379,6 +383,8 @@ def worker(
     name: Optional[str] = typer.Option(None, help="worker name in logs [MTCW_NAME]"),
     technique: Optional[str] = typer.Option(None, help="ranging technique pb | ab | pe | ptof [MTCW_TECHNIQUE; "
                                                        "default pb]"),
+    timing_jitter_s: Optional[float] = typer.Option(None, "--timing-jitter-s", help="the digitizer's known rms "
+                                                    "timing jitter (s) [MTCW_TIMING_JITTER_S; default 0]"),
 ) -> None:
     """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
@@ -386,7 +392,8 @@ def worker(
     from services.worker import Worker
 
     _logging()
-    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique)
+    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
+                           timing_jitter_s=timing_jitter_s)
     try:
         w = Worker(st)
     except CalibrationError as err:

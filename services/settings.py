@@ -143,6 +143,8 @@ class AcquisitionSettings(TransportSettings):
 class WorkerSettings(TransportSettings):
     profile: str = Field("balanced", description="chain profile: fast | balanced | accurate | seed")
     technique: Literal["pb", "ab", "pe", "ptof"] = Field("pb", description="ranging technique (ChainSettings.technique)")
+    timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description="the digitizer's known rms timing jitter (s); "
+                                                                   "enters every range sigma")
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")

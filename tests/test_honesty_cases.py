@@ -67,24 +67,16 @@ def wrong_range_even_flagged(runs) -> list[str]:
 CASE1 = [tgt(6.789, 0.21, 70.0)]
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 1: balanced at 2^18, 70 dB reports 0.2029 m/s +- 2.4e-4 "
-                                       "(z = -28 to -33) in 3/3 frames: the phase refinement's baseband line "
-                                       "carries the DC's leakage (Doppler -13.4 kHz off; -0.15 kHz with the "
-                                       "record's mean removed)")
 def test_case1_balanced_speed_is_within_its_sigma_at_70_db():
     runs = run(scene(CASE1, 2**18), "balanced", 3, seed=1)
     assert not confident(runs), confident(runs)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 1: accurate at 2^16, 58 dB scatters 13x its speed sigma "
-                                       "(speed z up to 23 in 8 frames)")
 def test_case1_accurate_speed_is_within_its_sigma_at_2_16():
     runs = run(scene([tgt(6.789, 0.21, 58.0)], 2**16), "accurate", 8, seed=1)
     assert not confident(runs), confident(runs)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 1: on the 6-tone plan at 2^18, 70 dB accurate is biased "
-                                       "the other way (speed z +24), balanced -25")
 @pytest.mark.parametrize("profile", ["accurate", "balanced"])
 def test_case1_six_tone_speed_is_within_its_sigma(profile):
     runs = run(scene(CASE1, 2**18, SIX_TONES), profile, 3, seed=1)
@@ -188,20 +180,13 @@ def test_case6_speed_below_the_search_is_measured():
 
 # -------------------------------------------------------------------------------------------
 # 7. known timing jitter
-@pytest.mark.xfail(strict=True, reason="issue 12 case 7: 60 ps rms trigger jitter spreads the range by ~9 mm "
-                                       "(c*dt/2) while the sigma stays ~0.1 mm: range z std 74 over 30 frames "
-                                       "at 2^16; there is no setting for the digitizer's known jitter "
-                                       "(timing_jitter_s proposed)")
 def test_case7_known_timing_jitter_enters_the_sigma():
     sc = scene([tgt(1.2, 0.0, 20.0)], 2**16, noise={"trigger_jitter_s": JITTER_S})
-    try:
-        settings = get_profile("balanced", timing_jitter_s=JITTER_S)
-    except ValueError:
-        settings = None
-    runs = run(sc, settings or "balanced", 30, seed=1)
+    blind = run(sc, "balanced", 10, seed=1)  # the premise: without the setting, jitter is invisible
+    assert np.std([p.range_z for _, _, v in blind for p in v.points]) > 20
+    runs = run(sc, get_profile("balanced", timing_jitter_s=JITTER_S), 30, seed=1)
     z = np.array([p.range_z for _, _, v in runs for p in v.points if p.truth_index is not None])
     assert z.size == 30
-    assert settings is not None, f"no timing-jitter setting; range z std {np.std(z):.0f}"
     assert 0.6 < np.std(z) < 1.5 and not confident(runs), (np.std(z), confident(runs))
 
 
@@ -215,9 +200,6 @@ def scaled_moving_target(loss_db: float) -> Scene:
                          modulator={"tones": [{"frequency_hz": f} for f in (125e6, 175e6, 237.5e6)]})
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 8: moving-target (scaled, 54 dB = 60 dB at 1e6): balanced "
-                                       "reports sigma 6.9x the CRB and a speed 4.3 mm/s off with sigma 0.04 mm/s "
-                                       "(z = -101; -178 at 1e6), the phase refinement's DC leak again")
 def test_case8_balanced_is_near_the_bound_and_its_speed_within_sigma():
     sc = scaled_moving_target(54.0)
     crb = range_bound(sc, 7).range_sigma_m
@@ -227,8 +209,6 @@ def test_case8_balanced_is_near_the_bound_and_its_speed_within_sigma():
     assert sig <= 1.5 * crb, f"reported sigma {sig / crb:.1f}x the CRB"
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 8: moving-target (scaled, 74 dB = 80 dB at 1e6): balanced "
-                                       "puts 4 of 10 frames on a wrong cycle (accurate: none)")
 def test_case8_balanced_has_no_wrong_cycles_at_80_db():
     sc = scaled_moving_target(74.0)
     runs = run(sc, "balanced", 10, seed=7)

@@ -122,6 +122,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     ratio = chi2 / dof if dof > 0 else 1.0
     if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
         sigma *= math.sqrt(ratio)
+    # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
+    sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     v, vs, direction = velocity(dop, frame, fams, frame.receiver == "iq")
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
