@@ -75,6 +75,8 @@ class ChainSettings(BaseModel):
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description=(
         "the digitizer's known rms trigger/timing jitter (s): it shifts every tone phase alike, as a range "
         "shift of c*dt/2 that one frame cannot see, so it enters the range sigma in quadrature"))
+    cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
+                                                                "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
     # -- select

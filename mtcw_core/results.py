@@ -50,8 +50,12 @@ class TargetPoint:
     residual_rms_rad : float
         RMS of the pair-phase residuals at the solution (rad).
     near_edge, cycle_ambiguous, blended : bool
-        The solution lies near the search interval's edge; the coarse range could not pick one
-        cycle; the line phases are not those of one target (sigma Birge-scaled).
+        The solution lies near the search interval's edge; the cycle is in doubt (the coarse
+        range could not pick one, or the line phases give another cycle odds above
+        ``ChainSettings.cycle_slip_max``); the line phases are not those of one target (sigma
+        Birge-scaled).
+    cycle_slip_prob : float
+        The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1].
     doppler_hz : float
         The target's Doppler line (Hz; signed for IQ; 0 for the static target).
     chi2_per_dof : float
@@ -75,6 +79,7 @@ class TargetPoint:
     blended: bool = False
     doppler_hz: float = 0.0
     chi2_per_dof: float = 1.0
+    cycle_slip_prob: float = 0.0
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
 

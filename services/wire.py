@@ -111,6 +111,7 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     blended: bool = False
     chi2_per_dof: NonNegative = 1.0
     residual_rms_rad: NonNegative = 0.0
+    cycle_slip_prob: Annotated[float, Meta(ge=0, le=1)] = 0.0
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):

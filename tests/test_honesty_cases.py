@@ -101,10 +101,6 @@ def test_case2_premise_2_18_samples_find_the_six_tone_target():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 12 case 2: the 6-tone target that 2^18 samples find is lost at 1e6 "
-                                       "(2 of 3 frames no_target: the phase refinement's DC leak puts the "
-                                       "Doppler 5.2 kHz off, about one bin, so its lines fall below 10 dB); "
-                                       "the third is +23 sigma in speed")
 def test_case2_more_samples_do_not_lose_the_target():
     runs = run(scene(CASE1, 1_000_000, SIX_TONES), "balanced", 3, seed=1)
     assert all(r.status == "ok" and v.missed == () for _, r, v in runs), [r.reason for _, r, _ in runs]
@@ -128,8 +124,6 @@ def test_case3_static_point_beside_a_mover_is_within_its_sigma():
 LOW_MOVER = [tgt(1.12, 0.10, 14.0)]
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 4: 5.3 GHz laser, LO 9 m longer, mover at 10 cm/s, 2^16 "
-                                       "samples at 14 dB: wrong cycles with range z up to 40, unflagged")
 def test_case4_low_coherence_mover_range_is_never_a_confident_wrong_cycle():
     sc = with_targets(scene_variant(load_scene("low-coherence"), digitizer={"samples": 2**16}), LOW_MOVER)
     runs = run(sc, "balanced", 12, seed=1)

@@ -26,7 +26,7 @@ from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
 from .mixing import consistency
-from .triangulation import Observations, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
+from .triangulation import Observations, RangeSolution, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,27 @@ def _tone_snr(fams: list[LineFamily]) -> dict[str, float]:
     return out
 
 
+def cycle_slip_probability(fams: list[LineFamily], ref: Reference, sol: RangeSolution, chi2_best: float,
+                           scale: float, min_snr_db: float) -> float:
+    """The odds that another cycle is the true one, from the line phases' likelihood.
+
+    For each runner-up range ``L_k`` of the cycle resolution, ``exp(-(chi2(L_k) - chi2(L))/(2*s))``
+    with ``chi2`` the line phases' misfit (:func:`~mtcw_core.ranging.mixing.consistency`) and ``s``
+    the Birge ratio (>= 1) when the phases are less consistent than their noise; summed. Near the
+    detection threshold a wrong cycle is as likely as the right one and the margin of the cost
+    alone does not say so.
+
+    Returns
+    -------
+    float, the summed odds of the runners-up against the solution, clipped to [0, 1]
+    """
+    total = 0.0
+    for alt in sol.alternatives_m:
+        c2, _ = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * alt / C, min_snr_db)
+        total += math.exp(-max(c2 - chi2_best, 0.0) / (2 * scale))
+    return float(min(total, 1.0))
+
+
 def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate, frame: Frame,
                  settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None,
                  l_unamb: float | None = None) -> TargetPoint:
@@ -124,11 +145,13 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         sigma *= math.sqrt(ratio)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
+    p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
     v, vs, direction = velocity(dop, frame, fams, frame.receiver == "iq")
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
-        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
+        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge,
+        cycle_ambiguous=bool(ambiguous or p_slip > settings.cycle_slip_max), cycle_slip_prob=p_slip,
         blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m,
     )
