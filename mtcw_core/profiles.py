@@ -75,6 +75,12 @@ class ChainSettings(BaseModel):
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description=(
         "the digitizer's known rms trigger/timing jitter (s): it shifts every tone phase alike, as a range "
         "shift of c*dt/2 that one frame cannot see, so it enters the range sigma in quadrature"))
+    laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description=(
+        "the laser's Lorentzian FWHM (Hz); with lo_path_difference_m it says at which ranges the LO x echo "
+        "carrier beat is a line at all: where it is not, a mover shows no Doppler line and its speed is "
+        "reported unknown, not zero. 0: assumed coherent at every range (one frame cannot tell)"))
+    lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the "
+                                                                         "echo's internal path (m)")
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "

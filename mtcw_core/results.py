@@ -41,7 +41,9 @@ class TargetPoint:
         Range (m, from the calibration's zero) and its standard deviation (m).
     velocity_mps, velocity_sigma_mps : float
         Radial speed (m/s; signed only for an IQ receiver, positive receding) and its sigma. A
-        static target reports 0 with the smallest detectable speed as its sigma.
+        static target reports 0 with the smallest detectable speed as its sigma; a target whose
+        speed cannot be measured (laser incoherent at its range) 0 with the largest speed searched
+        as its sigma, direction ``unknown``.
     direction : Direction
     snr_db : float
         Post-integration SNR of the target's strongest line (dB).
@@ -54,6 +56,10 @@ class TargetPoint:
         range could not pick one, or the line phases give another cycle odds above
         ``ChainSettings.cycle_slip_max``); the line phases are not those of one target (sigma
         Birge-scaled).
+    speed_min_mps : float
+        The smallest speed this frame could have measured (m/s): a Doppler line closer to 0 Hz
+        than the search's guard is not told from the static lines. When the laser is not coherent
+        at the target's range, the search's largest speed (nothing could have shown).
     cycle_slip_prob : float
         The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1].
     doppler_hz : float
@@ -80,6 +86,7 @@ class TargetPoint:
     doppler_hz: float = 0.0
     chi2_per_dof: float = 1.0
     cycle_slip_prob: float = 0.0
+    speed_min_mps: float = 0.0
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
 

@@ -112,6 +112,7 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     chi2_per_dof: NonNegative = 1.0
     residual_rms_rad: NonNegative = 0.0
     cycle_slip_prob: Annotated[float, Meta(ge=0, le=1)] = 0.0
+    speed_min_mps: NonNegative = 0.0
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):
