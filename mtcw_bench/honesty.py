@@ -540,8 +540,7 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     # the bench knows its digitizer's timing jitter (issue 12 case 7): it enters the range sigma
     # and its laser: the LO x echo carrier beat is no line beyond coherence (case 4: speed unknown, not 0)
     known = {"timing_jitter_s": sc.noise.trigger_jitter_s, "laser_linewidth_hz": sc.laser.linewidth_hz,
-             "lo_path_difference_m": sc.paths.lo_path_difference_m,
-             "farthest_range_m": 1.2 * max(t.range_m for t in sc.targets)}
+             "lo_path_difference_m": sc.paths.lo_path_difference_m}
     for prof in profiles:
         settings = get_profile(prof, **known)
         verdicts, times = [], []

@@ -81,9 +81,6 @@ class ChainSettings(BaseModel):
         "reported unknown, not zero. 0: assumed coherent at every range (one frame cannot tell)"))
     lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the "
                                                                          "echo's internal path (m)")
-    farthest_range_m: float | None = Field(None, gt=0, le=1e6, description=(
-        "the farthest a target can be (m): beyond the unambiguous range the reported range is folded, but the "
-        "laser's phase noise grows with the true delay (the Doppler's wander); default: the reported range"))
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "

@@ -48,31 +48,17 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
     return math.exp(-2 * math.pi * settings.laser_linewidth_hz * dtau)
 
 
-def carrier_wander_hz(settings: ChainSettings, range_m: float, duration_s: float) -> float:
-    """How far the LO x echo carrier beat's mean frequency wanders over one record (Hz, rms).
-
-    The beat carries the laser's phase difference over the delay ``dtau``, a stationary process
-    of variance ``2*pi*linewidth*dtau`` (rad^2) when ``dtau`` is shorter than the record; its
-    change between the record's first and last quarter, over ``0.75*T``, moves the Doppler
-    estimate by ``sqrt(2 * 2*pi*linewidth*dtau) / (2*pi*0.75*T)``. Every line of the target shares
-    it (one laser), so their agreement cannot show it: it comes from the declared laser, like the
-    timing jitter. 0 for a laser declared ideal.
-    """
-    dtau = min(abs(2 * range_m - settings.lo_path_difference_m) / C, duration_s)
-    return math.sqrt(4 * math.pi * settings.laser_linewidth_hz * dtau) / (2 * math.pi * 0.75 * duration_s)
-
-
 #: below this part of the carrier beat in one line, a mover's Doppler line is not there to find
 MIN_CARRIER_COHERENCE = 0.5
 
 
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
-             fd_max_hz: float | None = None, wander_hz: float = 0.0) -> tuple[float, float, str, float]:
+             fd_max_hz: float | None = None) -> tuple[float, float, str, float]:
     """Radial speed (m/s), its sigma (m/s), direction and the smallest measurable speed (m/s).
 
     The sigma combines the frequency Cramér–Rao bound of the target's Doppler-shifted lines, the
-    refinement's own error, the line's wander (measured from its width, or ``wander_hz`` from the
-    declared laser, whichever is larger), with a floor of 0.001 bin.
+    refinement's own error (which includes the carrier phase all lines share: the laser's phase
+    noise over the echo delay) and the line's wander (incoherent laser), with a floor of 0.001 bin.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
@@ -96,7 +82,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
         var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
         inv_var += float(np.sum(1 / var_f))
     sig_f = 1 / math.sqrt(inv_var) if inv_var > 0 else math.inf
-    sig_f = max(math.hypot(sig_f, dop.refine_error_hz, max(dop.wander_hz, wander_hz)), 1e-3 * fs / n)
+    sig_f = max(math.hypot(sig_f, dop.refine_error_hz, dop.wander_hz), 1e-3 * fs / n)
     if iq:
         v = -dop.fd_hz * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching", v_min
@@ -184,9 +170,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
-                                       carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
-                                       carrier_wander_hz(settings, max(sol.range_m, settings.farthest_range_m or 0.0),
-                                                         frame.duration_s))
+                                       carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings))
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
