@@ -194,3 +194,28 @@ def test_bad_inputs_name_the_argument():
         line_snr(1e-3, 1e-9, 0.0)
     with pytest.raises(ValueError, match="gain"):
         ase_light(0.5, 1.0, 1e-6, 1e9)
+
+
+def test_cli_snr_writes_table_json_png_and_names_bad_options(tmp_path):
+    import csv as _csv
+
+    from typer.testing import CliRunner
+
+    from services.cli import app
+
+    r = CliRunner().invoke(app, ["snr", "-o", str(tmp_path), "--step", "10"])
+    assert r.exit_code == 0, r.output
+    rows = list(_csv.DictReader(open(tmp_path / "snr.csv")))
+    assert [float(x["attenuation_db"]) for x in rows] == [10.0 * k for k in range(13)]
+    # the table is the model: at 60 dB in 1 MHz, shot + LO x ASE + thermal (+ dark) with Fig. 36's numbers
+    g, rr, p_lo, p_s = 10**0.3, 0.7, 5e-3, 10e-3 * 1e-6
+    s_ase = (g - 1) * 1.5 * H_PLANCK * C / 1e-6
+    noise = (2 * Q_E * (rr * g * (p_lo + p_s) + 1.5e-9) + 4 * rr**2 * g * p_lo * s_ase + 4 * K_B * 300 / 50) * 1e6
+    want_db = 10 * math.log10(2 * rr**2 * g**2 * p_lo * p_s / noise)
+    assert float(rows[6]["snr_db_1MHz"]) == pytest.approx(want_db, abs=0.02)
+    assert (tmp_path / "snr.png").stat().st_size > 10_000 and (tmp_path / "snr.json").exists()
+    assert "20 dB at" in r.output
+    bad = CliRunner().invoke(app, ["snr", "-o", str(tmp_path), "--bandwidths", "1e6,-5"])
+    assert bad.exit_code != 0 and "bandwidths" in bad.output and "Traceback" not in bad.output
+    bad = CliRunner().invoke(app, ["snr", "-o", str(tmp_path), "--receiver", "iq"])
+    assert bad.exit_code != 0 and "receiver" in bad.output
