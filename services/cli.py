@@ -319,6 +319,46 @@ def snr(
     typer.echo(f"wrote {out / 'snr.csv'}, {out / 'snr.json'}, {out / 'snr.png'}")
 
 
+@app.command("plan-tones")
+def plan_tones_cmd(
+    check: Optional[str] = typer.Option(None, "--check", help="evaluate these comma-separated tones (Hz) instead of planning"),
+    unambiguous_range: float = typer.Option(15.0, "--range", help="required unambiguous range (m)"),
+    resolution: float = typer.Option(1e-3, help="required range sigma at the design SNR (m)"),
+    bandwidth: float = typer.Option(1e9, help="detector bandwidth (Hz)"),
+    doppler: float = typer.Option(0.0, help="largest |Doppler| (Hz)"),
+    grid: float = typer.Option(1e6, help="reference-clock grid of the synthesizers (Hz)"),
+    tones: int = typer.Option(4, help="number of tones to plan"),
+    snr_db: float = typer.Option(30.0, "--snr-db", help="design post-integration line SNR (dB)"),
+    guard: float = typer.Option(1e6, help="extra clearance between lines (Hz)"),
+    candidates: int = typer.Option(400, help="tone sets tried"),
+    json_out: bool = typer.Option(False, "--json", help="print the report as JSON"),
+) -> None:
+    """Choose tones for a range, precision, band and Doppler -- or check a tone set (--check)."""
+    from mtcw_core.planning import check_plan, plan_tones
+
+    try:
+        if check is not None:
+            try:
+                f = [float(x) for x in check.split(",") if x.strip()]
+            except ValueError:
+                _fail(f"check: {check!r} is not a comma-separated list of frequencies (Hz)")
+            rep = check_plan(f, max_doppler_hz=doppler, detector_bandwidth_hz=bandwidth, design_snr_db=snr_db,
+                             guard_hz=guard)
+        else:
+            rep = plan_tones(unambiguous_range_m=unambiguous_range, resolution_m=resolution,
+                             detector_bandwidth_hz=bandwidth, max_doppler_hz=doppler, grid_hz=grid, n_tones=tones,
+                             design_snr_db=snr_db, guard_hz=guard, candidates=candidates)
+    except ValueError as err:
+        _fail(str(err))
+    if json_out:
+        typer.echo(json.dumps({**rep.__dict__, "ok": rep.ok}, indent=2))
+    else:
+        for line in rep.notes:
+            typer.echo(line)
+    if check is not None and not rep.ok:
+        raise typer.Exit(1)
+
+
 def _stop_on_signals():
     """A threading.Event set by SIGINT/SIGTERM (a service's clean stop).
 
