@@ -103,6 +103,32 @@ class Noise(_Model):
     rf_phase_drift_rad: float = Field(0.0, ge=0, description="rms random-walk step per frame per tone")
 
 
+class Amplifier(_Model):
+    """Optical booster in front of the detector, after LO and echo are combined (the dissertation's
+    Eq. 5.11 set-up): LO, echo and sunlight gain ``G``; ASE ``(G - 1)*n_sp*h*f0`` per polarisation
+    over ``optical_bandwidth_hz`` is added (``mtcw_core.snr``)."""
+
+    gain_db: float = Field(ge=0, le=60, description="optical power gain G (dB)")
+    spontaneous_emission_factor: float = Field(1.0, ge=1.0, le=10.0, description="n_sp")
+    optical_bandwidth_hz: float = Field(gt=0, le=1e14, description="ASE band reaching the detector (rectangular)")
+
+
+class SolarBackground(_Model):
+    """Sunlight collected through an optical filter: ``P = SSI * A * dlambda`` over ``c*dlambda/lambda^2``,
+    unpolarised, in the LO's spatial mode (the dissertation's assumption; ``docs/snr.md``)."""
+
+    spectral_irradiance_w_per_m2_nm: float = Field(gt=0, le=10.0, description="SSI at the laser wavelength")
+    aperture_area_m2: float = Field(gt=0, le=100.0, description="receiver aperture (or one mode's effective area)")
+    filter_bandwidth_m: float = Field(gt=0, le=1e-6, description="full width of the optical filter (2e-9 for +-1 nm)")
+
+
+class OpticalNoise(_Model):
+    """Broadband light at the detector; both off by default (no draw, no change to any frame)."""
+
+    amplifier: Amplifier | None = None
+    solar: SolarBackground | None = None
+
+
 class Digitizer(_Model):
     sample_rate_hz: float = Field(5e9, gt=0)
     samples: int = Field(2**16, ge=2**8, le=2**26)
@@ -140,6 +166,7 @@ class Scene(_Model):
     paths: Paths = Paths()
     receiver: Receiver = Receiver()
     noise: Noise = Noise()
+    optical_noise: OpticalNoise = OpticalNoise()
     digitizer: Digitizer = Digitizer()
     pulsing: Pulsing | None = None
     frames: Frames = Frames()

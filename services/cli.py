@@ -271,6 +271,103 @@ def bench(
     typer.echo(f"wrote {path} (and results.csv, results.json, PNG figures) for {len(result['cells'])} cells")
 
 
+@app.command()
+def snr(
+    out: Path = typer.Option(Path("out/snr"), "-o", "--out", help="output folder (snr.csv, snr.json, snr.png)"),
+    bandwidths: str = typer.Option("1e6,1e7,1e8", help="comma-separated electronic filter bandwidths (Hz)"),
+    max_attenuation: float = typer.Option(120.0, help="largest echo attenuation (dB)"),
+    step: float = typer.Option(1.0, help="attenuation step (dB)"),
+    p_lo: float = typer.Option(5e-3, help="LO power (W)"),
+    p_echo: float = typer.Option(10e-3, help="echo power before attenuation (W)"),
+    gain_db: float = typer.Option(3.0, help="optical amplifier gain (dB); 0 = none"),
+    n_sp: float = typer.Option(1.5, help="amplifier spontaneous-emission factor"),
+    responsivity: float = typer.Option(0.7, help="detector responsivity (A/W)"),
+    temperature: float = typer.Option(300.0, help="temperature (K)"),
+    wavelength: float = typer.Option(1e-6, help="wavelength (m)"),
+    filter_nm: float = typer.Option(2.0, help="optical filter full width (nm)"),
+    solar_irradiance: float = typer.Option(0.75, help="solar spectral irradiance (W m^-2 nm^-1); 0 = night"),
+    aperture_m2: Optional[float] = typer.Option(None, help="solar collection area (m^2); default one spatial "
+                                                "mode of a white sunlit scene, lambda^2/pi"),
+    receiver: str = typer.Option("balanced", help="balanced | single"),
+) -> None:
+    """SNR of one line against echo attenuation (the dissertation's Fig. 36): table, JSON and PNG."""
+    from mtcw_bench.snr_figure import write_snr
+    from mtcw_core.snr import Link
+
+    try:
+        bws = [float(b) for b in bandwidths.split(",") if b.strip()]
+    except ValueError:
+        _fail(f"bandwidths: {bandwidths!r} is not a comma-separated list of numbers")
+    checks = {"bandwidths": min(bws, default=0.0) > 0, "max_attenuation": 0 <= max_attenuation <= 400,
+              "step": 0 < step <= max(max_attenuation, 1.0), "p_lo": p_lo > 0, "p_echo": p_echo > 0,
+              "gain_db": 0 <= gain_db <= 60, "n_sp": n_sp >= 1, "responsivity": responsivity > 0,
+              "temperature": temperature > 0, "wavelength": wavelength > 0, "filter_nm": filter_nm > 0,
+              "solar_irradiance": solar_irradiance >= 0, "aperture_m2": aperture_m2 is None or aperture_m2 > 0,
+              "receiver": receiver in ("balanced", "single")}
+    bad = [k for k, ok in checks.items() if not ok]
+    if bad:
+        _fail(f"{bad[0]}: out of range (see mtcw snr --help)")
+    link = Link(wavelength_m=wavelength, p_lo_w=p_lo, p_echo_w=p_echo, temperature_k=temperature, gain_db=gain_db,
+                n_sp=n_sp, responsivity_a_per_w=responsivity, solar_irradiance_w_per_m2_nm=solar_irradiance,
+                aperture_area_m2=aperture_m2, filter_bandwidth_m=filter_nm * 1e-9, receiver=receiver)
+    res = write_snr(link, out, bws, max_attenuation, step)
+    att = res["attenuation_db"]
+    every = max(1, round(10 / step))
+    labels = list(res["curves"])
+    typer.echo("attenuation_dB " + " ".join(f"{lb:>10s}" for lb in labels) + "  dominant noise")
+    for k in range(0, len(att), every):
+        typer.echo(f"{att[k]:14g} " + " ".join(f"{res['curves'][lb]['model_db'][k]:10.1f}" for lb in labels)
+                   + f"  {res['curves'][labels[0]]['dominant'][k]}")
+    def at(x):
+        return "beyond the range" if x is None else f"{x:.1f} dB"
+
+    for lb in labels:
+        c = res["curves"][lb]
+        typer.echo(f"{lb}: SNR 20 dB at {at(c['crossings_model']['20 dB'])}, 0 dB at {at(c['crossings_model']['0 dB'])} "
+                   f"(Eq. 5.11 as printed: {at(c['crossings_eq_5_11']['20 dB'])}, {at(c['crossings_eq_5_11']['0 dB'])})")
+    typer.echo(f"wrote {out / 'snr.csv'}, {out / 'snr.json'}, {out / 'snr.png'}")
+
+
+@app.command("plan-tones")
+def plan_tones_cmd(
+    check: Optional[str] = typer.Option(None, "--check", help="evaluate these comma-separated tones (Hz) instead of planning"),
+    unambiguous_range: float = typer.Option(15.0, "--range", help="required unambiguous range (m)"),
+    resolution: float = typer.Option(1e-3, help="required range sigma at the design SNR (m)"),
+    bandwidth: float = typer.Option(1e9, help="detector bandwidth (Hz)"),
+    doppler: float = typer.Option(0.0, help="largest |Doppler| (Hz)"),
+    grid: float = typer.Option(1e6, help="reference-clock grid of the synthesizers (Hz)"),
+    tones: int = typer.Option(4, help="number of tones to plan"),
+    snr_db: float = typer.Option(30.0, "--snr-db", help="design post-integration line SNR (dB)"),
+    guard: float = typer.Option(1e6, help="extra clearance between lines (Hz)"),
+    candidates: int = typer.Option(400, help="tone sets tried"),
+    json_out: bool = typer.Option(False, "--json", help="print the report as JSON"),
+) -> None:
+    """Choose tones for a range, precision, band and Doppler -- or check a tone set (--check)."""
+    from mtcw_core.planning import check_plan, plan_tones
+
+    try:
+        if check is not None:
+            try:
+                f = [float(x) for x in check.split(",") if x.strip()]
+            except ValueError:
+                _fail(f"check: {check!r} is not a comma-separated list of frequencies (Hz)")
+            rep = check_plan(f, max_doppler_hz=doppler, detector_bandwidth_hz=bandwidth, design_snr_db=snr_db,
+                             guard_hz=guard)
+        else:
+            rep = plan_tones(unambiguous_range_m=unambiguous_range, resolution_m=resolution,
+                             detector_bandwidth_hz=bandwidth, max_doppler_hz=doppler, grid_hz=grid, n_tones=tones,
+                             design_snr_db=snr_db, guard_hz=guard, candidates=candidates)
+    except ValueError as err:
+        _fail(str(err))
+    if json_out:
+        typer.echo(json.dumps({**rep.__dict__, "ok": rep.ok}, indent=2))
+    else:
+        for line in rep.notes:
+            typer.echo(line)
+    if check is not None and not rep.ok:
+        raise typer.Exit(1)
+
+
 def _stop_on_signals():
     """A threading.Event set by SIGINT/SIGTERM (a service's clean stop).
 

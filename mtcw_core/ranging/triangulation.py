@@ -72,6 +72,11 @@ def _cost(obs: Observations, tau0_s: float):
     return j
 
 
+def cost(obs: Observations, l_m, tau0_s: float = 0.0) -> np.ndarray:
+    """The ``ml`` cost J(L) at ranges ``l_m`` (m): 1 where every pair phase agrees; shape (len(l_m),)."""
+    return _cost(obs, tau0_s)(l_m)
+
+
 def _newton_polish(obs: Observations, tau0_s: float, l_m: float, iterations: int = 3) -> float:
     """Newton steps on dJ/dL = 0 with analytic derivatives: the bounded scalar search stops at
     its tolerance, a peak of a sum of cosines is found to float precision this way."""
