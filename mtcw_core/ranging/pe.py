@@ -247,8 +247,11 @@ def blur_phase(kappa: np.ndarray, d_rad: np.ndarray) -> np.ndarray:
 class PeObservations:
     """The phase observations of one target.
 
-    ``obs`` holds ``Q_i`` (df = f_i) and, where usable, ``Q2_i`` (df = 2 f_i), uncorrected for
-    blur; ``var`` their variances (rad^2); ``kappa`` each one's blur weight; ``order`` 1 or 2.
+    ``obs`` holds ``Q_i`` (df = f_i) and, where usable, ``Q2_i`` (df = 2 f_i), not yet corrected
+    for blur and the echo's self-beat; ``var`` their variances (rad^2); ``kappa`` each one's blur
+    weight; ``order`` 1 or 2; ``kappa_ref`` the blur of the echo self-beat on the tone's reference
+    line. ``ref_obs`` holds the reference lines' phases at the record's start less the tone phases
+    (model ``-2*pi*f_i*tau_r``), ``ref_var`` their variances and ``ref_kappa`` their echo self-beat's blur.
     """
 
     obs: Observations
@@ -257,6 +260,8 @@ class PeObservations:
     order: np.ndarray
     ref_obs: Observations
     ref_var: np.ndarray
+    kappa_ref: np.ndarray
+    ref_kappa: np.ndarray
 
 
 def pe_observations(lines: PeLines, tone_phases_rad: dict[float, float], wavelength_m: float,
@@ -266,8 +271,10 @@ def pe_observations(lines: PeLines, tone_phases_rad: dict[float, float], wavelen
     Lines below ``min_snr_db`` (post-integration, ``-10*log10(var)``) are left out.
     """
     t = lines.tone_hz
-    # the echo self-beat on the reference line: a phase error up to ratio^2 (rad), random sign
-    sys_ref = 0.5 * lines.arm_ratio**4
+    # the echo self-beat on the reference line is corrected at the solution (see solve_pe); what
+    # is left is the error of the arm ratio read from the baseband line over DC (which counts the
+    # sidebands' power in DC: a few % at m = 0.1 per tone; taken as 10 %)
+    sys_ref = 0.5 * (0.1 * lines.arm_ratio**2) ** 2
     var_ref = lines.var_ref + sys_ref
     v = abs(lines.doppler.fd_hz) * wavelength_m / 2
     delta = 2 * v * t / C
@@ -285,13 +292,26 @@ def pe_observations(lines: PeLines, tone_phases_rad: dict[float, float], wavelen
     var = np.concatenate([v1[ok1], v2[ok2]])
     kappa = np.concatenate([kappa1[ok1], kappa2[ok2]])
     order = np.concatenate([np.ones(int(ok1.sum()), int), np.full(int(ok2.sum()), 2)])
+    kappa_ref = np.concatenate([kappa1[ok1], kappa1[ok2]])
     obs = Observations(df, wrap_pi(ph), 1 / var)
     okr = np.isfinite(var_ref) & (lines.var_ref <= lim)
     phi = np.array([tone_phases_rad.get(float(f), 0.0) for f in t[okr]])
     # the reference line's phase at the record's first sample (where the tone phases are referred)
     z0 = lines.z_ref[okr] * np.exp(-2j * np.pi * np.mod(t[okr] * lines.centre_s, 1.0))
     ref_obs = Observations(t[okr], wrap_pi(np.angle(z0) - phi), 1 / var_ref[okr])
-    return PeObservations(obs, var, kappa, order, ref_obs, var_ref[okr])
+    return PeObservations(obs, var, kappa, order, ref_obs, var_ref[okr], kappa_ref, kappa1[okr])
+
+
+def self_beat_phase(ratio: float, kappa: np.ndarray, d_rad: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Phase (rad) the echo's own self-beat adds to ``Q`` (order 1) or ``Q2`` (order 2).
+
+    The line at ``f_i`` is the reference's self-beat ``exp(-j*2*pi*f_i*tau_r)`` plus the echo's,
+    ``ratio**2 * kappa * exp(-j*2*pi*f_i*tau)`` (the same intensity waveform, scaled by the power
+    ratio of the arms and blurred by the echo's motion); ``Q`` holds its conjugate squared
+    (``Q2``: to the fourth), so it moves by ``-2*order*arg(1 + ratio**2*kappa*exp(-j*2*d))``,
+    ``d = pi*f_i*(tau - tau_r)``.
+    """
+    return -2 * order * np.angle(1 + ratio**2 * kappa * np.exp(-2j * d_rad))
 
 
 def _kappa(delta_hz: np.ndarray, duration_s: float) -> np.ndarray:
@@ -307,8 +327,15 @@ def _info_sigma(df_hz: np.ndarray, var: np.ndarray) -> float:
     return 1 / math.sqrt(info) if info > 0 else math.inf
 
 
-def reference_range(po: PeObservations, settings: ChainSettings) -> tuple[float, float]:
+def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 0.0,
+                    tau_diff_s: float | None = None) -> tuple[float, float]:
     """``L_ref`` (m) and its sigma: the setting (sigma 0) or the reference self-beat phases.
+
+    Parameters
+    ----------
+    ratio : float
+        ``a_m/a_ref``; with ``tau_diff_s`` (``tau - tau_r`` of the solution, s), the echo's own
+        self-beat on the reference lines is removed first (:func:`self_beat_phase`).
 
     Raises
     ------
@@ -320,6 +347,10 @@ def reference_range(po: PeObservations, settings: ChainSettings) -> tuple[float,
     ro = po.ref_obs
     if ro.df_hz.size < 2:
         raise NoTarget("pe: reference_range_m not set and fewer than two reference self-beat lines to measure it")
+    if tau_diff_s is not None:
+        d = np.pi * ro.df_hz * tau_diff_s
+        echo = np.angle(1 + ratio**2 * po.ref_kappa * np.exp(-2j * d))
+        ro = Observations(ro.df_hz, wrap_pi(ro.phase_rad - echo), ro.weight)
     lu = unambiguous_range(ro.df_hz)
     sol = resolve_ml(ro, 0.0, (settings.range_min_m, settings.range_min_m + lu), settings.points_per_cycle)
     return sol.range_m, _info_sigma(ro.df_hz, po.ref_var)
@@ -354,12 +385,16 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     var = po.var.copy()
     for _ in range(2):
         d = np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C)
-        corr = blur_phase(po.kappa, d)
+        corr = blur_phase(po.kappa, d) + self_beat_phase(lines.arm_ratio, po.kappa_ref, d / po.order, po.order)
         var = po.var + np.where(po.order == 2, corr**2, 0.0)
         o2 = Observations(obs.df_hz, wrap_pi(obs.phase_rad - corr), 1 / var)
         sol = solve(o2)
     obs = o2
+    l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
     sigma = _info_sigma(obs.df_hz, var)
+    if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
+        i = int(np.argmax(obs.df_hz))
+        sigma = _info_sigma(obs.df_hz[i:i + 1], var[i:i + 1])
     # do the tones agree with one range within their noise? (Birge ratio, as the PB chain)
     res = wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
     chi2 = float(np.sum(res**2 / var))
@@ -376,6 +411,9 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     j_best = float(np.sum(w * np.cos(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * ml.range_m / C)))))
     log_odds = j_best * ml.margin
     ambiguous = bool(log_odds < settings.pe_min_log_odds)
+    # the dissertation's row spread may pick another cycle than the likelihood does: not trusted then
+    finest = float(np.min(obs.synthetic_wavelengths_m))
+    ambiguous |= abs(wrap_pi(2 * np.pi * (sol.range_m - ml.range_m) / l_unamb)) * l_unamb / (2 * np.pi) > finest / 2
     fams = [LineFamily("U", lines.tone_hz, np.abs(lines.tone_hz + lines.doppler.fd_hz), lines.z_up[None, :],
                        np.array([lines.duration_s / 2]), lines.var_up, lines.target),
             LineFamily("L", lines.tone_hz, np.abs(lines.tone_hz - lines.doppler.fd_hz), lines.z_low[None, :],
