@@ -149,7 +149,13 @@ STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 
 
 
-# -- PE-MTCW (mtcw_core/ranging/pe.py): the PB stages up to the Doppler lines, then its own
+# -- PE-MTCW (mtcw_core/ranging/pe.py): the PB stages up to the Doppler search, then its own
+def _pe_doppler(s: FrameState) -> None:
+    # the search and its parabola only: pe_lines refines each line itself (ranging/pe.py says why)
+    s.dopplers = estimate_doppler(s.x, s.frame, s.spectrum, s.settings.model_copy(update={"doppler_refine": "parabolic"}))
+    s.result.doppler_hz = s.dopplers[0].fd_hz
+
+
 def _pe_lines(s: FrameState) -> None:
     s.pe_lines = extract_pe(s.x, s.frame, s.dopplers, s.spectrum, s.settings)
 
@@ -161,7 +167,7 @@ def _pe_resolve(s: FrameState) -> None:
 PE_STAGES: tuple[Stage, ...] = (
     Stage("validate", _validate),
     Stage("spectrum", _spectrum),
-    Stage("doppler", _doppler),
+    Stage("doppler", _pe_doppler),
     Stage("pe_lines", _pe_lines),
     Stage("pe_resolve", _pe_resolve),
     Stage("select", _select),

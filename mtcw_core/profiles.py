@@ -77,6 +77,8 @@ class ChainSettings(BaseModel):
     reference_range_m: float | None = Field(
         None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "
                                 "from the reference self-beat phases and the tone phases in force")
+    pe_second_order: bool = Field(False, description="pe: also use the 2f_i +- f_d lines (each only where it agrees "
+                                                     "with the f_i +- f_d solution within 3 sigma)")
     pe_min_log_odds: float = Field(12.0, gt=0, description="pe: log-likelihood of the chosen cycle over the runner-up "
                                                            "below which the point is flagged cycle_ambiguous")
     # -- select

@@ -57,11 +57,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import DopplerEstimate, intermod_frequencies
+from ..dsp.doppler import DopplerEstimate
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import Spectrum
 from ..dsp.tones import fit_lines
@@ -142,29 +143,155 @@ def line_plan(tones_hz, fd_hz: float, fs_hz: float, n: int) -> tuple[dict[str, n
     """
     t = np.asarray(tones_hz, float)
     nyq = fs_hz / 2
-    res = 2 * fs_hz / n
+    res = 1.5 * fs_hz / n
     fd = abs(fd_hz)
     wanted = {"ref": t, "up": t + fd, "low": t - fd, "up2": 2 * t + fd, "low2": 2 * t - fd}
-    static = intermod_frequencies(tuple(float(f) for f in t), nyq, 3)
-    # second-order Doppler-shifted products: |n.t +- fd| for sum|n_i| <= 2 (incl. f_i, 2f_i, f_i +- f_j)
-    combos = set(static[static <= 2 * t.max() + 1].tolist()) | {0.0}
-    shifted = np.array(sorted({abs(c + s * fd) for c in combos for s in (1, -1)}))
-    every = np.concatenate([static, shifted, [fd]])
-    every = every[(every > res / 2) & (every < nyq)]
+    vecs, static, pairs = _products(tuple(float(f) for f in t), nyq)
+    shifted = np.abs(pairs[:, 0] + pairs[:, 1] * fd)
+    # every physical line, one entry per product (two products on one frequency are two lines)
+    src_f = np.concatenate([static, shifted, [fd]])
+    src_id = [("s", v) for v in vecs] + [("d", c, sg) for c, sg in _pair_ids(t.size)] + [("b",)]
+    ids = {"ref": [("s", _unit(t.size, i)) for i in range(t.size)],
+           "up": [("d", _unit(t.size, i), 1.0) for i in range(t.size)],
+           "low": [("d", _unit(t.size, i), -1.0) for i in range(t.size)],
+           "up2": [("d", tuple(2 * x for x in _unit(t.size, i)), 1.0) for i in range(t.size)],
+           "low2": [("d", tuple(2 * x for x in _unit(t.size, i)), -1.0) for i in range(t.size)]}
     usable = []
     for name in ("ref", "up", "low", "up2", "low2"):
         f = np.abs(wanted[name])
-        # distance to the nearest *other* predicted line (a wanted line is itself in `every`)
-        d = np.abs(f[:, None] - every[None, :])
-        d = np.where(d < 1e-6 * res, np.inf, d)
-        usable.append((d.min(axis=1) > res) & (f > res) & (f < nyq - res))
-    usable = np.asarray(usable)
+        ok = []
+        for fi, own in zip(f, ids[name]):
+            near = np.flatnonzero(np.abs(src_f - fi) <= res)
+            ok.append(all(src_id[k] == own for k in near) and res < fi < nyq - res)
+        usable.append(ok)
+    usable = np.asarray(usable, bool)
+    every = np.unique(np.round(src_f[(src_f > res / 3) & (src_f < nyq)], 3))
     keep: list[float] = []
     used = np.concatenate([np.abs(wanted[nm])[u] for nm, u in zip(("ref", "up", "low", "up2", "low2"), usable)])
     for f in np.concatenate([used, every]):
         if all(abs(f - k) > 0.75 * res for k in keep):
             keep.append(float(f))
     return wanted, usable, np.asarray(keep, float)
+
+
+def _unit(size: int, i: int) -> tuple[int, ...]:
+    return tuple(1 if k == i else 0 for k in range(size))
+
+
+def _ball(size: int, radius: int):
+    """Every integer vector of length ``size`` with ``sum|n_i| <= radius`` (written here rather than
+    imported: :mod:`mtcw_core.dsp.doppler` keeps its own private)."""
+    if size == 0:
+        yield ()
+        return
+    for n0 in range(-radius, radius + 1):
+        for rest in _ball(size - 1, radius - abs(n0)):
+            yield (n0, *rest)
+
+
+@lru_cache(maxsize=64)
+def _canonical_vectors(size: int, order: int) -> tuple[tuple[int, ...], ...]:
+    """Integer vectors n with ``1 <= sum|n_i| <= order``, one of each pair ``+-n`` (first nonzero > 0)."""
+    return tuple(n for n in _ball(size, order) if any(n) and next(x for x in n if x != 0) > 0)
+
+
+def _pair_ids(size: int) -> list[tuple[tuple[int, ...], float]]:
+    """The Doppler-shifted products as (vector, sign): the line ``|n.t + sign*f_d|``, n of order <= 2
+    (the zero vector is the baseband line, listed apart)."""
+    return [(n, sg) for n in _canonical_vectors(size, 2) for sg in (1.0, -1.0)]
+
+
+@lru_cache(maxsize=64)
+def _products(tones: tuple[float, ...], nyq: float):
+    """Static products (third-order MZM products of the reference's self-beat): their vectors and
+    frequencies (Hz, ``|n.t|``), and the Doppler-shifted ones as (c, s) rows, line ``|c + s*f_d|``
+    (all vectors listed, none dropped: :func:`line_plan` keeps their identities aligned)."""
+    t = np.asarray(tones, float)
+    vecs = list(_canonical_vectors(t.size, 3))
+    static = np.array([abs(float(np.dot(n, t))) for n in vecs])
+    pairs = np.array([(float(np.dot(n, t)), sg) for n, sg in _pair_ids(t.size)])
+    return vecs, static, pairs
+
+
+def _static_and_shifted(t: np.ndarray, nyq: float) -> tuple[np.ndarray, np.ndarray]:
+    """Static line frequencies (Hz) below ``nyq`` and the Doppler-shifted ones as (c, s) rows,
+    the baseband line ``(0, +1)`` included (see :func:`_products`)."""
+    _, static, pairs = _products(tuple(float(f) for f in t), nyq)
+    return static[(static > 0) & (static < nyq)], np.vstack([pairs, [[0.0, 1.0]]])
+
+
+def _plan_with_others(tones_hz, fd_hz: float, others: list[float], fs: float, n: int):
+    """:func:`line_plan` of a target at ``fd_hz``, with the other targets' lines fitted too (a
+    second mover's ``f_i +- f_d'`` must not leak in) and the wanted lines near them unusable."""
+    wanted, usable, fit_hz = line_plan(tones_hz, fd_hz, fs, n)
+    extra = [f for o in others for f in line_plan(tones_hz, o, fs, n)[2]]
+    allf = np.unique(np.round(np.concatenate([fit_hz, np.asarray(extra, float)]), 6))
+    if extra:
+        res = 2 * fs / n
+        for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
+            if nm != "ref":
+                d = np.abs(np.abs(wanted[nm])[:, None] - np.asarray(extra)[None, :]).min(axis=1)
+                usable[i] &= d > res
+    return wanted, usable, allf
+
+
+def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: list[float], spec: Spectrum
+                   ) -> DopplerEstimate:
+    """The Doppler line below one spectrum bin: the shift whose lines (baseband, ``f_i +- f_d``,
+    ``2f_i +- f_d`` and the other Doppler-shifted products) take the most power in the joint
+    least-squares fit with every static line modelled -- the maximum-likelihood frequency in
+    white noise.
+
+    Why not the PB chain's refinements: next to the reference's strong static lines (the MZM
+    products of its self-beat, on a grid of the tones' gcd) they are pulled by up to a bin on
+    short records (measured: 0.95 MHz at 2^14-2^15 samples on the section 4.3 scene, with a
+    stated error of 0.1 MHz). Searched within 3 times the parabola's stated error of its estimate;
+    the moving lines that would cross a static line there are left out (none left: the parabola's
+    estimate is kept, with its error).
+    """
+    from scipy.optimize import minimize_scalar
+
+    fs, n = frame.fs_hz, x.size
+    f0 = abs(dop.fd_hz)
+    t = np.asarray(frame.tones_hz, float)
+    static, pairs = _static_and_shifted(t, fs / 2)
+    for o in others:  # the other targets' lines are static here
+        static = np.concatenate([static, np.abs(pairs[:, 0] + pairs[:, 1] * o)])
+    res = 1.5 * fs / n
+
+    def lines_at(fd: float) -> np.ndarray:
+        mv = np.abs(pairs[:, 0] + pairs[:, 1] * fd)
+        return mv[(mv > res) & (mv < fs / 2 - res)]
+
+    # the line set is fixed at the search's estimate, so that the objective is smooth in fd: every
+    # static line, and the moving lines that stay clear of them over the searched span (those that
+    # would cross one are neither fitted nor counted)
+    mv0 = lines_at(f0)
+    span = 3 * max(dop.refine_error_hz, 0.01 * fs / n)  # the search's parabola: ~0.1 bin
+    st = np.unique(np.round(static[(static > res / 3) & (static < fs / 2 - res)], 3))
+    clear = np.abs(mv0[:, None] - st[None, :]).min(axis=1) > span + 0.5 * fs / n if st.size else \
+        np.ones(mv0.size, bool)
+    if not clear.any():
+        return dop
+
+    def neg_power(fd: float) -> float:
+        mv = lines_at(fd)
+        mv = np.unique(np.round(mv[clear] if mv.size == clear.size else mv[:0], 3))
+        z = fit_lines(x, np.concatenate([st, mv]), fs)
+        return -float(np.sum(np.abs(z[st.size:]) ** 2))
+
+    r = minimize_scalar(neg_power, bounds=(max(f0 - span, 0.5 * f0), f0 + span), method="bounded",
+                        options={"xatol": 1e-4 * fs / n})
+    # an optimum at the edge of the span is no optimum: the parabola was further off than it said
+    at_edge = min(r.x - (f0 - span), (f0 + span) - r.x) < 0.05 * span
+    # the echo's sidebands sit 2*v*f_i/c below the reference's (module docstring): the line's power
+    # centre is pulled by up to half of that for the highest tone
+    err = spec.df_hz if at_edge else 0.5 * f0 * float(np.max(t)) * frame.wavelength_m / C
+    # a bias of up to 0.6 % of a record bin is measured on the section 4.4 scene at 2^17 samples,
+    # noiseless and with an ideal laser (not yet explained; products of order 3 and above are not
+    # modelled): stated as a floor of 1 % of a bin
+    err = max(err, 0.01 * fs / n)
+    return DopplerEstimate(float(r.x), True, dop.score, dop.threshold, dop.min_detectable_hz, err, dop.wander_hz)
 
 
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
@@ -201,18 +328,8 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
     out = []
     for k, dop in enumerate(moving, start=1):
         others = [abs(d.fd_hz) for d in moving if d is not dop]
-        wanted, usable, fit_hz = line_plan(frame.tones_hz, dop.fd_hz, fs, n)
-        # the other targets' lines are fitted too (a second mover's f_i +- f_d' must not leak in)
-        extra = [f for o in others for f in line_plan(frame.tones_hz, o, fs, n)[2]]
-        allf = np.unique(np.round(np.concatenate([fit_hz, np.asarray(extra, float)]), 6))
-        if extra:
-            res = 2 * fs / n
-            for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
-                if nm == "ref":
-                    continue
-                f = np.abs(wanted[nm])
-                d = np.abs(f[:, None] - np.asarray(extra)[None, :]).min(axis=1)
-                usable[i] &= d > res
+        dop = refine_doppler(x, frame, dop, others, spec)
+        wanted, usable, allf = _plan_with_others(frame.tones_hz, dop.fd_hz, others, fs, n)
         z_all = fit_lines(x, allf, fs)
         amps, vars_ = {}, {}
         for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
@@ -314,6 +431,13 @@ def self_beat_phase(ratio: float, kappa: np.ndarray, d_rad: np.ndarray, order: n
     return -2 * order * np.angle(1 + ratio**2 * kappa * np.exp(-2j * d_rad))
 
 
+def _subset(po: PeObservations, mask: np.ndarray) -> PeObservations:
+    """The observations of ``po`` where ``mask`` (the reference lines unchanged)."""
+    o = po.obs
+    return PeObservations(Observations(o.df_hz[mask], o.phase_rad[mask], o.weight[mask]), po.var[mask],
+                          po.kappa[mask], po.order[mask], po.ref_obs, po.ref_var, po.kappa_ref[mask], po.ref_kappa)
+
+
 def _kappa(delta_hz: np.ndarray, duration_s: float) -> np.ndarray:
     """The centred rectangular kernel of a record of ``duration_s`` at offset ``delta_hz``:
     ``sinc(delta*T)`` (the record's sample count changes it by far less than the blur itself)."""
@@ -325,6 +449,39 @@ def _info_sigma(df_hz: np.ndarray, var: np.ndarray) -> float:
     k = 4 * np.pi * df_hz / C
     info = float(np.sum(k**2 / var))
     return 1 / math.sqrt(info) if info > 0 else math.inf
+
+
+def runner_up_log_odds(obs: Observations, tau0_s: float, interval_m: tuple[float, float], best_m: float,
+                       points_per_cycle: int = 16, candidates: int = 8) -> float:
+    """Log-likelihood of ``best_m`` over the best other cycle in ``interval_m``.
+
+    With phase noise of variance ``1/w`` the log-likelihood is ``sum_l w_l*cos(r_l(L))`` (von Mises,
+    concentration ``w``). The ``candidates`` highest other local maxima of the grid (step
+    ``Lambda_min/points_per_cycle``, as :func:`resolve_ml`) are refined before comparing: on the
+    grid alone a peak is under-rated by up to ``sum(w)*(1 - cos(pi/points_per_cycle))``, far more
+    than the difference that matters.
+    """
+    from scipy.optimize import minimize_scalar
+
+    k = 2 * np.pi * obs.df_hz
+
+    def loglik(l_m):
+        l_m = np.atleast_1d(np.asarray(l_m, float))
+        return np.cos(obs.phase_rad[None, :] + k[None, :] * (tau0_s + 2 * l_m[:, None] / C)) @ obs.weight
+
+    lam = float(np.min(obs.synthetic_wavelengths_m))
+    step = lam / points_per_cycle
+    grid = np.arange(interval_m[0], interval_m[1] + step, step)
+    vals = np.concatenate([loglik(grid[i:i + 65536]) for i in range(0, grid.size, 65536)])
+    is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
+    far = np.abs(grid - best_m) > 0.5 * lam
+    idx = np.flatnonzero(is_max & far)
+    if idx.size == 0:
+        return math.inf
+    top = idx[np.argsort(vals[idx])[::-1][:candidates]]
+    second = max(-minimize_scalar(lambda l: -loglik(l)[0], bounds=(grid[i] - step, grid[i] + step),
+                                  method="bounded", options={"xatol": 1e-6 * lam}).fun for i in top)
+    return float(loglik(best_m)[0] - second)
 
 
 def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 0.0,
@@ -364,7 +521,8 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     NoTarget
         Fewer than two usable observations.
     """
-    po = pe_observations(lines, ref.tone_phases_rad, frame.wavelength_m, settings.min_line_snr_db)
+    po_all = pe_observations(lines, ref.tone_phases_rad, frame.wavelength_m, settings.min_line_snr_db)
+    po = _subset(po_all, po_all.order == 1)
     obs = po.obs
     if obs.df_hz.size < 2:
         raise NoTarget(f"pe: fewer than two tones with their f_i +- f_d and reference lines above "
@@ -380,16 +538,27 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
             return resolve_seed(o, ref.tau0_s, interval[1], interval[0])
         return resolve_ml(o, ref.tau0_s, interval, settings.points_per_cycle)
 
+    def corrected(p: PeObservations, range_m: float) -> tuple[Observations, np.ndarray]:
+        """Blur and the echo's self-beat at ``range_m`` (the path difference) removed; a
+        second-order line's correction is approximate, its size joins its variance."""
+        d = np.pi * p.obs.df_hz * (ref.tau0_s + 2 * range_m / C)
+        corr = blur_phase(p.kappa, d) + self_beat_phase(lines.arm_ratio, p.kappa_ref, d / p.order, p.order)
+        v = p.var + np.where(p.order == 2, corr**2, 0.0)
+        return Observations(p.obs.df_hz, wrap_pi(p.obs.phase_rad - corr), 1 / v), v
+
     sol = solve(obs)
-    # motion blur, evaluated at the solution, then solved again on the corrected phases
-    var = po.var.copy()
-    for _ in range(2):
-        d = np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C)
-        corr = blur_phase(po.kappa, d) + self_beat_phase(lines.arm_ratio, po.kappa_ref, d / po.order, po.order)
-        var = po.var + np.where(po.order == 2, corr**2, 0.0)
-        o2 = Observations(obs.df_hz, wrap_pi(obs.phase_rad - corr), 1 / var)
-        sol = solve(o2)
-    obs = o2
+    for _ in range(2):  # corrections evaluated at the solution, then solved again
+        obs, var = corrected(po, sol.range_m)
+        sol = solve(obs)
+    if settings.pe_second_order and np.any(po_all.order == 2):
+        # the 2f_i +- f_d lines carry products of other tones too (m^3 terms) that can rival them
+        # where their bracket fades: each joins only if it agrees with the first-order solution
+        o_all, v_all = corrected(po_all, sol.range_m)
+        r = wrap_pi(o_all.phase_rad + 2 * np.pi * o_all.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
+        po = _subset(po_all, (po_all.order == 1) | (np.abs(r) < 3 * np.sqrt(v_all)))
+        obs, var = corrected(po, sol.range_m)
+        sol = solve(obs)
+        obs, var = corrected(po, sol.range_m)
     l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
     sigma = _info_sigma(obs.df_hz, var)
     if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
@@ -407,9 +576,7 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     # over the runner-up's, sum_l w_l*(cos r_l(best) - cos r_l(second)) = sum(w)*J(best)*margin;
     # below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
     ml = sol if settings.method != "seed" else resolve_ml(obs, ref.tau0_s, interval, settings.points_per_cycle)
-    w = 1 / var
-    j_best = float(np.sum(w * np.cos(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * ml.range_m / C)))))
-    log_odds = j_best * ml.margin
+    log_odds = runner_up_log_odds(obs, ref.tau0_s, interval, ml.range_m, settings.points_per_cycle)
     ambiguous = bool(log_odds < settings.pe_min_log_odds)
     # the dissertation's row spread may pick another cycle than the likelihood does: not trusted then
     finest = float(np.min(obs.synthetic_wavelengths_m))
