@@ -73,7 +73,7 @@ class ChainSettings(BaseModel):
     range_max_m: float | None = None
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
-    # -- pe (technique pe only: mtcw_core/ranging/pe.py)
+    # .. technique pe only (its stages pe_lines, pe_resolve; mtcw_core/ranging/pe.py)
     reference_range_m: float | None = Field(
         None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "
                                 "from the reference self-beat phases and the tone phases in force")

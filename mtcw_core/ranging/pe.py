@@ -513,6 +513,16 @@ def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 
     return sol.range_m, _info_sigma(ro.df_hz, po.ref_var)
 
 
+def _velocity(lines: PeLines, frame: Frame) -> tuple[float, float, str]:
+    """Speed, sigma and direction from the refined Doppler line, by the PB chain's
+    :func:`~mtcw_core.ranging.targets.velocity` on the target's U and L lines."""
+    fams = [LineFamily("U", lines.tone_hz, np.abs(lines.tone_hz + lines.doppler.fd_hz), lines.z_up[None, :],
+                       np.array([lines.centre_s]), lines.var_up, lines.target),
+            LineFamily("L", lines.tone_hz, np.abs(lines.tone_hz - lines.doppler.fd_hz), lines.z_low[None, :],
+                       np.array([lines.centre_s]), lines.var_low, lines.target)]
+    return velocity(lines.doppler, frame, fams, False)
+
+
 def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
     """One target's point and the unambiguous range (m) of the observations it used.
 
@@ -581,11 +591,7 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     # the dissertation's row spread may pick another cycle than the likelihood does: not trusted then
     finest = float(np.min(obs.synthetic_wavelengths_m))
     ambiguous |= abs(wrap_pi(2 * np.pi * (sol.range_m - ml.range_m) / l_unamb)) * l_unamb / (2 * np.pi) > finest / 2
-    fams = [LineFamily("U", lines.tone_hz, np.abs(lines.tone_hz + lines.doppler.fd_hz), lines.z_up[None, :],
-                       np.array([lines.duration_s / 2]), lines.var_up, lines.target),
-            LineFamily("L", lines.tone_hz, np.abs(lines.tone_hz - lines.doppler.fd_hz), lines.z_low[None, :],
-                       np.array([lines.duration_s / 2]), lines.var_low, lines.target)]
-    v, vs, direction = velocity(lines.doppler, frame, fams, False)
+    v, vs, direction = _velocity(lines, frame)
     snr = -10 * np.log10(po.var)
     tone_snr: dict[str, float] = {}
     for f, o, s in zip(obs.df_hz, po.order, snr):
