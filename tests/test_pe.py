@@ -9,7 +9,6 @@ instead of 8 cm/s, so that the Doppler line clears the static lines in a short r
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

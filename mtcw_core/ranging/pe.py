@@ -46,7 +46,10 @@ Two effects are modelled rather than hidden:
   approximate and its size is added to their variance.
 - *The echo's own self-beat* lies on the reference line ``f_i`` at ``(a_m/a_ref)**2`` of it and
   moves its phase by up to that (rad); the arm ratio is read from the baseband Doppler line
-  against the DC level and the bound enters the reference lines' variance.
+  against the DC level, the shift is corrected at the solution (in ``Q`` and in the in-frame
+  ``L_ref``), and 10 % of it stays in the reference lines' variance.
+- *Doppler*: refined by PE itself (:func:`refine_doppler`), not by the PB chain's refinements,
+  which the reference's strong static products pull on short records.
 
 Limits (they are flags or rejections, never silent): a single photodiode is needed (balanced
 and IQ receivers have no reference self-beat); a target with no Doppler line is not PE's
