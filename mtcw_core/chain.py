@@ -43,6 +43,7 @@ from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
 from .ranging.mixing import mix
+from .ranging.pe import PeLines, extract_pe, resolve_pe
 from .ranging.targets import Reference, resolve_targets, select_targets
 from .ranging.triangulation import Observations
 from .results import Direction, FrameResult, NoTarget, Rejected, Status, TargetPoint
@@ -65,6 +66,7 @@ class FrameState:
     families: list[LineFamily] = field(default_factory=list)  # extract
     observations: dict[int, Observations] = field(default_factory=dict)  # mix, per candidate
     candidates: list[tuple[int, TargetPoint]] = field(default_factory=list)  # resolve
+    pe_lines: list[PeLines] = field(default_factory=list)  # pe_lines (technique pe)
 
     @property
     def windows(self) -> list[tuple[int, int]] | None:
@@ -145,8 +147,34 @@ STAGES: tuple[Stage, ...] = (
 )
 STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 
+
+
+# -- PE-MTCW (mtcw_core/ranging/pe.py): the PB stages up to the Doppler search, then its own
+def _pe_doppler(s: FrameState) -> None:
+    # the search and its parabola only: pe_lines refines each line itself (ranging/pe.py says why)
+    s.dopplers = estimate_doppler(s.x, s.frame, s.spectrum, s.settings.model_copy(update={"doppler_refine": "parabolic"}))
+    s.result.doppler_hz = s.dopplers[0].fd_hz
+
+
+def _pe_lines(s: FrameState) -> None:
+    s.pe_lines = extract_pe(s.x, s.frame, s.dopplers, s.spectrum, s.settings)
+
+
+def _pe_resolve(s: FrameState) -> None:
+    s.candidates, s.result.unambiguous_range_m = resolve_pe(s.pe_lines, s.frame, s.settings, s.reference)
+
+
+PE_STAGES: tuple[Stage, ...] = (
+    Stage("validate", _validate),
+    Stage("spectrum", _spectrum),
+    Stage("doppler", _pe_doppler),
+    Stage("pe_lines", _pe_lines),
+    Stage("pe_resolve", _pe_resolve),
+    Stage("select", _select),
+)
+
 #: One stage table per technique (``ChainSettings.technique``); ``pb`` is :data:`STAGES`.
-TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES}
+TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "pe": PE_STAGES}
 
 
 def stages_of(technique: str) -> tuple[Stage, ...]:

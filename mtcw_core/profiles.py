@@ -85,6 +85,14 @@ class ChainSettings(BaseModel):
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
+    # .. technique pe only (its stages pe_lines, pe_resolve; mtcw_core/ranging/pe.py)
+    reference_range_m: float | None = Field(
+        None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "
+                                "from the reference self-beat phases and the tone phases in force")
+    pe_second_order: bool = Field(False, description="pe: also use the 2f_i +- f_d lines (each only where it agrees "
+                                                     "with the f_i +- f_d solution within 3 sigma)")
+    pe_min_log_odds: float = Field(12.0, gt=0, description="pe: log-likelihood of the chosen cycle over the runner-up "
+                                                           "below which the point is flagged cycle_ambiguous")
     # -- select
     self_beat_margin_db: float = Field(15.0, ge=0, description="a static candidate this far below the movers' "
                                                                "lines is taken for their self-beat")
