@@ -36,6 +36,9 @@ class Calibration(BaseModel):
     tone_phases_rad : tuple of float, each tone's residual RF phase (rad), same length
     tau0_s : float, the internal round-trip delay (s)
     known_range_m, frames_used, phase_std_rad, source, created : provenance
+    reference_powers_v2, reference_power_sigma_v2 : tuple of float, AB-MTCW only: the reference
+        arm's tone line powers (V^2, per tone) from frames without the measurement arm, and
+        their standard errors; empty otherwise
     version : the file format's version
     """
 
@@ -50,6 +53,9 @@ class Calibration(BaseModel):
     source: str = ""
     created: str = ""
     version: Literal[1] = FORMAT_VERSION
+    # AB-MTCW (mtcw_core.ranging.ab.derive_reference): a reference-only measurement's tone powers
+    reference_powers_v2: tuple[float, ...] = ()
+    reference_power_sigma_v2: tuple[float, ...] = ()
 
     @model_validator(mode="after")
     def _same_length(self) -> "Calibration":
@@ -57,6 +63,10 @@ class Calibration(BaseModel):
             raise ValueError("tones_hz and tone_phases_rad differ in length")
         if any(f <= 0 for f in self.tones_hz) or len(set(self.tones_hz)) != len(self.tones_hz):
             raise ValueError("tones_hz must be positive and distinct")
+        for name in ("reference_powers_v2", "reference_power_sigma_v2"):
+            vals = getattr(self, name)
+            if vals and (len(vals) != len(self.tones_hz) or any(v < 0 for v in vals)):
+                raise ValueError(f"{name}: one non-negative value per tone ({len(self.tones_hz)})")
         return self
 
     def save(self, path: str | Path) -> None:

@@ -111,6 +111,7 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     blended: bool = False
     chi2_per_dof: NonNegative = 1.0
     residual_rms_rad: NonNegative = 0.0
+    fit_r2: Optional[Finite] = None  # the AB-MTCW sine fit's R^2 (technique ab only)
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):
