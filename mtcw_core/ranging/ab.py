@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy.special import diric
 
 from ..calibration import Calibration, CalibrationError
 from ..dsp.spectrum import Spectrum, local_floor
@@ -162,8 +163,11 @@ def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_
     (default: half the lowest tone and half the smallest tone spacing) counts when it exceeds
     its local floor (:func:`~mtcw_core.dsp.spectrum.local_floor`) by ``ln(bins/DOPPLER_FALSE_ALARM)``
     (an exponential noise bin passes with probability ``DOPPLER_FALSE_ALARM`` over the search).
-    Its frequency is then the maximum of ``|DFT(x - mean)|^2`` of the whole record within +-1
-    spectrum bin (the maximum-likelihood estimate of one sinusoid's frequency in white noise),
+    Its frequency is then the maximum of the energy a real sinusoid and a constant explain
+    (least squares; a plain periodogram, or the fitted line's power, is biased by the line's
+    image at ``-f`` and the constant when the record holds few cycles) over the whole record
+    within +-1 spectrum bin (the maximum-likelihood estimate of one sinusoid's frequency in white
+    noise),
     its sigma the Cramér–Rao bound ``fs*sqrt(6)*sigma_n/(pi*A*N^1.5)`` with the line's amplitude
     ``A`` (joint fit with the tones) and the per-sample noise ``sigma_n`` of the local floor.
 
@@ -189,15 +193,42 @@ def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_
     if ratio[k] < threshold:
         return BasebandLine(0.0, f_lo, False, snr_db, f_lo)
     f0 = (k_lo + k) * spec.df_hz
+    n = x.size
+    # the tone lines (and the Doppler sidebands beside them) removed first: their leakage
+    # through the record's rectangular window would pull a line of a few cycles
+    lines = np.array([*t, *(np.array(t) + f0), *(np.array(t) - f0)])
+    amps = fit_lines(x, lines, fs_hz)
+    kc = np.arange(n, dtype=np.float64) - (n - 1) / 2
     y = x - x.mean()
-    n = y.size
-    res = minimize_scalar(lambda f: -abs(exact_dft(y, [f], fs_hz)[0]) ** 2, bounds=(f0 - spec.df_hz, f0 + spec.df_hz),
-                          method="bounded", options={"xatol": 1e-4 * fs_hz / n})
+    for f_l, c_l in zip(lines, amps):
+        y = y - np.real(c_l * np.exp(2j * np.pi * np.mod(kc * (f_l / fs_hz), 1.0)))
+    res = minimize_scalar(lambda f: -_explained(y, f, fs_hz),
+                          bounds=(max(f0 - spec.df_hz, 0.5 * f_lo), f0 + spec.df_hz), method="bounded",
+                          options={"xatol": 1e-4 * fs_hz / n})
     fd = float(res.x)
     amp = abs(fit_lines(x, [fd, *t], fs_hz)[0])
     noise = spec.noise_variance(fd, [0.0, fd])
     sigma = fs_hz * math.sqrt(6.0 * noise) / (math.pi * amp * n**1.5) if amp > 0 else math.inf
     return BasebandLine(fd, sigma, True, snr_db, f_lo)
+
+
+def _explained(x: np.ndarray, f_hz: float, fs_hz: float) -> float:
+    """Energy (V^2) of the least-squares fit of ``d + a*cos(w*k') + b*sin(w*k')`` to ``x`` (``k'`` the centred index).
+
+    ``p^T G^-1 p`` with the correlations ``p`` (one exact DFT) and the Gram matrix ``G`` in
+    closed form (Dirichlet kernels): O(N) per frequency, no basis arrays.
+    """
+    n = x.size
+    w = 2 * np.pi * f_hz / fs_hz
+    z = exact_dft(x, [f_hz], fs_hz)[0]
+
+    def dk(v: float) -> float:
+        return n * float(diric(v, n))
+
+    gc = 0.5 * np.array([[2 * n, dk(w) + dk(-w)], [dk(-w) + dk(w), n + dk(2 * w)]])
+    gs = 0.5 * (n - dk(2 * w))
+    pc = np.array([float(np.sum(x)), z.real])
+    return float(pc @ np.linalg.solve(gc, pc) + (z.imag**2 / gs if gs > 0 else 0.0))
 
 
 @dataclass(frozen=True)
@@ -381,7 +412,7 @@ def reference_powers(cal: Calibration | None, tones_hz) -> tuple[np.ndarray, np.
 def derive_reference(frames: Iterable[Frame], reference_range_m: float = 0.0, source: str = "") -> Calibration:
     """An AB calibration from frames of the reference arm alone (the measurement arm blocked).
 
-    Per tone: the mean line power over the frames and its standard error (the normalisation of
+    Per tone: the mean line power over the frames and its standard error from the line noise (the normalisation of
     every later frame), the line phase (kept as ``tone_phases_rad`` for the record, unused by
     AB), and ``tau0_s = -2*reference_range_m/c`` so that ranges come out from the calibrated zero
     (``L``) rather than as the path difference to the mirror.
@@ -396,7 +427,7 @@ def derive_reference(frames: Iterable[Frame], reference_range_m: float = 0.0, so
     from ..dsp.validate import validate
 
     settings = get_profile("balanced", technique="ab")
-    powers, phases, tones = [], [], None
+    powers, variances, phases, tones = [], [], [], None
     for fr in frames:
         if fr.receiver != "single":
             raise CalibrationError(f"frame seq {fr.seq}: ab needs a single photodiode (receiver {fr.receiver!r})")
@@ -407,14 +438,18 @@ def derive_reference(frames: Iterable[Frame], reference_range_m: float = 0.0, so
         elif t != tones:
             raise CalibrationError(f"frame seq {fr.seq}: tone plan differs from the first frame")
         spec = search_spectrum(x, fr.fs_hz, settings.window_beta, 1.0, False)
-        in_frame_order = np.empty(len(t))
-        in_frame_order[np.argsort(t)] = tone_powers(x, fr.fs_hz, t, spec).power_v2  # that one is sorted
-        powers.append(in_frame_order)
+        tp = tone_powers(x, fr.fs_hz, t, spec)  # sorted by frequency: back to the frame's order
+        p_frame, v_frame = np.empty(len(t)), np.empty(len(t))
+        p_frame[np.argsort(t)], v_frame[np.argsort(t)] = tp.power_v2, tp.var_v4
+        powers.append(p_frame)
+        variances.append(v_frame)
         phases.append(np.angle(fit_lines(x, t, fr.fs_hz)))
     if tones is None:
         raise CalibrationError("no frames to calibrate from")
     pw = np.asarray(powers)
-    se = pw.std(axis=0, ddof=1) / math.sqrt(len(pw)) if len(pw) > 1 else np.zeros(len(tones))
+    # the mean's standard error from the lines' noise (a spread over a few frames would be a
+    # noisy estimate of it, and none from one frame)
+    se = np.sqrt(np.mean(variances, axis=0) / len(pw))
     ph = np.angle(np.mean(np.exp(1j * np.asarray(phases)), axis=0))
     return Calibration(tones_hz=tuple(float(f) for f in tones), tone_phases_rad=tuple(float(p) for p in ph),
                        tau0_s=-2.0 * reference_range_m / C, known_range_m=float(reference_range_m),
@@ -468,7 +503,7 @@ def _fit(s: "FrameState") -> None:
     assert pw is not None
     ref, ref_sigma = reference_powers(s.calibration, s.frame.tones_hz)
     y = pw.power_v2 / ref
-    var = pw.var_v4 / ref**2 + (y * ref_sigma / ref) ** 2
+    s2 = (np.sqrt(pw.var_v4 + pw.power_v2**2) - pw.power_v2)  # the line's noise s^2 back from var = 2*p*s^2 + s^4
     ab.offset_m = C * s.calibration.tau0_s / 2 if s.calibration is not None else 0.0
     st = s.settings
     top = unambiguous_path(pw.tones_hz)
@@ -478,7 +513,13 @@ def _fit(s: "FrameState") -> None:
     if not hi > lo:
         raise Rejected("range", f"the searched interval [{lo:g}, {hi:g}] m of |DL| is empty (range_min_m, "
                                 f"range_max_m against the calibration's reference range and c/(4*gcd) = {top:g} m)")
-    ab.fit = fit_sine(pw.tones_hz, y, var, 2 * lo / C, 2 * hi / C, st.points_per_cycle, st.max_grid_points)
+    # weights from the fitted powers, not the measured ones (a tone measured low by chance would
+    # weigh more and pull the fit): a first fit with the measured, then one with the model's
+    var = pw.var_v4 / ref**2 + (y * ref_sigma / ref) ** 2
+    for _ in range(2):
+        ab.fit = fit_sine(pw.tones_hz, y, var, 2 * lo / C, 2 * hi / C, st.points_per_cycle, st.max_grid_points)
+        model = np.maximum(ab.fit.alpha + ab.fit.beta * np.cos(2 * np.pi * pw.tones_hz * ab.fit.dtau_s), 0.0)
+        var = (2 * model * ref * s2 + s2 * s2) / ref**2 + (model * ref_sigma / ref) ** 2
 
 
 def _select(s: "FrameState") -> None:
