@@ -83,6 +83,13 @@ AMBIGUITY_DCHI2 = 25.0
 #: ``no_target`` (pattern faded: the carrier phase at the null, an echo too weak against the
 #: reference, or a path difference below the shortest one the tones resolve)
 MIN_DEPTH_Z = 5.0
+#: the lowest minima of the sine fit's grid profile that are refined before ranking them
+REFINED_MINIMA = 8
+#: relative floor of a normalised tone power's sigma: the small-signal model's own accuracy (the
+#: MZM's second-order products and Bessel terms are not in it; an exact MZM at m = 0.2 moves a
+#: noiseless bench's powers by ~1e-4 of themselves), so that a nearly noiseless tone does not
+#: take all the weight of the fit
+MODEL_REL_SIGMA = 1e-3
 #: false-alarm probability of the baseband Doppler search over all its bins
 DOPPLER_FALSE_ALARM = 1e-6
 #: bins next to 0 Hz never searched for the Doppler line: the main lobe of the mean-removal
@@ -364,13 +371,14 @@ def fit_sine(f_hz, y, var, lo_s: float, hi_s: float, points_per_cycle: int = 16,
     inner = (chi2[1:-1] <= chi2[:-2]) & (chi2[1:-1] <= chi2[2:])
     minima = np.flatnonzero(np.concatenate([[chi2[0] <= chi2[1]], inner, [chi2[-1] <= chi2[-2]]]))
     order = minima[np.argsort(chi2[minima])]
-    best_i = int(order[0])
-    t_best, c_best = refine(best_i)
-    others = [int(i) for i in order[1:] if abs(int(i) - best_i) > 1]
+    # the few lowest grid minima refined, then ranked (a grid point may sit off its peak)
+    cands = sorted((refine(int(i)) + (int(i),) for i in order[:REFINED_MINIMA]), key=lambda c: c[1])
+    t_best, c_best, best_i = cands[0]
+    others = [c for c in cands[1:] if abs(c[2] - best_i) > 1]
     dof = f.size - 3
     birge = max(1.0, c_best / dof) if dof > 0 else 1.0
     if others:
-        t_ru, c_ru = refine(others[0])
+        t_ru, c_ru, _ = others[0]
         dchi2 = (c_ru - c_best) / birge
     else:
         t_ru, dchi2 = math.nan, math.inf
@@ -515,11 +523,11 @@ def _fit(s: "FrameState") -> None:
                                 f"range_max_m against the calibration's reference range and c/(4*gcd) = {top:g} m)")
     # weights from the fitted powers, not the measured ones (a tone measured low by chance would
     # weigh more and pull the fit): a first fit with the measured, then one with the model's
-    var = pw.var_v4 / ref**2 + (y * ref_sigma / ref) ** 2
+    var = pw.var_v4 / ref**2 + (y * ref_sigma / ref) ** 2 + (MODEL_REL_SIGMA * y) ** 2
     for _ in range(2):
         ab.fit = fit_sine(pw.tones_hz, y, var, 2 * lo / C, 2 * hi / C, st.points_per_cycle, st.max_grid_points)
         model = np.maximum(ab.fit.alpha + ab.fit.beta * np.cos(2 * np.pi * pw.tones_hz * ab.fit.dtau_s), 0.0)
-        var = (2 * model * ref * s2 + s2 * s2) / ref**2 + (model * ref_sigma / ref) ** 2
+        var = (2 * model * ref * s2 + s2 * s2) / ref**2 + (model * ref_sigma / ref) ** 2 + (MODEL_REL_SIGMA * model) ** 2
 
 
 def _select(s: "FrameState") -> None:
