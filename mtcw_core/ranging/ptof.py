@@ -145,6 +145,10 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
     e_t = float(template @ template)
     d_t = np.real(sfft.ifft(2j * np.pi * sfft.fftfreq(n) * tf))  # the template's derivative (per sample)
     e_dt = float(d_t @ d_t)
+    if template_noisy:
+        # the template's own noise inflates its derivative's energy: white noise of variance s^2 on
+        # W samples adds s^2*W*pi^2/3 (the mean of (2*pi*f)^2 over the band); take it out
+        e_dt -= noise_sigma**2 * np.count_nonzero(template) * math.pi**2 / 3
     if e_t <= 0 or e_dt <= 0 or noise_sigma <= 0:
         return []
     amp_se = noise_sigma / math.sqrt(e_t)  # standard error of an amplitude fit (template noise aside)
