@@ -58,7 +58,7 @@ import datetime as _dt
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -71,8 +71,10 @@ from ..frame import Frame
 from ..phase import C
 from ..results import NoTarget, Rejected, TargetPoint
 
-if TYPE_CHECKING:
-    from ..chain import FrameState, Stage
+#: the chain's FrameState and Stage (not imported: the chain imports this module, and core has no
+#: import cycles); the stages read and write the state's attributes, the table reuses pb's row type
+FrameState = Any
+Stage = Any
 
 #: Delta chi^2 (after the Birge scaling) between the best and the runner-up peak of the sine fit
 #: below which the point is flagged ``cycle_ambiguous``. For Gaussian errors the log-likelihood
@@ -479,13 +481,13 @@ class ABState:
     offset_m: float = 0.0  # c*tau0/2 of the calibration: range = c*Dtau/2 - offset
 
 
-def _st(s: "FrameState") -> ABState:
+def _st(s: FrameState) -> ABState:
     if not isinstance(s.technique_state, ABState):
         s.technique_state = ABState()
     return s.technique_state
 
 
-def _doppler(s: "FrameState") -> None:
+def _doppler(s: FrameState) -> None:
     if s.frame.receiver != "single":
         raise Rejected("receiver", f"ab needs a single photodiode (the arms' self-beats); got {s.frame.receiver!r}")
     st = s.settings
@@ -494,7 +496,7 @@ def _doppler(s: "FrameState") -> None:
     s.result.doppler_hz = ab.line.fd_hz
 
 
-def _powers(s: "FrameState") -> None:
+def _powers(s: FrameState) -> None:
     ab = _st(s)
     if len(s.frame.tones_hz) < 3:
         raise Rejected("tone_plan", "ab fits 3 parameters: at least 3 tones are needed")
@@ -505,7 +507,7 @@ def _powers(s: "FrameState") -> None:
         raise Rejected("calibration", "reference_powers_v2: every reference tone power must be positive")
 
 
-def _fit(s: "FrameState") -> None:
+def _fit(s: FrameState) -> None:
     ab = _st(s)
     pw = ab.powers
     assert pw is not None
@@ -530,7 +532,7 @@ def _fit(s: "FrameState") -> None:
         var = (2 * model * ref * s2 + s2 * s2) / ref**2 + (model * ref_sigma / ref) ** 2 + (MODEL_REL_SIGMA * model) ** 2
 
 
-def _select(s: "FrameState") -> None:
+def _select(s: FrameState) -> None:
     ab = _st(s)
     fit, pw, line = ab.fit, ab.powers, ab.line
     assert fit is not None and pw is not None and line is not None
@@ -561,14 +563,14 @@ def _select(s: "FrameState") -> None:
     s.result.status = "ok"
 
 
-def stages(pb: tuple["Stage", ...]) -> tuple["Stage", ...]:
+def stages(pb: tuple[Stage, ...]) -> tuple[Stage, ...]:
     """The AB stage table: pb's ``validate`` and ``spectrum``, then ``ab_doppler`` (baseband line),
     ``ab_powers`` (tone powers), ``ab_fit`` (normalised sine fit), ``ab_select`` (the point)."""
-    from ..chain import Stage  # the chain imports this module first: Stage exists by then
+    row = type(pb[0])  # the chain's Stage
 
     by = {st.name: st for st in pb}
-    return (by["validate"], by["spectrum"], Stage("ab_doppler", _doppler), Stage("ab_powers", _powers),
-            Stage("ab_fit", _fit), Stage("ab_select", _select))
+    return (by["validate"], by["spectrum"], row("ab_doppler", _doppler), row("ab_powers", _powers),
+            row("ab_fit", _fit), row("ab_select", _select))
 
 
 __all__ = ["pattern", "pattern_depth", "unambiguous_path", "baseband_doppler", "BasebandLine", "tone_powers",

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy import fft as sfft
@@ -47,8 +47,10 @@ from ..phase import C
 from ..results import NoTarget, Rejected, TargetPoint
 from .gating import ref_levels
 
-if TYPE_CHECKING:
-    from ..chain import FrameState, Stage
+#: the chain's FrameState and Stage (not imported: the chain imports this module, and core has no
+#: import cycles); the stages read and write the state's attributes, the table reuses pb's row type
+FrameState = Any
+Stage = Any
 
 #: a pulse counts when its fitted amplitude is this many standard errors above 0
 MIN_PULSE_SNR = 8.0
@@ -212,7 +214,7 @@ def _period_samples(frame: Frame) -> int:
     return int(round(per))
 
 
-def _validate(s: "FrameState") -> None:
+def _validate(s: FrameState) -> None:
     """Checks of a PToF frame (no tones): sample rate, shape, length, channels, finite samples, clipping."""
     f, st = s.frame, s.settings
     if not (f.fs_hz > 0 and math.isfinite(f.fs_hz)):
@@ -262,13 +264,13 @@ def _validate(s: "FrameState") -> None:
     s.x = t.signal
 
 
-def _st(s: "FrameState") -> PToFState:
+def _st(s: FrameState) -> PToFState:
     if not isinstance(s.technique_state, PToFState):
         s.technique_state = PToFState()
     return s.technique_state
 
 
-def _reference(s: "FrameState") -> None:
+def _reference(s: FrameState) -> None:
     """The template: the pulse_ref channel, or the reference mirror's pulse (the first after the emission)."""
     t, f = _st(s), s.frame
     assert t.signal is not None
@@ -302,7 +304,7 @@ def _reference(s: "FrameState") -> None:
     t.exclude = (-w, w + 1)
 
 
-def _correlate(s: "FrameState") -> None:
+def _correlate(s: FrameState) -> None:
     t = _st(s)
     assert t.signal is not None and t.template is not None
     t.echoes = find_echoes(t.signal, t.template, t.noise_sigma, t.template_noisy, t.exclude)
@@ -310,7 +312,7 @@ def _correlate(s: "FrameState") -> None:
         raise NoTarget(f"no echo pulse {MIN_PULSE_SNR} standard errors above the noise")
 
 
-def _select(s: "FrameState") -> None:
+def _select(s: FrameState) -> None:
     t, f = _st(s), s.frame
     assert t.echoes is not None and t.signal is not None
     fs = f.fs_hz
@@ -332,14 +334,14 @@ def _select(s: "FrameState") -> None:
     s.result.status = "ok"
 
 
-def stages(pb: tuple["Stage", ...]) -> tuple["Stage", ...]:
+def stages(pb: tuple[Stage, ...]) -> tuple[Stage, ...]:
     """The PToF stage table: ``ptof_validate`` (checks, folding), ``ptof_reference`` (the template),
     ``ptof_correlate`` (echo delays), ``ptof_select`` (the points)."""
-    from ..chain import Stage  # the chain imports this module first: Stage exists by then
+    row = type(pb[0])  # the chain's Stage
 
     del pb  # no PB stage applies to a record without tones
-    return (Stage("ptof_validate", _validate), Stage("ptof_reference", _reference),
-            Stage("ptof_correlate", _correlate), Stage("ptof_select", _select))
+    return (row("ptof_validate", _validate), row("ptof_reference", _reference),
+            row("ptof_correlate", _correlate), row("ptof_select", _select))
 
 
 __all__ = ["fold", "robust_sigma", "find_echoes", "PulseEcho", "PToFState", "stages", "MIN_PULSE_SNR"]

@@ -28,7 +28,7 @@ scene's architecture (``modulated_reference``: the reference mirror's pulse is i
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy import signal
@@ -37,8 +37,8 @@ from ..frame import Frame, PulseInfo, TruthTarget
 from ..phase import C
 from .optics import gate
 
-if TYPE_CHECKING:
-    from .engine import Simulator
+#: the engine's Simulator (not imported: the engine imports this module; core has no import cycles)
+Simulator = Any
 
 Q_E = 1.602176634e-19
 K_B = 1.380649e-23
@@ -77,7 +77,7 @@ def _gaussian_train(t: np.ndarray, t0_s: float, period_s: float, sigma_s: float,
     return out
 
 
-def pulse_frame(sim: "Simulator", index: int) -> Frame:
+def pulse_frame(sim: Simulator, index: int) -> Frame:
     """Frame ``index`` of a scene in PToF mode (``scene.ptof`` set); draws from ``sim.rng``."""
     sc = sim.scene
     pt = sc.ptof
