@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -109,23 +108,23 @@ def test_what_ptof_cannot_range_is_rejected_or_no_target():
     assert process_frame(fr, "balanced").status == "rejected"
 
 
-def test_pulse_simulator_puts_each_pulse_at_its_round_trip_delay():
-    """Centroids of the simulated pulses against 2*L/c (an independent reading of the samples)."""
-    sc = scene_variant(load_scene("ptof-bench"), digitizer={"adc_bits": None}, noise={"shot": False, "thermal": False})
-    fr = next(Simulator(sc).frames(1))
-    x = fr.volts("pd")
-    fs, period = fr.fs_hz, fr.pulse.period_s
-    k = np.arange(x.size)
-    for tau in (2 * 0.03 / C, 2 * sc.targets[0].range_m / C):
-        c = tau * fs
-        sel = np.abs(k - c) < 8  # the first pulse of this arm
-        centroid = float(np.sum(k[sel] * x[sel]) / np.sum(x[sel]))
-        assert centroid == pytest.approx(c, abs=0.05)
-    # the energy of each pulse: R * a^2 * P_avg / f_rep, times the load
-    sel = np.abs(k - 2 * 0.03 / C * fs) < 8
-    energy = float(np.sum(x[sel])) / fs / sc.receiver.load_ohm
-    expect = sc.receiver.responsivity_a_per_w * 10 ** (-sc.architecture.reference_loss_db / 10) * \
-        sc.ptof.average_power_w / sc.ptof.repetition_hz
-    assert energy == pytest.approx(expect, rel=1e-3)
-    assert fr.tones_hz == () and fr.pulse.period_s == pytest.approx(40e-9)
-    assert math.isclose(fr.pulse.duty, 1e-12 / 40e-9)
+def test_stream_a_worker_with_technique_ptof_serves_points_at_the_api(tmp_path):
+    """Simulate (PToF mode) -> acquisition node -> ``mtcw worker --technique ptof`` -> API, over loopback."""
+    from .test_services import Bench, _wait_total
+
+    b = Bench(tmp_path)
+    try:
+        sc = load_scene("ptof-bench")
+        b.scene.write_text(sc.model_dump_json())
+        b.api()
+        b.acquire(frames=4, rate=10)
+        b.start("worker", "worker", "--technique", "ptof")
+        h = _wait_total(b, 4)
+        assert h["processed"] == 4 and h["dropped"] == 0
+        pts = b.all_points()
+        assert [p["technique"] for p in pts] == ["ptof"] * 4 and all(p["status"] == "ok" for p in pts)
+        for p in pts:
+            t = p["targets"][0]
+            assert abs(t["range_m"] - 1.10) < 3 * t["range_sigma_m"]  # the path difference to the 3 cm mirror
+    finally:
+        b.close()
