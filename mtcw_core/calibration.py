@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from .scene import field_path  # the one rendering of an error's field path
 
@@ -57,16 +57,20 @@ class Calibration(BaseModel):
     reference_powers_v2: tuple[float, ...] = ()
     reference_power_sigma_v2: tuple[float, ...] = ()
 
+    @field_validator("reference_powers_v2", "reference_power_sigma_v2")
+    @classmethod
+    def _per_tone(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        n = len(info.data.get("tones_hz", ()))
+        if v and (len(v) != n or any(x < 0 for x in v)):
+            raise ValueError(f"one non-negative value per tone ({n})")
+        return v
+
     @model_validator(mode="after")
     def _same_length(self) -> "Calibration":
         if len(self.tones_hz) != len(self.tone_phases_rad):
             raise ValueError("tones_hz and tone_phases_rad differ in length")
         if any(f <= 0 for f in self.tones_hz) or len(set(self.tones_hz)) != len(self.tones_hz):
             raise ValueError("tones_hz must be positive and distinct")
-        for name in ("reference_powers_v2", "reference_power_sigma_v2"):
-            vals = getattr(self, name)
-            if vals and (len(vals) != len(self.tones_hz) or any(v < 0 for v in vals)):
-                raise ValueError(f"{name}: one non-negative value per tone ({len(self.tones_hz)})")
         return self
 
     def save(self, path: str | Path) -> None:

@@ -145,7 +145,7 @@ class PulsedTof(_Model):
     def _fits(self) -> "PulsedTof":
         if self.pulse_width_s + self.rise_time_s >= 0.5 / self.repetition_hz:
             raise ValueError(f"pulse_width_s: {self.pulse_width_s:g} s (+ rise_time_s) must be below half the "
-                             f"repetition period ({0.5 / self.repetition_hz:g} s)")
+                             f"period of repetition_hz ({0.5 / self.repetition_hz:g} s)")
         return self
 
 
