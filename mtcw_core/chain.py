@@ -30,6 +30,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,7 @@ from .frame import Frame
 from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
+from .ranging import ab, ptof
 from .ranging.mixing import mix
 from .ranging.pe import PeLines, extract_pe, resolve_pe
 from .ranging.targets import Reference, resolve_targets, select_targets
@@ -67,6 +69,7 @@ class FrameState:
     observations: dict[int, Observations] = field(default_factory=dict)  # mix, per candidate
     candidates: list[tuple[int, TargetPoint]] = field(default_factory=list)  # resolve
     pe_lines: list[PeLines] = field(default_factory=list)  # pe_lines (technique pe)
+    technique_state: Any = None  # what another technique's stages hand each other (e.g. ranging.ab.ABState)
 
     @property
     def windows(self) -> list[tuple[int, int]] | None:
@@ -174,7 +177,8 @@ PE_STAGES: tuple[Stage, ...] = (
 )
 
 #: One stage table per technique (``ChainSettings.technique``); ``pb`` is :data:`STAGES`.
-TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "pe": PE_STAGES}
+TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES), "pe": PE_STAGES,
+                                            "ptof": ptof.stages(STAGES)}
 
 
 def stages_of(technique: str) -> tuple[Stage, ...]:

@@ -70,6 +70,9 @@ class TargetPoint:
         Best line SNR per tone (key: tone frequency in Hz, formatted ``%.0f``).
     seed_sigma_k_m : float or None
         The dissertation's candidate-matrix row spread (m), ``seed`` method only.
+    fit_r2 : float or None
+        R^2 of the AB-MTCW sine fit of the normalised tone powers (the dissertation's quality
+        figure), ``ab`` technique only.
     """
 
     range_m: float
@@ -89,6 +92,7 @@ class TargetPoint:
     speed_min_mps: float = 0.0
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
+    fit_r2: float | None = None
 
 
 @dataclass

@@ -148,6 +148,33 @@ class Pulsing(_Model):
     reference_channel: bool = True
 
 
+# -- PToF mode (issue 14; the simulator's part is mtcw_core/simulate/pulses.py) -------------------
+class PulsedTof(_Model):
+    """Pulsed time-of-flight mode: the transmitter sends short pulses instead of the modulated CW beam.
+
+    The dissertation's mode-locked laser of its Sec. 3.4 (``gaussian``: picosecond pulses at
+    25 MHz, seen through the detector's response) and the 4 ns generator pulse of its Sec. 5.5
+    (``rectangular`` with raised-cosine edges). Direct (intensity) detection: the echoes of the
+    targets (and of the reference mirror, ``modulated_reference``) add as powers.
+    """
+
+    shape: Literal["gaussian", "rectangular"] = "gaussian"
+    repetition_hz: float = Field(25e6, gt=0, description="pulse repetition rate")
+    pulse_width_s: float = Field(1e-12, gt=0, description="gaussian: FWHM of the optical pulse; rectangular: "
+                                                          "time on between half maxima")
+    rise_time_s: float = Field(0.0, ge=0, description="rectangular: raised-cosine edges")
+    average_power_w: float = Field(1e-3, gt=0, description="transmitted average power")
+    delay_s: float = Field(0.0, ge=0, description="emission of the first pulse after the trigger")
+    reference_channel: bool = Field(False, description="the transmitted pulse as channel pulse_ref")
+
+    @model_validator(mode="after")
+    def _fits(self) -> "PulsedTof":
+        if self.pulse_width_s + self.rise_time_s >= 0.5 / self.repetition_hz:
+            raise ValueError(f"pulse_width_s: {self.pulse_width_s:g} s (+ rise_time_s) must be below half the "
+                             f"period of repetition_hz ({0.5 / self.repetition_hz:g} s)")
+        return self
+
+
 class Frames(_Model):
     count: int = Field(1, ge=1)
     rate_hz: float = Field(10.0, gt=0)
@@ -170,6 +197,7 @@ class Scene(_Model):
     digitizer: Digitizer = Digitizer()
     pulsing: Pulsing | None = None
     frames: Frames = Frames()
+    ptof: PulsedTof | None = Field(None, description="pulsed time-of-flight mode (mtcw_core.simulate.pulses)")
 
     @model_validator(mode="after")
     def _check_band(self) -> "Scene":

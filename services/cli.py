@@ -174,18 +174,26 @@ def process(
 @app.command()
 def calibrate(
     recording: Path = typer.Argument(..., help="SigMF recording of a reflector at a known range"),
-    known_range: float = typer.Option(..., "--known-range", help="range of the reflector (m)"),
+    known_range: float = typer.Option(..., "--known-range", help="range of the reflector (m); with --technique ab "
+                                                                  "the reference mirror's"),
     output: Path = typer.Option(Path("calibration.json"), "-o", "--output"),
+    technique: str = typer.Option("pb", help="pb: tone phases and tau0 from a known reflector; ab: the reference "
+                                             "arm's tone powers from a reference-only recording"),
 ) -> None:
-    """Derive tone phase offsets and tau0 from a known reflector; write a calibration file."""
+    """Derive tone phase offsets and tau0 from a known reflector (or, ``--technique ab``, the reference arm's tone
+    powers from a recording without the measurement arm); write a calibration file."""
     from mtcw_core.calibrate import derive_calibration
     from mtcw_core.calibration import CalibrationError
+    from mtcw_core.ranging.ab import derive_reference
     from mtcw_core.results import Rejected
 
+    if technique not in ("pb", "ab"):
+        _fail(f"technique: calibration exists for pb and ab, not {technique!r}")
     rec = _open(recording)
     try:
-        cal = derive_calibration(tqdm(rec, total=len(rec), unit="frame", desc="calibrate", file=sys.stderr),
-                                 known_range, source=str(recording))
+        frames = tqdm(rec, total=len(rec), unit="frame", desc="calibrate", file=sys.stderr)
+        cal = (derive_reference(frames, known_range, source=str(recording)) if technique == "ab" else
+               derive_calibration(frames, known_range, source=str(recording)))
     except (CalibrationError, Rejected, RecordingError) as err:
         _fail(str(err))
     cal.save(output)
@@ -560,6 +568,7 @@ def run(
     scene: str = typer.Option("cw-bench", help="scene file or bundled scene name"),
     profile: str = typer.Option("balanced", help="chain profile of the workers"),
     technique: str = typer.Option("pb", help="ranging technique of the workers: pb | ab | pe | ptof"),
+    calibration: Optional[Path] = typer.Option(None, help="calibration file for the workers (ab needs one)"),
     workers: int = typer.Option(1, min=1, max=64, help="number of worker processes"),
     rate: float = typer.Option(5.0, help="frames/s from the simulator (0 = as fast as it goes)"),
     port: int = typer.Option(8000, min=0, max=65535, help="HTTP port of the API (127.0.0.1; 0 = a free one)"),
@@ -583,7 +592,8 @@ def run(
     sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate), reports=True,
             env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
-        sup.add(f"worker-{i}", "worker", "--profile", profile, "--technique", technique, "--name", f"worker-{i}")
+        sup.add(f"worker-{i}", "worker", "--profile", profile, "--technique", technique, "--name", f"worker-{i}",
+                *(("--calibration", str(calibration.resolve())) if calibration is not None else ()))
 
     def banner(s: Supervisor) -> None:
         url = s.endpoints["http_url"]

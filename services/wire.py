@@ -113,6 +113,7 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     residual_rms_rad: NonNegative = 0.0
     cycle_slip_prob: Annotated[float, Meta(ge=0, le=1)] = 0.0
     speed_min_mps: NonNegative = 0.0
+    fit_r2: Optional[Finite] = None  # the AB-MTCW sine fit's R^2 (technique ab only)
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):

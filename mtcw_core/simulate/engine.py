@@ -85,6 +85,9 @@ class Simulator:
 
     def frame(self, index: int) -> Frame:
         """Simulate frame ``index`` of the sequence (its RNG draws follow the previous call)."""
+        if self.scene.ptof is not None:  # PToF mode (issue 14): short pulses, direct detection
+            from .pulses import pulse_frame
+            return pulse_frame(self, index)
         sc = self.scene
         dig = sc.digitizer
         fs, n = dig.sample_rate_hz, dig.samples
