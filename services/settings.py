@@ -150,8 +150,8 @@ class AcquisitionSettings(TransportSettings):
     resource: Optional[str] = Field(None, min_length=1, max_length=256,
                                     description="VISA resource of the scope (TCPIP::host::INSTR, "
                                                 "TCPIP::host::4000::SOCKET, USB::...)")
-    visa_library: str = Field("@py", min_length=1, description="PyVISA backend: @py (pyvisa-py), @sim or "
-                              "FILE.yaml@sim (pyvisa-sim), or a vendor VISA library's path")
+    visa_library: str = Field("@py", min_length=1, description="PyVISA backend: @py (pyvisa-py), sim (pyvisa-sim "
+                              "with mtcw's MDO34 definition), FILE.yaml@sim, or a vendor VISA library's path")
     tones_hz: Annotated[Optional[list[float]], NoDecode] = Field(
         None, description="the bench's modulation tones (Hz, comma-separated); the scope does not know them "
                           "(scope-sim: the scene's)")

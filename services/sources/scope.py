@@ -60,6 +60,19 @@ REASONS = (
 DEFAULT_CHUNK_BYTES = 1 << 20
 
 
+def sim_definition() -> str:
+    """The path of the pyvisa-sim definition of an MDO34's control plane shipped with mtcw
+    (``mdo3.yaml``: ``TCPIP::mdo34-sim::INSTR`` locked, ``TCPIP::mdo34-unlocked::INSTR`` not)."""
+    from importlib import resources
+
+    return str(resources.files("services.sources") / "mdo3.yaml")
+
+
+def visa_backend(visa_library: str) -> str:
+    """PyVISA's backend string for the ``visa_library`` setting (``sim``: the shipped definition)."""
+    return f"{sim_definition()}@sim" if visa_library == "sim" else visa_library
+
+
 class ScopeError(Exception):
     """A scope failure with its cause: ``reason`` (one of :data:`REASONS`) and a message."""
 
@@ -168,8 +181,8 @@ class Mdo3:
     resource : str
         VISA resource string.
     visa_library : str
-        PyVISA backend: ``@py`` (pyvisa-py, default), ``@sim`` / ``path.yaml@sim`` (pyvisa-sim),
-        or the path of a vendor VISA library.
+        PyVISA backend: ``@py`` (pyvisa-py, default), ``sim`` (pyvisa-sim with the shipped
+        :func:`sim_definition`), ``path.yaml@sim``, or the path of a vendor VISA library.
     timeout_s : float
         VISA timeout for every read (an acquisition waits for its trigger this long too).
     chunk_bytes : int
@@ -192,7 +205,7 @@ class Mdo3:
         import pyvisa
 
         try:
-            self._rm = pyvisa.ResourceManager(self.visa_library)
+            self._rm = pyvisa.ResourceManager(visa_backend(self.visa_library))
         except (OSError, ValueError, pyvisa.errors.Error) as err:
             raise ScopeError("connection", f"visa_library {self.visa_library!r}: {err}") from None
         try:

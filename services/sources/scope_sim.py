@@ -160,6 +160,7 @@ class SimulatedMdo3:
         self._sims: dict[tuple, Simulator] = {}
         self._pools: dict[tuple, list[_Acquisition]] = {}
         self._pool_next = 0
+        self._blocks: dict[tuple, bytes] = {}  # pooled acquisitions: their blocks, built once
         self.lock = threading.Lock()
         self.curves_served = 0
 
@@ -435,13 +436,20 @@ class SimulatedMdo3:
         return np.clip(np.rint(code), -32768, 32767).astype(np.int16)
 
     def _curve(self):
-        codes = self.codes()
         big = self.data_encoding == "RIBINARY"
-        data = codes.astype(">i2" if big else "<i2") if self.data_width == 2 else codes
+        key = (id(self._acq), self.data_source, self.data_width, big, self._scaling(), self.data_start,
+               self.data_stop, self.acquire_mode)
         self.curves_served += 1
-        if self._take("short_block"):
-            data = data[: max(1, data.size - max(1, data.size // 10))]
-        block = to_ieee_block(data, datatype="b" if self.data_width == 1 else "h", is_big_endian=big) + b"\n"
+        short = self._take("short_block")
+        block = self._blocks.get(key) if self.pool and not short else None
+        if block is None:
+            codes = self.codes()
+            data = codes.astype(">i2" if big else "<i2") if self.data_width == 2 else codes
+            if short:
+                data = data[: max(1, data.size - max(1, data.size // 10))]
+            block = to_ieee_block(data, datatype="b" if self.data_width == 1 else "h", is_big_endian=big) + b"\n"
+            if self.pool and not short:
+                self._blocks[key] = block
         for fault in ("timeout", "gone", "truncated"):
             if self._take(fault):
                 return ("fault", fault, block)
