@@ -173,6 +173,19 @@ def _visa_error(err: Exception, during: str) -> ScopeError:
     return ScopeError("connection", f"{during}: {type(err).__name__}: {err}")
 
 
+def _no_delay(inst) -> None:
+    """TCP_NODELAY on a pyvisa-py raw socket session (best effort): commands go out at once
+    instead of waiting for the scope's delayed ACK of the previous one (Nagle)."""
+    import socket
+
+    try:
+        sock = inst.visalib.sessions[inst.session].interface
+        if isinstance(sock, socket.socket):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    except Exception:  # noqa: BLE001 -- another backend or session kind: nothing to do
+        pass
+
+
 class Mdo3:
     """A connection to an MDO3 (or an instrument answering its commands).
 
@@ -214,6 +227,7 @@ class Mdo3:
         except (OSError, ValueError, pyvisa.errors.Error) as err:
             self.close()
             raise ScopeError("connection", f"cannot open {self.resource_name}: {err}") from None
+        _no_delay(self._inst)
         self.idn = self.query("*IDN?")
         if "TEKTRONIX" not in self.idn.upper() or "MDO3" not in self.idn.upper():
             log.warning("scope: %s identifies as %r, not a Tektronix MDO3; going on with the MDO3's commands",
@@ -330,8 +344,8 @@ class Mdo3:
     # -- acquisition ---------------------------------------------------------------------
     def acquire(self) -> int:
         """One single-sequence acquisition, waited for with ``*OPC?``; returns ``ACQuire:NUMACq?``."""
-        self.write("ACQUIRE:STATE ON")
-        if self.query("*OPC?").split()[-1] != "1":
+        # one message: a write followed by another write would wait for the first one's delayed ACK
+        if self.query("ACQUIRE:STATE ON;*OPC?").split()[-1] != "1":
             raise ScopeError("bad_answer", "*OPC? did not answer 1 after ACQuire:STATE ON")
         return int(self.query_float("ACQUIRE:NUMACQ?"))
 
@@ -346,8 +360,7 @@ class Mdo3:
             ``expect_fs_hz``), ``garbled_block``, ``block_size``, ``transfer_incomplete``,
             ``timeout``, ``connection``, ``bad_answer``.
         """
-        self.write(f"DATA:SOURCE {channel}")
-        ans = self.query("WFMOUTPRE:NR_PT?;YMULT?;YOFF?;YZERO?;XINCR?;XZERO?;BYT_NR?;BYT_OR?")
+        ans = self.query(f"DATA:SOURCE {channel};:WFMOUTPRE:NR_PT?;YMULT?;YOFF?;YZERO?;XINCR?;XZERO?;BYT_NR?;BYT_OR?")
         fields = [f.split()[-1] if f.split() else "" for f in ans.split(";")]
         try:
             nr_pt = int(float(fields[0]))
@@ -378,6 +391,8 @@ class Mdo3:
         self.write("CURVE?")
         inst = self._inst
         got, n = 0, None
+        # binary data holds 0x0A bytes: no read may stop at the termination character
+        term, inst.read_termination = inst.read_termination, None
         try:
             head = inst.read_bytes(2)
             if head[:1] != b"#" or not head[1:2].isdigit() or head[1:2] == b"0":
@@ -409,6 +424,11 @@ class Mdo3:
                 raise ScopeError("transfer_incomplete", f"CURVe? of {channel} stopped part-way: {got} of "
                                                         f"{expect_bytes} bytes came in whole chunks ({type(err).__name__}: {err})") from None
             raise _visa_error(err, f"CURVe? of {channel}") from None
+        finally:
+            try:
+                inst.read_termination = term
+            except Exception:  # noqa: BLE001 -- a session already broken; it is closed next
+                pass
 
 
 class ScopeSource:

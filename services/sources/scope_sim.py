@@ -28,6 +28,7 @@ division; ``YZEro`` = the channel's offset). ``CURVe?`` answers a definite-lengt
 ``sample_rate``    the acquisition runs at half the sample rate set (its XINcr says so),
                    as when someone turns the horizontal knob during a run
 ``unlocked``       ``ROSc:STATE?`` answers ``UNLOCKED`` (the external 10 MHz is lost)
+``missed``         the sequence counts 3 acquisitions (``ACQuire:NUMACq?``): 2 the node never read
 =================  ======================================================================
 
 :class:`ScopeSimServer` serves one :class:`SimulatedMdo3` on a port of 127.0.0.1 (0 = a free one)
@@ -62,7 +63,8 @@ RECORD_LENGTHS = (1_000, 10_000, 100_000, 1_000_000, 5_000_000, 10_000_000)
 MAX_SAMPLE_RATE_HZ = 5e9
 #: codes per vertical division in one byte; two bytes carry 256 times as many
 CODES_PER_DIV = 25.0
-FAULTS = ("timeout", "gone", "truncated", "garbled", "short_block", "record_length", "sample_rate", "unlocked")
+FAULTS = ("timeout", "gone", "truncated", "garbled", "short_block", "record_length", "sample_rate", "unlocked",
+          "missed")
 
 # SCPI mnemonics: the upper-case part is the short form; either form, or anything between, is taken
 _MNEMONICS = [
@@ -340,7 +342,7 @@ class SimulatedMdo3:
             if _canon(arg) in ("ON", "RUN", "1"):
                 self.numacq = 0
                 self._acquire()
-                self.numacq = 1
+                self.numacq = 3 if self._take("missed") else 1
             return None
         if key == "ACQUIRE:NUMACQ" and q:
             return str(self.numacq)
