@@ -568,6 +568,10 @@ class ScopeSimServer:
 
     def _go_down(self) -> None:
         """Close every connection and refuse new ones for :attr:`down_s` seconds."""
+        try:  # stops listening at once, even while the accept thread waits on it
+            self._listener.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
         self._listener.close()
         for c in list(self._conns):
             try:
