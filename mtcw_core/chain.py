@@ -182,13 +182,7 @@ TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES
 
 
 def stages_of(technique: str) -> tuple[Stage, ...]:
-    """The stage table of ``technique``.
-
-    Raises
-    ------
-    Rejected
-        ``technique``: no stage table for it in this build.
-    """
+    """The stage table of ``technique``; :class:`Rejected` (``technique``) when this build has none."""
     try:
         return TECHNIQUES[technique]
     except KeyError:

@@ -454,7 +454,8 @@ def _service_settings(cls, **flags):
 
 @app.command()
 def acquire(
-    source: Optional[str] = typer.Option(None, help="sim | replay | module:Class  [env MTCW_SOURCE; default sim]"),
+    source: Optional[str] = typer.Option(None, help="sim | replay | scope | scope-sim | module:Class  [env MTCW_SOURCE; "
+                                                    "default sim]"),
     scene: Optional[str] = typer.Option(None, help="scene for the simulator [MTCW_SCENE; default cw-bench]"),
     recording: Optional[Path] = typer.Option(None, help="SigMF recording to replay [MTCW_RECORDING]"),
     rate: Optional[float] = typer.Option(None, "--rate", help="frames/s, 0 = as fast as possible [MTCW_RATE_HZ]"),
@@ -462,23 +463,138 @@ def acquire(
     loop: Optional[bool] = typer.Option(None, "--loop/--no-loop", help="replay: loop [MTCW_LOOP; default loop]"),
     source_name: Optional[str] = typer.Option(None, help="source name in every frame [MTCW_SOURCE_NAME]"),
     seed: Optional[int] = typer.Option(None, help="simulator seed"),
+    resource: Optional[str] = typer.Option(None, help="scope: VISA resource, e.g. TCPIP::192.168.1.20::INSTR "
+                                                      "[MTCW_RESOURCE]"),
+    visa_library: Optional[str] = typer.Option(None, help="scope: PyVISA backend, @py (default) | sim | a vendor "
+                                                          "VISA library [MTCW_VISA_LIBRARY]"),
+    tones_hz: Optional[str] = typer.Option(None, help="scope: the bench's tones, Hz, comma-separated "
+                                                      "[MTCW_TONES_HZ]"),
+    wavelength_m: Optional[float] = typer.Option(None, help="scope: the bench laser's wavelength [MTCW_WAVELENGTH_M]"),
+    record_length: Optional[int] = typer.Option(None, help="scope: points per record [MTCW_RECORD_LENGTH]"),
+    sample_rate: Optional[float] = typer.Option(None, help="scope: sample rate, S/s [MTCW_SAMPLE_RATE_HZ]"),
+    data_width: Optional[int] = typer.Option(None, help="scope: 1 or 2 bytes per point [MTCW_DATA_WIDTH; "
+                                                        "default 2]"),
 ) -> None:
-    """Acquisition node: publish frames (PUSH to workers, PUB to monitors)."""
+    """Acquisition node: publish frames (PUSH to workers, PUB to monitors).
+
+    Sources: sim, replay, scope (a Tektronix MDO3 over VISA: docs/scope.md), scope-sim (the same
+    path against a simulated MDO3 of --scene), module:Class. Every scope setting is also an
+    environment variable (MTCW_TRIGGER_SOURCE, MTCW_VERTICAL_SCALE_V, ...: docs/scope.md).
+    """
     from services.acquisition import run_acquisition
     from services.auth import CurveKeyError
+    from services.sources.scope import ScopeError
     from services.sockets import SocketError
     from services.settings import AcquisitionSettings
 
     _logging()
     st = _service_settings(AcquisitionSettings, source=source, scene=scene, recording=recording, rate_hz=rate,
-                           frames=frames, loop=loop, source_name=source_name, seed=seed)
+                           frames=frames, loop=loop, source_name=source_name, seed=seed, resource=resource,
+                           visa_library=visa_library, tones_hz=tones_hz, wavelength_m=wavelength_m,
+                           record_length=record_length, sample_rate_hz=sample_rate, data_width=data_width)
     stop = _stop_on_signals()
     try:
         run_acquisition(st, stop)
     except (SocketError, CurveKeyError) as err:
         _fail(f"settings: {err}")
+    except ScopeError as err:  # scope_max_failures reached
+        _fail(f"scope: {err}", 1)
     except (SceneError, RecordingError, ValueError) as err:
         _fail(str(err))
+
+
+scope_app = typer.Typer(no_args_is_help=True, help="The Tektronix MDO3 scope source: check the link, measure it.")
+app.add_typer(scope_app, name="scope")
+
+
+@scope_app.command("check")
+def scope_check(
+    resource: str = typer.Option(..., help="VISA resource (TCPIP::host::INSTR), or 'sim' for a simulated MDO3 of "
+                                           "--scene"),
+    visa_library: str = typer.Option("@py", help="@py | sim (pyvisa-sim, mtcw's MDO34 definition: resources "
+                                                 "TCPIP::mdo34-sim::INSTR, TCPIP::mdo34-unlocked::INSTR) | a "
+                                                 "vendor VISA library"),
+    channel: str = typer.Option("CH1", help="channel to transfer"),
+    record_length: Optional[int] = typer.Option(None, help="set this record length first"),
+    sample_rate: Optional[float] = typer.Option(None, help="ask for this sample rate first (S/s)"),
+    data_width: int = typer.Option(2, help="1 or 2 bytes per point"),
+    external_reference: bool = typer.Option(True, "--external-reference/--internal-reference",
+                                            help="require the external 10 MHz reference to be locked"),
+    acquire: bool = typer.Option(True, "--acquire/--no-acquire", help="run one acquisition and transfer it"),
+    scene: str = typer.Option("cw-bench", help="scene of the simulated MDO3 (--resource sim)"),
+    timeout: float = typer.Option(5.0, help="VISA timeout, s"),
+) -> None:
+    """Check the link to a scope: identify, configure, reference lock, one acquisition. Prints JSON;
+    exits 1 naming the cause when something fails."""
+    from services.sources.scope import Mdo3, ScopeConfig, ScopeError
+
+    _logging()
+    server = None
+    vertical = None
+    if resource == "sim":
+        from services.sources.scope_sim import ScopeSimServer, SimulatedMdo3, autoset
+
+        try:
+            sc = load_scene(scene)
+        except SceneError as err:
+            _fail(str(err))
+        rl = record_length or 100_000
+        fs = sample_rate or sc.digitizer.sample_rate_hz
+        server = ScopeSimServer(SimulatedMdo3(sc, seed=1))
+        resource, visa_library, record_length, sample_rate = server.resource, "@py", rl, fs
+        vertical = tuple(autoset(sc, rl, fs, seed=1).values())[:1]
+    report: dict = {"resource": resource, "visa_library": visa_library}
+    scope = Mdo3(resource, visa_library, timeout)
+    try:
+        report["idn"] = scope.open()
+        cfg = ScopeConfig(channels=(channel.upper(),), record_length=record_length, sample_rate_hz=sample_rate,
+                          vertical=vertical, data_width=data_width, external_reference=external_reference)
+        report["in_force"] = scope.configure(cfg)
+        report["reference"] = scope.reference_state()
+        if acquire:
+            t0 = time.perf_counter()
+            report["numacq"] = scope.acquire()
+            wf = scope.read_waveform(channel.upper(), report["in_force"]["record_length"],
+                                     report["in_force"]["sample_rate_hz"])
+            v = wf.volts()
+            report["waveform"] = {"points": int(wf.codes.size), "dtype": str(wf.codes.dtype),
+                                  "sample_rate_hz": 1.0 / wf.xincr_s, "xzero_s": wf.xzero_s,
+                                  "volts_min": float(v.min()), "volts_max": float(v.max()),
+                                  "codes_min": int(wf.codes.min()), "codes_max": int(wf.codes.max()),
+                                  "seconds": round(time.perf_counter() - t0, 4)}
+        report["ok"] = True
+    except ScopeError as err:
+        report.update(ok=False, reason=err.reason, error=str(err))
+    finally:
+        scope.close()
+        if server is not None:
+            server.close()
+    typer.echo(json.dumps(report, indent=2))
+    if not report["ok"]:
+        raise typer.Exit(1)
+
+
+@scope_app.command("bench")
+def scope_bench(
+    resource: Optional[str] = typer.Option(None, help="a real scope's VISA resource; default: the simulated MDO3"),
+    visa_library: str = typer.Option("@py", help="PyVISA backend"),
+    record_length: int = typer.Option(1_000_000, help="points per record"),
+    width: list[int] = typer.Option([1, 2], "--width", help="DATa:WIDth to measure (repeat)"),
+    frames: int = typer.Option(20, min=1, help="acquisitions per width"),
+) -> None:
+    """Transfer rate of the scope path (MB/s of CURVe?, frames/s of whole acquisitions)."""
+    from mtcw_bench.scope import bench_transfer
+    from services.sources.scope import ScopeError
+
+    if any(w not in (1, 2) for w in width):
+        _fail(f"width: {width}: each must be 1 or 2")
+    try:
+        rows = bench_transfer(record_length, tuple(width), frames, resource, visa_library)
+    except ScopeError as err:
+        _fail(f"scope: {err}", 1)
+    typer.echo(json.dumps({"command": "mtcw scope bench " + " ".join(
+        [f"--record-length {record_length}", *[f"--width {w}" for w in width], f"--frames {frames}"]
+        + ([f"--resource {resource}"] if resource else [])), "results": rows}, indent=2))
 
 
 @app.command()
