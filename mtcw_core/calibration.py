@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from .scene import field_path  # the one rendering of an error's field path
 
@@ -36,6 +36,9 @@ class Calibration(BaseModel):
     tone_phases_rad : tuple of float, each tone's residual RF phase (rad), same length
     tau0_s : float, the internal round-trip delay (s)
     known_range_m, frames_used, phase_std_rad, source, created : provenance
+    reference_powers_v2, reference_power_sigma_v2 : tuple of float, AB-MTCW only: the reference
+        arm's tone line powers (V^2, per tone) from frames without the measurement arm, and
+        their standard errors; empty otherwise
     version : the file format's version
     """
 
@@ -50,6 +53,17 @@ class Calibration(BaseModel):
     source: str = ""
     created: str = ""
     version: Literal[1] = FORMAT_VERSION
+    # AB-MTCW (mtcw_core.ranging.ab.derive_reference): a reference-only measurement's tone powers
+    reference_powers_v2: tuple[float, ...] = ()
+    reference_power_sigma_v2: tuple[float, ...] = ()
+
+    @field_validator("reference_powers_v2", "reference_power_sigma_v2")
+    @classmethod
+    def _per_tone(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        n = len(info.data.get("tones_hz", ()))
+        if v and (len(v) != n or any(x < 0 for x in v)):
+            raise ValueError(f"one non-negative value per tone ({n})")
+        return v
 
     @model_validator(mode="after")
     def _same_length(self) -> "Calibration":

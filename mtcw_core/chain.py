@@ -30,6 +30,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,9 @@ from .frame import Frame
 from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
+from .ranging import ab, ptof
 from .ranging.mixing import mix
+from .ranging.pe import PeLines, extract_pe, resolve_pe
 from .ranging.targets import Reference, resolve_targets, select_targets
 from .ranging.triangulation import Observations
 from .results import Direction, FrameResult, NoTarget, Rejected, Status, TargetPoint
@@ -65,6 +68,8 @@ class FrameState:
     families: list[LineFamily] = field(default_factory=list)  # extract
     observations: dict[int, Observations] = field(default_factory=dict)  # mix, per candidate
     candidates: list[tuple[int, TargetPoint]] = field(default_factory=list)  # resolve
+    pe_lines: list[PeLines] = field(default_factory=list)  # pe_lines (technique pe)
+    technique_state: Any = None  # what another technique's stages hand each other (e.g. ranging.ab.ABState)
 
     @property
     def windows(self) -> list[tuple[int, int]] | None:
@@ -146,17 +151,55 @@ STAGES: tuple[Stage, ...] = (
 STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 
 
+
+# -- PE-MTCW (mtcw_core/ranging/pe.py): the PB stages up to the Doppler search, then its own
+def _pe_doppler(s: FrameState) -> None:
+    # the search and its parabola only: pe_lines refines each line itself (ranging/pe.py says why)
+    s.dopplers = estimate_doppler(s.x, s.frame, s.spectrum, s.settings.model_copy(update={"doppler_refine": "parabolic"}))
+    s.result.doppler_hz = s.dopplers[0].fd_hz
+
+
+def _pe_lines(s: FrameState) -> None:
+    s.pe_lines = extract_pe(s.x, s.frame, s.dopplers, s.spectrum, s.settings)
+
+
+def _pe_resolve(s: FrameState) -> None:
+    s.candidates, s.result.unambiguous_range_m = resolve_pe(s.pe_lines, s.frame, s.settings, s.reference)
+
+
+PE_STAGES: tuple[Stage, ...] = (
+    Stage("validate", _validate),
+    Stage("spectrum", _spectrum),
+    Stage("doppler", _pe_doppler),
+    Stage("pe_lines", _pe_lines),
+    Stage("pe_resolve", _pe_resolve),
+    Stage("select", _select),
+)
+
+#: One stage table per technique (``ChainSettings.technique``); ``pb`` is :data:`STAGES`.
+TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES), "pe": PE_STAGES,
+                                            "ptof": ptof.stages(STAGES)}
+
+
+def stages_of(technique: str) -> tuple[Stage, ...]:
+    """The stage table of ``technique``; :class:`Rejected` (``technique``) when this build has none."""
+    try:
+        return TECHNIQUES[technique]
+    except KeyError:
+        raise Rejected("technique", f"{technique!r} is not available (one of {', '.join(TECHNIQUES)})") from None
+
+
 def _start(frame: Frame, settings: ChainSettings | str, calibration: Calibration | None) -> FrameState:
     if isinstance(settings, str):
         settings = get_profile(settings)
-    res = FrameResult(status="rejected", profile=settings.profile, seq=frame.seq, t_ns=frame.t_ns,
+    res = FrameResult(status="rejected", profile=settings.profile, technique=settings.technique, seq=frame.seq, t_ns=frame.t_ns,
                       source=frame.source, calibrated=calibration is not None)
     return FrameState(frame, settings, calibration, res)
 
 
 def _walk(state: FrameState, until: str | None = None) -> None:
     """Run the stages that apply, in order, timing each into ``result.stage_seconds``."""
-    for stage in STAGES:
+    for stage in stages_of(state.settings.technique):
         if stage.applies(state):
             t0 = time.perf_counter()
             try:
@@ -175,9 +218,10 @@ def run_stages(frame: Frame, settings: ChainSettings | str = "balanced", calibra
     stages do (for tools that need the intermediate lines, e.g. calibration);
     :func:`process_frame` is the total version.
     """
-    if until is not None and until not in STAGE_NAMES:
-        raise ValueError(f"until: unknown stage {until!r} (one of {', '.join(STAGE_NAMES)})")
     state = _start(frame, settings, calibration)
+    names = [st.name for st in stages_of(state.settings.technique)]
+    if until is not None and until not in names:
+        raise ValueError(f"until: unknown stage {until!r} (one of {', '.join(names)})")
     _walk(state, until)
     return state
 
@@ -199,5 +243,5 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
     return res
 
 
-__all__ = ["STAGES", "STAGE_NAMES", "Stage", "FrameState", "run_stages", "process_frame", "ChainSettings",
+__all__ = ["STAGES", "STAGE_NAMES", "TECHNIQUES", "stages_of", "Stage", "FrameState", "run_stages", "process_frame", "ChainSettings",
            "PROFILES", "get_profile", "FrameResult", "TargetPoint", "Rejected", "NoTarget", "Status", "Direction"]

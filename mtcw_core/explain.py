@@ -38,7 +38,7 @@ from .dsp.spectrum import LN2, Spectrum, local_floor
 from .frame import Frame
 from .profiles import ChainSettings
 from .ranging.targets import _search_interval
-from .ranging.triangulation import Observations, candidate_matrix, cost_function, unambiguous_range
+from .ranging.triangulation import Observations, candidate_matrix, cost, unambiguous_range
 from .results import NoTarget, Rejected
 
 #: display points of the spectrum, the cost curve and the sigma_k curve at most
@@ -152,13 +152,12 @@ def cost_view(obs: Observations, tau0_s: float, interval_m: tuple[float, float],
     lam_min = float(np.min(obs.synthetic_wavelengths_m))
     step = lam_min / points_per_cycle
     grid = np.arange(lo, hi + step, step)
-    j = cost_function(obs, tau0_s)
-    vals = np.concatenate([j(grid[i: i + 65536]) for i in range(0, grid.size, 65536)])
+    vals = np.concatenate([cost(obs, grid[i: i + 65536], tau0_s) for i in range(0, grid.size, 65536)])
     is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
     far = np.abs(grid - chosen_m) > 0.5 * lam_min
     cand = np.flatnonzero(is_max & far)
     ru = int(cand[np.argmax(vals[cand])]) if cand.size else None
-    j_best = float(j(chosen_m)[0])
+    j_best = float(cost(obs, [chosen_m], tau0_s)[0])
     gx, gy = _peak_decimate(grid, vals, max_points)
     return {"range_m": [float(v) for v in gx], "j": [round(float(v), 5) for v in gy],
             "interval_m": [float(lo), float(hi)], "step_m": step, "chosen_m": float(chosen_m), "j_chosen": j_best,

@@ -20,6 +20,10 @@ class ChainSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     profile: str = "custom"
+    technique: Literal["pb", "ab", "pe", "ptof"] = Field(
+        "pb", description="pb: phase-based MTCW (the chain below); ab: amplitude-based, pe: phase-extraction "
+                          "(modulated reference arm), ptof: pulsed time of flight (the dissertation's Ch. 3-4); "
+                          "each has its own stage table in mtcw_core.chain.TECHNIQUES")
     # -- validate
     max_clip_fraction: float = Field(1e-3, ge=0, le=1)
     expected_tones_hz: tuple[float, ...] | None = None
@@ -50,7 +54,8 @@ class ChainSettings(BaseModel):
     doppler_refine: Literal["parabolic", "phase", "exact"] = Field(
         "parabolic", description="below one Doppler-spectrum bin: parabola through the search scores, then "
                                  "(phase) the phase advance of the lines across record quarters, or (exact) "
-                                 "maximising the exact line power")
+                                 "that, then maximising the windowed exact line power (its stated error is "
+                                 "the phase refinement's)")
     max_targets: int = Field(3, ge=1, le=8, description="Doppler lines (moving targets) looked for")
     # -- extract
     extraction: Literal["ls", "filter"] = "ls"
@@ -67,8 +72,27 @@ class ChainSettings(BaseModel):
     points_per_cycle: int = Field(16, ge=4)
     range_min_m: float = -0.05
     range_max_m: float | None = None
+    timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description=(
+        "the digitizer's known rms trigger/timing jitter (s): it shifts every tone phase alike, as a range "
+        "shift of c*dt/2 that one frame cannot see, so it enters the range sigma in quadrature"))
+    laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description=(
+        "the laser's Lorentzian FWHM (Hz); with lo_path_difference_m it says at which ranges the LO x echo "
+        "carrier beat is a line at all: where it is not, a mover shows no Doppler line and its speed is "
+        "reported unknown, not zero. 0: assumed coherent at every range (one frame cannot tell)"))
+    lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the "
+                                                                         "echo's internal path (m)")
+    cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
+                                                                "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
                                                         "cannot explain them: flagged blended")
+    # .. technique pe only (its stages pe_lines, pe_resolve; mtcw_core/ranging/pe.py)
+    reference_range_m: float | None = Field(
+        None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "
+                                "from the reference self-beat phases and the tone phases in force")
+    pe_second_order: bool = Field(False, description="pe: also use the 2f_i +- f_d lines (each only where it agrees "
+                                                     "with the f_i +- f_d solution within 3 sigma)")
+    pe_min_log_odds: float = Field(12.0, gt=0, description="pe: log-likelihood of the chosen cycle over the runner-up "
+                                                           "below which the point is flagged cycle_ambiguous")
     # -- select
     self_beat_margin_db: float = Field(15.0, ge=0, description="a static candidate this far below the movers' "
                                                                "lines is taken for their self-beat")
@@ -82,8 +106,9 @@ PROFILES: dict[str, ChainSettings] = {
                           doppler_refine="phase", doppler_phase_lines=3),
     # Doppler from the whole record, joint LS of all used lines, ML on a 16-point grid.
     "balanced": ChainSettings(profile="balanced", doppler_fraction=1.0, spectrum_single=True, doppler_refine="phase"),
-    # Full-record spectrum, exact Doppler refinement, MZM products modelled in the LS fit.
-    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="exact",
+    # Full-record float64 spectrum, phase-advance Doppler refinement over all lines, MZM products
+    # modelled in the LS fit, ML on a 32-point grid.
+    "accurate": ChainSettings(profile="accurate", doppler_fraction=1.0, doppler_refine="phase",
                               model_products=True, points_per_cycle=32),
     # The dissertation: resample to 2^23, 1 MHz 2nd-order Butterworth filtfilt per line,
     # correlation with zero-phase cosines, candidate-matrix triangulation.

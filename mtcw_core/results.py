@@ -41,7 +41,9 @@ class TargetPoint:
         Range (m, from the calibration's zero) and its standard deviation (m).
     velocity_mps, velocity_sigma_mps : float
         Radial speed (m/s; signed only for an IQ receiver, positive receding) and its sigma. A
-        static target reports 0 with the smallest detectable speed as its sigma.
+        static target reports 0 with the smallest detectable speed as its sigma; a target whose
+        speed cannot be measured (laser incoherent at its range) 0 with the largest speed searched
+        as its sigma, direction ``unknown``.
     direction : Direction
     snr_db : float
         Post-integration SNR of the target's strongest line (dB).
@@ -50,8 +52,16 @@ class TargetPoint:
     residual_rms_rad : float
         RMS of the pair-phase residuals at the solution (rad).
     near_edge, cycle_ambiguous, blended : bool
-        The solution lies near the search interval's edge; the coarse range could not pick one
-        cycle; the line phases are not those of one target (sigma Birge-scaled).
+        The solution lies near the search interval's edge; the cycle is in doubt (the coarse
+        range could not pick one, or the line phases give another cycle odds above
+        ``ChainSettings.cycle_slip_max``); the line phases are not those of one target (sigma
+        Birge-scaled).
+    speed_min_mps : float
+        The smallest speed this frame could have measured (m/s): a Doppler line closer to 0 Hz
+        than the search's guard is not told from the static lines. When the laser is not coherent
+        at the target's range, the search's largest speed (nothing could have shown).
+    cycle_slip_prob : float
+        The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1].
     doppler_hz : float
         The target's Doppler line (Hz; signed for IQ; 0 for the static target).
     chi2_per_dof : float
@@ -60,6 +70,9 @@ class TargetPoint:
         Best line SNR per tone (key: tone frequency in Hz, formatted ``%.0f``).
     seed_sigma_k_m : float or None
         The dissertation's candidate-matrix row spread (m), ``seed`` method only.
+    fit_r2 : float or None
+        R^2 of the AB-MTCW sine fit of the normalised tone powers (the dissertation's quality
+        figure), ``ab`` technique only.
     """
 
     range_m: float
@@ -75,8 +88,11 @@ class TargetPoint:
     blended: bool = False
     doppler_hz: float = 0.0
     chi2_per_dof: float = 1.0
+    cycle_slip_prob: float = 0.0
+    speed_min_mps: float = 0.0
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
+    fit_r2: float | None = None
 
 
 @dataclass
@@ -91,6 +107,7 @@ class FrameResult:
 
     status: Status
     profile: str
+    technique: str = "pb"
     seq: int = 0
     t_ns: int = 0
     source: str = ""

@@ -103,6 +103,32 @@ class Noise(_Model):
     rf_phase_drift_rad: float = Field(0.0, ge=0, description="rms random-walk step per frame per tone")
 
 
+class Amplifier(_Model):
+    """Optical booster in front of the detector, after LO and echo are combined (the dissertation's
+    Eq. 5.11 set-up): LO, echo and sunlight gain ``G``; ASE ``(G - 1)*n_sp*h*f0`` per polarisation
+    over ``optical_bandwidth_hz`` is added (``mtcw_core.snr``)."""
+
+    gain_db: float = Field(ge=0, le=60, description="optical power gain G (dB)")
+    spontaneous_emission_factor: float = Field(1.0, ge=1.0, le=10.0, description="n_sp")
+    optical_bandwidth_hz: float = Field(gt=0, le=1e14, description="ASE band reaching the detector (rectangular)")
+
+
+class SolarBackground(_Model):
+    """Sunlight collected through an optical filter: ``P = SSI * A * dlambda`` over ``c*dlambda/lambda^2``,
+    unpolarised, in the LO's spatial mode (the dissertation's assumption; ``docs/snr.md``)."""
+
+    spectral_irradiance_w_per_m2_nm: float = Field(gt=0, le=10.0, description="SSI at the laser wavelength")
+    aperture_area_m2: float = Field(gt=0, le=100.0, description="receiver aperture (or one mode's effective area)")
+    filter_bandwidth_m: float = Field(gt=0, le=1e-6, description="full width of the optical filter (2e-9 for +-1 nm)")
+
+
+class OpticalNoise(_Model):
+    """Broadband light at the detector; both off by default (no draw, no change to any frame)."""
+
+    amplifier: Amplifier | None = None
+    solar: SolarBackground | None = None
+
+
 class Digitizer(_Model):
     sample_rate_hz: float = Field(5e9, gt=0)
     samples: int = Field(2**16, ge=2**8, le=2**26)
@@ -120,6 +146,33 @@ class Pulsing(_Model):
     delay_s: float = 0.0
     rise_time_s: float = Field(0.0, ge=0)
     reference_channel: bool = True
+
+
+# -- PToF mode (issue 14; the simulator's part is mtcw_core/simulate/pulses.py) -------------------
+class PulsedTof(_Model):
+    """Pulsed time-of-flight mode: the transmitter sends short pulses instead of the modulated CW beam.
+
+    The dissertation's mode-locked laser of its Sec. 3.4 (``gaussian``: picosecond pulses at
+    25 MHz, seen through the detector's response) and the 4 ns generator pulse of its Sec. 5.5
+    (``rectangular`` with raised-cosine edges). Direct (intensity) detection: the echoes of the
+    targets (and of the reference mirror, ``modulated_reference``) add as powers.
+    """
+
+    shape: Literal["gaussian", "rectangular"] = "gaussian"
+    repetition_hz: float = Field(25e6, gt=0, description="pulse repetition rate")
+    pulse_width_s: float = Field(1e-12, gt=0, description="gaussian: FWHM of the optical pulse; rectangular: "
+                                                          "time on between half maxima")
+    rise_time_s: float = Field(0.0, ge=0, description="rectangular: raised-cosine edges")
+    average_power_w: float = Field(1e-3, gt=0, description="transmitted average power")
+    delay_s: float = Field(0.0, ge=0, description="emission of the first pulse after the trigger")
+    reference_channel: bool = Field(False, description="the transmitted pulse as channel pulse_ref")
+
+    @model_validator(mode="after")
+    def _fits(self) -> "PulsedTof":
+        if self.pulse_width_s + self.rise_time_s >= 0.5 / self.repetition_hz:
+            raise ValueError(f"pulse_width_s: {self.pulse_width_s:g} s (+ rise_time_s) must be below half the "
+                             f"period of repetition_hz ({0.5 / self.repetition_hz:g} s)")
+        return self
 
 
 class Frames(_Model):
@@ -140,9 +193,11 @@ class Scene(_Model):
     paths: Paths = Paths()
     receiver: Receiver = Receiver()
     noise: Noise = Noise()
+    optical_noise: OpticalNoise = OpticalNoise()
     digitizer: Digitizer = Digitizer()
     pulsing: Pulsing | None = None
     frames: Frames = Frames()
+    ptof: PulsedTof | None = Field(None, description="pulsed time-of-flight mode (mtcw_core.simulate.pulses)")
 
     @model_validator(mode="after")
     def _check_band(self) -> "Scene":

@@ -5,8 +5,11 @@ Sources yield :class:`~mtcw_core.frame.Frame` objects; the node stamps their ide
 on the wire, then sends each frame on a PUSH socket (workers share
 them) and a PUB socket (recorders and monitors, never slowing the workers). When no worker can
 take a frame the drop policy decides: ``drop`` counts it and goes on (the consumer sees the seq
-gap), ``block`` waits. A real digitizer plugs in as any class with a ``frames()`` iterator,
-named ``module:Class`` in the ``source`` setting. When a run ends (frame count reached, source
+gap), ``block`` waits. Sources live in :mod:`services.sources` (``sim``, ``replay``, ``scope``,
+``scope-sim``); another digitizer plugs in as any class with a ``frames()`` iterator, named
+``module:Class`` in the ``source`` setting. A source that fails (a scope's timeout, a broken
+transfer) counts the failure by its reason (``mtcw_acquisition_errors_total{reason}``) and
+retries by itself; the publisher's state (seq, run, ledger) goes on untouched. When a run ends (frame count reached, source
 exhausted, or a clean stop) the node sends an end-of-run notice with the number of frames, so
 that the consumer also counts frames lost after the last one it received.
 """
@@ -26,13 +29,11 @@ from typing import Callable, Iterator, Optional, Protocol
 import zmq
 
 from mtcw_core.frame import Frame
-from mtcw_core.recording import read_recording
-from mtcw_core.scene import load_scene
-from mtcw_core.simulate import Simulator
 
 from .auth import terminate
 from .settings import AcquisitionSettings, log_settings
 from .sockets import bound_endpoint, frames_push, monitor_pub, open_sockets, report_endpoints
+from .sources import ReplaySource, SimulatorSource  # noqa: F401 -- kept importable from here
 from .wire import encode_end, encode_frame, end_message
 
 log = logging.getLogger("mtcw.acquisition")
@@ -44,49 +45,47 @@ class FrameSource(Protocol):
     def frames(self) -> Iterator[Frame]: ...
 
 
-class SimulatorSource:
-    """Frames from the physics simulator for a scene; targets move from frame to frame."""
-
-    def __init__(self, settings: AcquisitionSettings) -> None:
-        self.scene = load_scene(settings.scene)
-        self.sim = Simulator(self.scene, settings.seed)
-
-    def frames(self) -> Iterator[Frame]:
-        while True:
-            yield self.sim.next_frame()
+#: the built-in sources by name (:mod:`services.sources`); anything else is a ``module:Class`` plug-in
+SOURCES = ("sim", "replay", "scope", "scope-sim")
 
 
-class ReplaySource:
-    """Frames of a SigMF recording, in order, optionally looping."""
+def make_source(settings: AcquisitionSettings, stop: threading.Event | None = None,
+                on_error: Callable[[str], None] | None = None,
+                on_missed: Callable[[int], None] | None = None) -> FrameSource:
+    """The frame source ``settings.source`` names.
 
-    def __init__(self, settings: AcquisitionSettings) -> None:
-        assert settings.recording is not None, "replay needs a recording"
-        self.rec = read_recording(settings.recording)
-        self.loop = settings.loop
-        if len(self.rec) == 0:
-            raise ValueError(f"recording: {settings.recording} holds no frames")
-
-    def frames(self) -> Iterator[Frame]:
-        while True:
-            yield from self.rec
-            if not self.loop:
-                return
-
-
-def make_source(settings: AcquisitionSettings) -> FrameSource:
+    Parameters
+    ----------
+    settings : AcquisitionSettings
+    stop : threading.Event, optional
+        A clean stop; a scope source's retry waits end on it.
+    on_error : callable, optional
+        Called with the reason of each failed acquisition (scope sources;
+        ``mtcw_acquisition_errors_total{reason}``).
+    on_missed : callable, optional
+        Called with the number of acquisitions the scope made that the node did not read.
+    """
     if settings.source == "sim":
         return SimulatorSource(settings)
     if settings.source == "replay":
         if settings.recording is None:
             raise ValueError("recording: source 'replay' needs --recording")
         return ReplaySource(settings)
+    if settings.source == "scope":
+        from .sources.scope import ScopeSource
+
+        return ScopeSource(settings, stop=stop, on_error=on_error, on_missed=on_missed)
+    if settings.source == "scope-sim":
+        from .sources.scope_sim import SimulatedScopeSource
+
+        return SimulatedScopeSource(settings, stop=stop, on_error=on_error, on_missed=on_missed)
     if ":" in settings.source:
         mod, _, cls = settings.source.partition(":")
         try:
             return getattr(importlib.import_module(mod), cls)(settings)
         except (ImportError, AttributeError) as err:
             raise ValueError(f"source: cannot load plug-in {settings.source!r}: {err}") from None
-    raise ValueError(f"source: {settings.source!r} is not sim, replay or module:Class")
+    raise ValueError(f"source: {settings.source!r} is not {', '.join(SOURCES)} or module:Class")
 
 
 class RunLedger:
@@ -372,8 +371,10 @@ def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None 
     """
     stop = stop or threading.Event()
     log_settings("acquisition", settings)
-    source = make_source(settings)
     metrics = _exporter(settings.metrics_port, settings.metrics_host)
+    source = make_source(settings, stop,
+                         on_error=(lambda reason: metrics[3].labels(reason).inc()) if metrics else None,
+                         on_missed=(lambda n: metrics[4].inc(n)) if metrics else None)
     pub = Publisher(settings, on_refused=(lambda sock: metrics[2].labels(sock).inc()) if metrics else None)
     try:
         report_endpoints(settings.endpoints_file, {"frames_endpoint": pub.frames_endpoint,
@@ -414,6 +415,9 @@ def run_acquisition(settings: AcquisitionSettings, stop: threading.Event | None 
         log.info("acquisition: stopped after %d frames (%d sent to workers, %d dropped: no worker free)",
                  pub.seq, pub.published, pub.dropped)
         pub.close()
+        close_source = getattr(source, "close", None)
+        if close_source is not None:  # a scope's VISA session, the simulated instrument's server
+            close_source()
     return pub
 
 
@@ -427,5 +431,13 @@ def _exporter(port: int, host: str):
     c_drop = Counter("mtcw_acquisition_dropped_total", "frames dropped because no worker was free", registry=reg)
     c_refused = Counter("mtcw_peers_refused_total", "peers refused for an unknown CURVE key, by socket", ["socket"],
                         registry=reg)
+    c_err = Counter("mtcw_acquisition_errors_total", "acquisitions that failed (no frame published), by reason",
+                    ["reason"], registry=reg)
+    c_missed = Counter("mtcw_acquisitions_missed_total", "acquisitions the scope made that the node did not read "
+                       "(ACQuire:NUMACq?)", registry=reg)
+    from .sources.scope import REASONS
+
+    for reason in REASONS:  # every reason is exported from the start, at 0
+        c_err.labels(reason)
     start_http_server(port, addr=host, registry=reg)
-    return c_pub, c_drop, c_refused
+    return c_pub, c_drop, c_refused, c_err, c_missed

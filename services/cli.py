@@ -88,11 +88,16 @@ def _open(recording: Path):
         _fail(str(err))
 
 
-def _settings(profile: str, method: Optional[str]):
+def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0):
     from mtcw_core.chain import get_profile
 
+    over = {"method": method} if method else {}
+    if technique != "pb":
+        over["technique"] = technique
+    if timing_jitter_s:
+        over["timing_jitter_s"] = timing_jitter_s
     try:
-        return get_profile(profile, **({"method": method} if method else {}))
+        return get_profile(profile, **over)
     except ValueError as err:
         _fail(str(err))
 
@@ -112,8 +117,12 @@ def process(
     profile: str = typer.Option("balanced", help="fast | balanced | accurate | seed"),
     method: Optional[str] = typer.Option(None, help="override cycle resolution: ml | seed"),
     calibration: Optional[Path] = typer.Option(None, help="calibration file from `mtcw calibrate`"),
+    technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
+    timing_jitter_s: float = typer.Option(0.0, "--timing-jitter-s", help="the digitizer's known rms timing jitter "
+                                                                         "(s); enters every range sigma"),
 ) -> None:
-    """Run the PB-MTCW chain on every frame of a recording: one point per frame and target."""
+    """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
+    target."""
     import csv
 
     import numpy as np
@@ -123,7 +132,7 @@ def process(
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
-    settings = _settings(profile, method)
+    settings = _settings(profile, method, technique, timing_jitter_s)
     cal = None
     if calibration is not None:
         try:
@@ -203,18 +212,26 @@ def explain(
 @app.command()
 def calibrate(
     recording: Path = typer.Argument(..., help="SigMF recording of a reflector at a known range"),
-    known_range: float = typer.Option(..., "--known-range", help="range of the reflector (m)"),
+    known_range: float = typer.Option(..., "--known-range", help="range of the reflector (m); with --technique ab "
+                                                                  "the reference mirror's"),
     output: Path = typer.Option(Path("calibration.json"), "-o", "--output"),
+    technique: str = typer.Option("pb", help="pb: tone phases and tau0 from a known reflector; ab: the reference "
+                                             "arm's tone powers from a reference-only recording"),
 ) -> None:
-    """Derive tone phase offsets and tau0 from a known reflector; write a calibration file."""
+    """Derive tone phase offsets and tau0 from a known reflector (or, ``--technique ab``, the reference arm's tone
+    powers from a recording without the measurement arm); write a calibration file."""
     from mtcw_core.calibrate import derive_calibration
     from mtcw_core.calibration import CalibrationError
+    from mtcw_core.ranging.ab import derive_reference
     from mtcw_core.results import Rejected
 
+    if technique not in ("pb", "ab"):
+        _fail(f"technique: calibration exists for pb and ab, not {technique!r}")
     rec = _open(recording)
     try:
-        cal = derive_calibration(tqdm(rec, total=len(rec), unit="frame", desc="calibrate", file=sys.stderr),
-                                 known_range, source=str(recording))
+        frames = tqdm(rec, total=len(rec), unit="frame", desc="calibrate", file=sys.stderr)
+        cal = (derive_reference(frames, known_range, source=str(recording)) if technique == "ab" else
+               derive_calibration(frames, known_range, source=str(recording)))
     except (CalibrationError, Rejected, RecordingError) as err:
         _fail(str(err))
     cal.save(output)
@@ -300,6 +317,103 @@ def bench(
     typer.echo(f"wrote {path} (and results.csv, results.json, PNG figures) for {len(result['cells'])} cells")
 
 
+@app.command()
+def snr(
+    out: Path = typer.Option(Path("out/snr"), "-o", "--out", help="output folder (snr.csv, snr.json, snr.png)"),
+    bandwidths: str = typer.Option("1e6,1e7,1e8", help="comma-separated electronic filter bandwidths (Hz)"),
+    max_attenuation: float = typer.Option(120.0, help="largest echo attenuation (dB)"),
+    step: float = typer.Option(1.0, help="attenuation step (dB)"),
+    p_lo: float = typer.Option(5e-3, help="LO power (W)"),
+    p_echo: float = typer.Option(10e-3, help="echo power before attenuation (W)"),
+    gain_db: float = typer.Option(3.0, help="optical amplifier gain (dB); 0 = none"),
+    n_sp: float = typer.Option(1.5, help="amplifier spontaneous-emission factor"),
+    responsivity: float = typer.Option(0.7, help="detector responsivity (A/W)"),
+    temperature: float = typer.Option(300.0, help="temperature (K)"),
+    wavelength: float = typer.Option(1e-6, help="wavelength (m)"),
+    filter_nm: float = typer.Option(2.0, help="optical filter full width (nm)"),
+    solar_irradiance: float = typer.Option(0.75, help="solar spectral irradiance (W m^-2 nm^-1); 0 = night"),
+    aperture_m2: Optional[float] = typer.Option(None, help="solar collection area (m^2); default one spatial "
+                                                "mode of a white sunlit scene, lambda^2/pi"),
+    receiver: str = typer.Option("balanced", help="balanced | single"),
+) -> None:
+    """SNR of one line against echo attenuation (the dissertation's Fig. 36): table, JSON and PNG."""
+    from mtcw_bench.snr_figure import write_snr
+    from mtcw_core.snr import Link
+
+    try:
+        bws = [float(b) for b in bandwidths.split(",") if b.strip()]
+    except ValueError:
+        _fail(f"bandwidths: {bandwidths!r} is not a comma-separated list of numbers")
+    checks = {"bandwidths": min(bws, default=0.0) > 0, "max_attenuation": 0 <= max_attenuation <= 400,
+              "step": 0 < step <= max(max_attenuation, 1.0), "p_lo": p_lo > 0, "p_echo": p_echo > 0,
+              "gain_db": 0 <= gain_db <= 60, "n_sp": n_sp >= 1, "responsivity": responsivity > 0,
+              "temperature": temperature > 0, "wavelength": wavelength > 0, "filter_nm": filter_nm > 0,
+              "solar_irradiance": solar_irradiance >= 0, "aperture_m2": aperture_m2 is None or aperture_m2 > 0,
+              "receiver": receiver in ("balanced", "single")}
+    bad = [k for k, ok in checks.items() if not ok]
+    if bad:
+        _fail(f"{bad[0]}: out of range (see mtcw snr --help)")
+    link = Link(wavelength_m=wavelength, p_lo_w=p_lo, p_echo_w=p_echo, temperature_k=temperature, gain_db=gain_db,
+                n_sp=n_sp, responsivity_a_per_w=responsivity, solar_irradiance_w_per_m2_nm=solar_irradiance,
+                aperture_area_m2=aperture_m2, filter_bandwidth_m=filter_nm * 1e-9, receiver=receiver)
+    res = write_snr(link, out, bws, max_attenuation, step)
+    att = res["attenuation_db"]
+    every = max(1, round(10 / step))
+    labels = list(res["curves"])
+    typer.echo("attenuation_dB " + " ".join(f"{lb:>10s}" for lb in labels) + "  dominant noise")
+    for k in range(0, len(att), every):
+        typer.echo(f"{att[k]:14g} " + " ".join(f"{res['curves'][lb]['model_db'][k]:10.1f}" for lb in labels)
+                   + f"  {res['curves'][labels[0]]['dominant'][k]}")
+    def at(x):
+        return "beyond the range" if x is None else f"{x:.1f} dB"
+
+    for lb in labels:
+        c = res["curves"][lb]
+        typer.echo(f"{lb}: SNR 20 dB at {at(c['crossings_model']['20 dB'])}, 0 dB at {at(c['crossings_model']['0 dB'])} "
+                   f"(Eq. 5.11 as printed: {at(c['crossings_eq_5_11']['20 dB'])}, {at(c['crossings_eq_5_11']['0 dB'])})")
+    typer.echo(f"wrote {out / 'snr.csv'}, {out / 'snr.json'}, {out / 'snr.png'}")
+
+
+@app.command("plan-tones")
+def plan_tones_cmd(
+    check: Optional[str] = typer.Option(None, "--check", help="evaluate these comma-separated tones (Hz) instead of planning"),
+    unambiguous_range: float = typer.Option(15.0, "--range", help="required unambiguous range (m)"),
+    resolution: float = typer.Option(1e-3, help="required range sigma at the design SNR (m)"),
+    bandwidth: float = typer.Option(1e9, help="detector bandwidth (Hz)"),
+    doppler: float = typer.Option(0.0, help="largest |Doppler| (Hz)"),
+    grid: float = typer.Option(1e6, help="reference-clock grid of the synthesizers (Hz)"),
+    tones: int = typer.Option(4, help="number of tones to plan"),
+    snr_db: float = typer.Option(30.0, "--snr-db", help="design post-integration line SNR (dB)"),
+    guard: float = typer.Option(1e6, help="extra clearance between lines (Hz)"),
+    candidates: int = typer.Option(400, help="tone sets tried"),
+    json_out: bool = typer.Option(False, "--json", help="print the report as JSON"),
+) -> None:
+    """Choose tones for a range, precision, band and Doppler -- or check a tone set (--check)."""
+    from mtcw_core.planning import check_plan, plan_tones
+
+    try:
+        if check is not None:
+            try:
+                f = [float(x) for x in check.split(",") if x.strip()]
+            except ValueError:
+                _fail(f"check: {check!r} is not a comma-separated list of frequencies (Hz)")
+            rep = check_plan(f, max_doppler_hz=doppler, detector_bandwidth_hz=bandwidth, design_snr_db=snr_db,
+                             guard_hz=guard)
+        else:
+            rep = plan_tones(unambiguous_range_m=unambiguous_range, resolution_m=resolution,
+                             detector_bandwidth_hz=bandwidth, max_doppler_hz=doppler, grid_hz=grid, n_tones=tones,
+                             design_snr_db=snr_db, guard_hz=guard, candidates=candidates)
+    except ValueError as err:
+        _fail(str(err))
+    if json_out:
+        typer.echo(json.dumps({**rep.__dict__, "ok": rep.ok}, indent=2))
+    else:
+        for line in rep.notes:
+            typer.echo(line)
+    if check is not None and not rep.ok:
+        raise typer.Exit(1)
+
+
 def _stop_on_signals():
     """A threading.Event set by SIGINT/SIGTERM (a service's clean stop).
 
@@ -378,7 +492,8 @@ def _service_settings(cls, **flags):
 
 @app.command()
 def acquire(
-    source: Optional[str] = typer.Option(None, help="sim | replay | module:Class  [env MTCW_SOURCE; default sim]"),
+    source: Optional[str] = typer.Option(None, help="sim | replay | scope | scope-sim | module:Class  [env MTCW_SOURCE; "
+                                                    "default sim]"),
     scene: Optional[str] = typer.Option(None, help="scene for the simulator [MTCW_SCENE; default cw-bench]"),
     recording: Optional[Path] = typer.Option(None, help="SigMF recording to replay [MTCW_RECORDING]"),
     rate: Optional[float] = typer.Option(None, "--rate", help="frames/s, 0 = as fast as possible [MTCW_RATE_HZ]"),
@@ -386,23 +501,138 @@ def acquire(
     loop: Optional[bool] = typer.Option(None, "--loop/--no-loop", help="replay: loop [MTCW_LOOP; default loop]"),
     source_name: Optional[str] = typer.Option(None, help="source name in every frame [MTCW_SOURCE_NAME]"),
     seed: Optional[int] = typer.Option(None, help="simulator seed"),
+    resource: Optional[str] = typer.Option(None, help="scope: VISA resource, e.g. TCPIP::192.168.1.20::INSTR "
+                                                      "[MTCW_RESOURCE]"),
+    visa_library: Optional[str] = typer.Option(None, help="scope: PyVISA backend, @py (default) | sim | a vendor "
+                                                          "VISA library [MTCW_VISA_LIBRARY]"),
+    tones_hz: Optional[str] = typer.Option(None, help="scope: the bench's tones, Hz, comma-separated "
+                                                      "[MTCW_TONES_HZ]"),
+    wavelength_m: Optional[float] = typer.Option(None, help="scope: the bench laser's wavelength [MTCW_WAVELENGTH_M]"),
+    record_length: Optional[int] = typer.Option(None, help="scope: points per record [MTCW_RECORD_LENGTH]"),
+    sample_rate: Optional[float] = typer.Option(None, help="scope: sample rate, S/s [MTCW_SAMPLE_RATE_HZ]"),
+    data_width: Optional[int] = typer.Option(None, help="scope: 1 or 2 bytes per point [MTCW_DATA_WIDTH; "
+                                                        "default 2]"),
 ) -> None:
-    """Acquisition node: publish frames (PUSH to workers, PUB to monitors)."""
+    """Acquisition node: publish frames (PUSH to workers, PUB to monitors).
+
+    Sources: sim, replay, scope (a Tektronix MDO3 over VISA: docs/scope.md), scope-sim (the same
+    path against a simulated MDO3 of --scene), module:Class. Every scope setting is also an
+    environment variable (MTCW_TRIGGER_SOURCE, MTCW_VERTICAL_SCALE_V, ...: docs/scope.md).
+    """
     from services.acquisition import run_acquisition
     from services.auth import CurveKeyError
+    from services.sources.scope import ScopeError
     from services.sockets import SocketError
     from services.settings import AcquisitionSettings
 
     _logging()
     st = _service_settings(AcquisitionSettings, source=source, scene=scene, recording=recording, rate_hz=rate,
-                           frames=frames, loop=loop, source_name=source_name, seed=seed)
+                           frames=frames, loop=loop, source_name=source_name, seed=seed, resource=resource,
+                           visa_library=visa_library, tones_hz=tones_hz, wavelength_m=wavelength_m,
+                           record_length=record_length, sample_rate_hz=sample_rate, data_width=data_width)
     stop = _stop_on_signals()
     try:
         run_acquisition(st, stop)
     except (SocketError, CurveKeyError) as err:
         _fail(f"settings: {err}")
+    except ScopeError as err:  # scope_max_failures reached
+        _fail(f"scope: {err}", 1)
     except (SceneError, RecordingError, ValueError) as err:
         _fail(str(err))
+
+
+scope_app = typer.Typer(no_args_is_help=True, help="The Tektronix MDO3 scope source: check the link, measure it.")
+app.add_typer(scope_app, name="scope")
+
+
+@scope_app.command("check")
+def scope_check(
+    resource: str = typer.Option(..., help="VISA resource (TCPIP::host::INSTR), or 'sim' for a simulated MDO3 of "
+                                           "--scene"),
+    visa_library: str = typer.Option("@py", help="@py | sim (pyvisa-sim, mtcw's MDO34 definition: resources "
+                                                 "TCPIP::mdo34-sim::INSTR, TCPIP::mdo34-unlocked::INSTR) | a "
+                                                 "vendor VISA library"),
+    channel: str = typer.Option("CH1", help="channel to transfer"),
+    record_length: Optional[int] = typer.Option(None, help="set this record length first"),
+    sample_rate: Optional[float] = typer.Option(None, help="ask for this sample rate first (S/s)"),
+    data_width: int = typer.Option(2, help="1 or 2 bytes per point"),
+    external_reference: bool = typer.Option(True, "--external-reference/--internal-reference",
+                                            help="require the external 10 MHz reference to be locked"),
+    acquire: bool = typer.Option(True, "--acquire/--no-acquire", help="run one acquisition and transfer it"),
+    scene: str = typer.Option("cw-bench", help="scene of the simulated MDO3 (--resource sim)"),
+    timeout: float = typer.Option(5.0, help="VISA timeout, s"),
+) -> None:
+    """Check the link to a scope: identify, configure, reference lock, one acquisition. Prints JSON;
+    exits 1 naming the cause when something fails."""
+    from services.sources.scope import Mdo3, ScopeConfig, ScopeError
+
+    _logging()
+    server = None
+    vertical = None
+    if resource == "sim":
+        from services.sources.scope_sim import ScopeSimServer, SimulatedMdo3, autoset
+
+        try:
+            sc = load_scene(scene)
+        except SceneError as err:
+            _fail(str(err))
+        rl = record_length or 100_000
+        fs = sample_rate or sc.digitizer.sample_rate_hz
+        server = ScopeSimServer(SimulatedMdo3(sc, seed=1))
+        resource, visa_library, record_length, sample_rate = server.resource, "@py", rl, fs
+        vertical = tuple(autoset(sc, rl, fs, seed=1).values())[:1]
+    report: dict = {"resource": resource, "visa_library": visa_library}
+    scope = Mdo3(resource, visa_library, timeout)
+    try:
+        report["idn"] = scope.open()
+        cfg = ScopeConfig(channels=(channel.upper(),), record_length=record_length, sample_rate_hz=sample_rate,
+                          vertical=vertical, data_width=data_width, external_reference=external_reference)
+        report["in_force"] = scope.configure(cfg)
+        report["reference"] = scope.reference_state()
+        if acquire:
+            t0 = time.perf_counter()
+            report["numacq"] = scope.acquire()
+            wf = scope.read_waveform(channel.upper(), report["in_force"]["record_length"],
+                                     report["in_force"]["sample_rate_hz"])
+            v = wf.volts()
+            report["waveform"] = {"points": int(wf.codes.size), "dtype": str(wf.codes.dtype),
+                                  "sample_rate_hz": 1.0 / wf.xincr_s, "xzero_s": wf.xzero_s,
+                                  "volts_min": float(v.min()), "volts_max": float(v.max()),
+                                  "codes_min": int(wf.codes.min()), "codes_max": int(wf.codes.max()),
+                                  "seconds": round(time.perf_counter() - t0, 4)}
+        report["ok"] = True
+    except ScopeError as err:
+        report.update(ok=False, reason=err.reason, error=str(err))
+    finally:
+        scope.close()
+        if server is not None:
+            server.close()
+    typer.echo(json.dumps(report, indent=2))
+    if not report["ok"]:
+        raise typer.Exit(1)
+
+
+@scope_app.command("bench")
+def scope_bench(
+    resource: Optional[str] = typer.Option(None, help="a real scope's VISA resource; default: the simulated MDO3"),
+    visa_library: str = typer.Option("@py", help="PyVISA backend"),
+    record_length: int = typer.Option(1_000_000, help="points per record"),
+    width: list[int] = typer.Option([1, 2], "--width", help="DATa:WIDth to measure (repeat)"),
+    frames: int = typer.Option(20, min=1, help="acquisitions per width"),
+) -> None:
+    """Transfer rate of the scope path (MB/s of CURVe?, frames/s of whole acquisitions)."""
+    from mtcw_bench.scope import bench_transfer
+    from services.sources.scope import ScopeError
+
+    if any(w not in (1, 2) for w in width):
+        _fail(f"width: {width}: each must be 1 or 2")
+    try:
+        rows = bench_transfer(record_length, tuple(width), frames, resource, visa_library)
+    except ScopeError as err:
+        _fail(f"scope: {err}", 1)
+    typer.echo(json.dumps({"command": "mtcw scope bench " + " ".join(
+        [f"--record-length {record_length}", *[f"--width {w}" for w in width], f"--frames {frames}"]
+        + ([f"--resource {resource}"] if resource else [])), "results": rows}, indent=2))
 
 
 @app.command()
@@ -410,14 +640,19 @@ def worker(
     profile: Optional[str] = typer.Option(None, help="chain profile [MTCW_PROFILE; default balanced]"),
     calibration: Optional[Path] = typer.Option(None, help="calibration file [MTCW_CALIBRATION]"),
     name: Optional[str] = typer.Option(None, help="worker name in logs [MTCW_NAME]"),
+    technique: Optional[str] = typer.Option(None, help="ranging technique pb | ab | pe | ptof [MTCW_TECHNIQUE; "
+                                                       "default pb]"),
+    timing_jitter_s: Optional[float] = typer.Option(None, "--timing-jitter-s", help="the digitizer's known rms "
+                                                    "timing jitter (s) [MTCW_TIMING_JITTER_S; default 0]"),
 ) -> None:
-    """Worker: frames in, PB-MTCW chain, points out."""
+    """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
     from services.settings import WorkerSettings
     from services.worker import Worker
 
     _logging()
-    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name)
+    st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
+                           timing_jitter_s=timing_jitter_s)
     try:
         w = Worker(st)
     except CalibrationError as err:
@@ -486,6 +721,8 @@ def record(
 def run(
     scene: str = typer.Option("cw-bench", help="scene file or bundled scene name"),
     profile: str = typer.Option("balanced", help="chain profile of the workers"),
+    technique: str = typer.Option("pb", help="ranging technique of the workers: pb | ab | pe | ptof"),
+    calibration: Optional[Path] = typer.Option(None, help="calibration file for the workers (ab needs one)"),
     workers: int = typer.Option(1, min=1, max=64, help="number of worker processes"),
     rate: float = typer.Option(5.0, help="frames/s from the simulator (0 = as fast as it goes)"),
     port: int = typer.Option(8000, min=0, max=65535, help="HTTP port of the API (127.0.0.1; 0 = a free one)"),
@@ -500,7 +737,7 @@ def run(
         sc = load_scene(scene)
     except SceneError as err:
         _fail(str(err))
-    _service_settings(WorkerSettings, profile=profile)  # a bad profile fails here, not in a child
+    _service_settings(WorkerSettings, profile=profile, technique=technique)  # bad ones fail here, not in a child
     # with --base-port 0 the services bind free ports and report them, except the monitor port: the
     # API (started first) subscribes to it for the live view's spectra, so it is chosen here
     ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, free_ports(1)[0], 0)
@@ -511,7 +748,8 @@ def run(
     sup.add("acquisition", "acquire", "--source", "sim", "--scene", scene, "--rate", str(rate), reports=True,
             env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
-        sup.add(f"worker-{i}", "worker", "--profile", profile, "--name", f"worker-{i}")
+        sup.add(f"worker-{i}", "worker", "--profile", profile, "--technique", technique, "--name", f"worker-{i}",
+                *(("--calibration", str(calibration.resolve())) if calibration is not None else ()))
 
     def banner(s: Supervisor) -> None:
         url = s.endpoints["http_url"]

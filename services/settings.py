@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal, Optional
+import math
+from typing import Annotated, Literal, Optional
 
 from pydantic import Field, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from .auth import AUTHORIZED_DIR, SERVER, is_local_endpoint
 from .ordering import DEFAULT_MAX_JUMP
@@ -105,8 +106,29 @@ class TransportSettings(BaseSettings):
         return self
 
 
+#: record lengths a Tektronix MDO3 offers (points)
+SCOPE_RECORD_LENGTHS = (1_000, 10_000, 100_000, 1_000_000, 5_000_000, 10_000_000)
+#: most tones a frame may carry (the chain's validate stage refuses more)
+MAX_TONES = 16
+
+
+def _comma_list(v):
+    """``"5e8,7e8"`` (a flag or ``MTCW_...``) or a JSON list as a list; None and lists as they are."""
+    if isinstance(v, str):
+        text = v.strip()
+        if text.startswith("["):
+            import json
+
+            try:
+                return json.loads(text)
+            except ValueError:
+                raise ValueError(f"{v!r} is neither a JSON list nor comma-separated values") from None
+        return [p.strip() for p in text.split(",") if p.strip()]
+    return v
+
+
 class AcquisitionSettings(TransportSettings):
-    source: str = Field("sim", description="sim | replay | module:Class (a FrameSource plug-in)")
+    source: str = Field("sim", description="sim | replay | scope | scope-sim | module:Class (a FrameSource plug-in)")
     scene: str = Field("cw-bench", description="scene file or bundled scene name (source sim)")
     recording: Optional[Path] = Field(None, description="SigMF recording (source replay)")
     rate_hz: float = Field(0.0, ge=0, le=MAX_RATE_HZ, description="frames per second; 0 = as fast as the source goes")
@@ -124,7 +146,112 @@ class AcquisitionSettings(TransportSettings):
                                        "(a memory-mapped file): a node restarted after a kill sends the killed "
                                        "run's end-of-run notice, so its lost tail is counted")
 
+    # -- the scope (source scope, scope-sim): docs/scope.md --------------------------------------------------
+    resource: Optional[str] = Field(None, min_length=1, max_length=256,
+                                    description="VISA resource of the scope (TCPIP::host::INSTR, "
+                                                "TCPIP::host::4000::SOCKET, USB::...)")
+    visa_library: str = Field("@py", min_length=1, description="PyVISA backend: @py (pyvisa-py), sim (pyvisa-sim "
+                              "with mtcw's MDO34 definition), FILE.yaml@sim, or a vendor VISA library's path")
+    tones_hz: Annotated[Optional[list[float]], NoDecode] = Field(
+        None, description="the bench's modulation tones (Hz, comma-separated); the scope does not know them "
+                          "(scope-sim: the scene's)")
+    wavelength_m: Optional[float] = Field(None, gt=0, lt=1e-3, description="the bench laser's wavelength "
+                                          "(scope-sim: the scene's)")
+    receiver: Optional[Literal["single", "balanced", "iq"]] = Field(
+        None, description="the bench's receiver (scope: single unless given; scope-sim: the scene's)")
+    scope_channels: Annotated[Optional[list[str]], NoDecode] = Field(
+        None, description="scope channels carrying the detector: CH1 (single/balanced) or CH1,CH2 (I,Q)")
+    scope_pulse_ref_channel: Optional[str] = Field(None, pattern=r"^CH[1-4]$",
+                                                   description="channel carrying the quasi-CW reference pulse")
+    pulse_period_s: Optional[float] = Field(None, gt=0, le=1, description="quasi-CW gate period (s)")
+    pulse_duty: Optional[float] = Field(None, gt=0, le=1, description="quasi-CW gate duty cycle")
+    pulse_delay_s: float = Field(0.0, ge=0, le=1, description="quasi-CW gate delay (s)")
+    record_length: Optional[int] = Field(None, description=f"points per record, one of "
+                                         f"{', '.join(map(str, SCOPE_RECORD_LENGTHS))} (unset: the scope's)")
+    sample_rate_hz: Optional[float] = Field(None, gt=0, le=1e11, description="sample rate asked of the scope "
+                                            "(S/s; unset: the scope's); it must report this rate")
+    sample_rate_rel_tol: float = Field(1e-6, gt=0, le=0.1, description="largest relative difference between the "
+                                       "rate asked and the rate the scope reports")
+    vertical_scale_v: Optional[float] = Field(None, ge=1e-3, le=10, description="V/div of the scope channels "
+                                              "(unset: the scope's; scope-sim: fitted to the scene)")
+    vertical_offset_v: float = Field(0.0, ge=-100, le=100, description="offset (V) of the scope channels")
+    termination: Optional[Literal["FIFTY", "MEG"]] = Field(None, description="input termination (unset: the "
+                                                                            "scope's)")
+    trigger_source: Optional[str] = Field(None, pattern=r"^(AUX|CH[1-4])$", description="trigger source: AUX "
+                                          "(Aux In, the bench's trigger) or CH1..CH4 (unset: the scope's)")
+    trigger_level_v: Optional[float] = Field(None, ge=-100, le=100, description="trigger level (V)")
+    external_reference: bool = Field(True, description="lock the time base to the 10 MHz at REF IN; no frame is "
+                                     "acquired while ROSc:STATE? is not LOCKED")
+    data_width: Literal[1, 2] = Field(2, description="bytes per point of the transfer (DATa:WIDth)")
+    data_encoding: Literal["SRIBINARY", "RIBINARY"] = Field("SRIBINARY", description="DATa:ENCdg: signed LSB "
+                                                            "first (no swap) or MSB first")
+    acquire_mode: Literal["SAMPLE", "HIRES"] = Field("SAMPLE", description="ACQuire:MODe")
+    visa_timeout_s: float = Field(5.0, gt=0, le=3600, description="VISA timeout of every read (a trigger is "
+                                  "waited for this long)")
+    visa_chunk_bytes: int = Field(1 << 20, ge=1024, le=1 << 30, description="largest single VISA read of a block")
+    retry_backoff_s: float = Field(0.5, ge=0, le=MAX_WAIT_S, description="first wait after a scope failure; "
+                                   "doubled after each further one")
+    retry_backoff_max_s: float = Field(30.0, ge=0, le=MAX_WAIT_S, description="longest wait between retries")
+    scope_max_failures: int = Field(0, ge=0, description="give up after this many scope failures in a row "
+                                    "(0 = retry for ever)")
+    scope_sim_pool: int = Field(0, ge=0, le=1000, description="scope-sim: simulate this many acquisitions and "
+                                "repeat them (0 = every one anew)")
+
     _acq_paths = field_validator("recording", "state_file", mode="before")(_path_given)
+    _lists = field_validator("tones_hz", "scope_channels", mode="before")(_comma_list)
+
+    @field_validator("tones_hz")
+    @classmethod
+    def _tones(cls, v: Optional[list[float]]) -> Optional[list[float]]:
+        if v is None:
+            return v
+        if not 1 <= len(v) <= MAX_TONES:
+            raise ValueError(f"{len(v)} tones; give 1 to {MAX_TONES}")
+        if any(not math.isfinite(f) or f <= 0 or f > 1e12 for f in v):
+            raise ValueError(f"{v}: every tone must be a finite frequency in (0, 1e12] Hz")
+        if len(set(v)) != len(v):
+            raise ValueError(f"{v}: a tone is given twice")
+        return v
+
+    @field_validator("scope_channels")
+    @classmethod
+    def _channels(cls, v: Optional[list[str]]) -> Optional[list[str]]:
+        if v is None:
+            return v
+        v = [c.strip().upper() for c in v]
+        if not v or any(c not in ("CH1", "CH2", "CH3", "CH4") for c in v) or len(set(v)) != len(v):
+            raise ValueError(f"{v}: give distinct channels among CH1, CH2, CH3, CH4")
+        return v
+
+    @field_validator("record_length")
+    @classmethod
+    def _record_length(cls, v: Optional[int]) -> Optional[int]:
+        if v is not None and v not in SCOPE_RECORD_LENGTHS:
+            raise ValueError(f"{v} is not a record length of the scope ({', '.join(map(str, SCOPE_RECORD_LENGTHS))})")
+        return v
+
+    @model_validator(mode="after")
+    def _scope_complete(self) -> "AcquisitionSettings":
+        if self.source not in ("scope", "scope-sim"):
+            return self
+        if self.source == "scope":
+            for name, why in (("resource", "the scope's VISA resource (TCPIP::host::INSTR)"),
+                              ("tones_hz", "the bench's tone plan (the scope does not know it)"),
+                              ("wavelength_m", "the bench laser's wavelength")):
+                if getattr(self, name) is None:
+                    raise ValueError(f"{name}: source scope needs {why}")
+        receiver = self.receiver or "single"
+        if self.scope_channels is not None and len(self.scope_channels) != (2 if receiver == "iq" else 1):
+            raise ValueError(f"scope_channels: {self.scope_channels} for receiver {receiver!r}; give "
+                             f"{'two (I, Q)' if receiver == 'iq' else 'one'}")
+        if self.scope_pulse_ref_channel and self.scope_pulse_ref_channel in (self.scope_channels or []):
+            raise ValueError(f"scope_pulse_ref_channel: {self.scope_pulse_ref_channel} is a detector channel too")
+        if (self.pulse_period_s is None) != (self.pulse_duty is None):
+            raise ValueError("pulse_duty: give pulse_period_s and pulse_duty together (quasi-CW gate)")
+        if self.retry_backoff_max_s < self.retry_backoff_s:
+            raise ValueError(f"retry_backoff_max_s: {self.retry_backoff_max_s} is less than retry_backoff_s "
+                             f"({self.retry_backoff_s})")
+        return self
 
     @field_validator("recording")
     @classmethod
@@ -142,6 +269,9 @@ class AcquisitionSettings(TransportSettings):
 
 class WorkerSettings(TransportSettings):
     profile: str = Field("balanced", description="chain profile: fast | balanced | accurate | seed")
+    technique: Literal["pb", "ab", "pe", "ptof"] = Field("pb", description="ranging technique (ChainSettings.technique)")
+    timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description="the digitizer's known rms timing jitter (s); "
+                                                                   "enters every range sigma")
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")

@@ -111,6 +111,9 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     blended: bool = False
     chi2_per_dof: NonNegative = 1.0
     residual_rms_rad: NonNegative = 0.0
+    cycle_slip_prob: Annotated[float, Meta(ge=0, le=1)] = 0.0
+    speed_min_mps: NonNegative = 0.0
+    fit_r2: Optional[Finite] = None  # the AB-MTCW sine fit's R^2 (technique ab only)
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):
@@ -135,6 +138,7 @@ class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):
     run: Optional[UInt] = None
     tone_snr_db: dict[str, Finite] = {}
     processing_s: Optional[NonNegative] = None
+    technique: Annotated[str, Meta(max_length=16)] = "pb"
 
 
 class ServedPoint(PointMessage, kw_only=True, frozen=True, omit_defaults=True):
@@ -339,7 +343,7 @@ def point_from_result(res: FrameResult, run: int | None = None, processing_s: fl
     t0 = res.targets[0] if res.targets else None
     d = _plain({
         "v": VERSION, "source": res.source, "seq": int(res.seq), "t_ns": int(res.t_ns), "status": res.status,
-        "profile": res.profile,
+        "profile": res.profile, "technique": res.technique,
         "targets": [{f: getattr(t, f) for f in TargetMessage.__struct_fields__} for t in res.targets],
         "unambiguous_range_m": res.unambiguous_range_m, "coarse_range_m": res.coarse_range_m,
         "stage_seconds": dict(res.stage_seconds), "reason": res.reason if res.status != "ok" else None,

@@ -43,7 +43,8 @@ class Worker:
 
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
-        self.chain = get_profile(settings.profile)
+        self.chain = get_profile(settings.profile, technique=settings.technique,
+                                 timing_jitter_s=settings.timing_jitter_s)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
         self._own_ctx = ctx is None
         self.ctx = zmq.Context() if ctx is None else ctx

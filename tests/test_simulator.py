@@ -242,3 +242,85 @@ def test_moving_reference_frame_agrees_in_line_amplitudes(ref_dir):
         for f in (fi + fd, fi - fd):
             a, b = abs(dft((ours - ours.mean()) * w, f, 5e9)), abs(dft((theirs - theirs.mean()) * w, f, 5e9))
             assert a == pytest.approx(b, rel=0.1)
+
+
+# -- optical noise: ASE of a booster amplifier, sunlight through a filter (scene.optical_noise) ----------------
+
+H_PLANCK = 6.62607015e-34
+
+
+def _psd(x: np.ndarray, fs: float, lo_hz: float, hi_hz: float) -> float:
+    """One-sided PSD (unit^2/Hz) of x's fluctuation, averaged over lo..hi."""
+    p = np.abs(np.fft.rfft(x - np.mean(x))) ** 2 / x.size
+    f = np.fft.rfftfreq(x.size, 1 / fs)
+    return 2 * float(np.mean(p[(f > lo_hz) & (f < hi_hz)])) / fs
+
+
+def test_optical_noise_off_by_default_and_a_0_db_amplifier_changes_nothing():
+    base = make_scene(noise={"shot": True}, digitizer={"samples": 2**12})
+    same = make_scene(noise={"shot": True}, digitizer={"samples": 2**12},
+                      optical_noise={"amplifier": {"gain_db": 0.0, "optical_bandwidth_hz": 1e12}})
+    assert base.optical_noise.amplifier is None and base.optical_noise.solar is None
+    np.testing.assert_array_equal(simulate_frame(base).samples, simulate_frame(same).samples)
+
+
+def test_amplifier_gain_scales_the_beat_by_g():
+    """LO and echo both pass the amplifier: the beat's amplitude grows by G (power by G^2)."""
+    kw = dict(targets=[{"range_m": 1.0, "velocity_mps": 1.064}], digitizer={"samples": 10_000}, receiver={"kind": "balanced"})
+    plain = simulate_frame(make_scene(**kw)).signal()
+    amp = simulate_frame(make_scene(**kw, optical_noise={"amplifier": {"gain_db": 10.0, "spontaneous_emission_factor": 1.0,
+                                                                        "optical_bandwidth_hz": 1.0}})).signal()
+    # 1 Hz of ASE: its beat is far below float32 resolution here
+    fs = 5e9
+    assert abs(dft(amp, 2e6, fs)) / abs(dft(plain, 2e6, fs)) == pytest.approx(10.0, rel=1e-5)
+
+
+@pytest.mark.parametrize("band_hz", [50e6, 20e12], ids=["narrower-than-fs", "wider-than-fs"])
+def test_ase_beats_with_the_lo_at_4_r2_g_plo_s_within_half_the_band(band_hz):
+    """Single PD, no echo, G = 40 dB, n_sp = 1.5, a weak LO: mean current R*(G*P_lo + 2*S*B); below B/2
+    the LO x ASE beat 4*R^2*G*P_lo*S plus ASE x ASE 4*R^2*S^2*(B - f) (S per polarisation, both
+    polarisations); between B/2 and B (narrow band) only the ASE x ASE triangle; above B nothing."""
+    fs, r, g, n_sp, lam = 250e6, 0.9, 1e4, 1.5, LAM
+    p_lo = 1e-6 * 0.05
+    sc = make_scene(targets=[{"range_m": 1.0, "loss_db": 400.0}], modulator=tones(10e6), lo_fraction=1e-6,
+                    digitizer={"sample_rate_hz": fs, "samples": 2**16},
+                    optical_noise={"amplifier": {"gain_db": 40.0, "spontaneous_emission_factor": n_sp,
+                                                 "optical_bandwidth_hz": band_hz}})
+    i = simulate_frame(sc).signal() / 50.0
+    s = (g - 1) * n_sp * H_PLANCK * C / lam
+    assert np.mean(i) / (r * (g * p_lo + 2 * s * band_hz)) == pytest.approx(1.0, abs=2e-3)
+
+    def psd(f_hz):  # the closed form at f
+        lo_ase = 4 * r**2 * g * p_lo * s if f_hz < band_hz / 2 else 0.0
+        return lo_ase + 4 * r**2 * s**2 * max(band_hz - f_hz, 0.0)
+
+    # (the closed form is linear in f over each band: its mean is its value at the band's middle)
+    assert _psd(i, fs, 1e6, 24e6) / psd(12.5e6) == pytest.approx(1.0, abs=0.05)
+    if band_hz < fs:
+        assert _psd(i, fs, 26e6, 49e6) / psd(37.5e6) == pytest.approx(1.0, abs=0.05)
+        assert _psd(i, fs, 70e6, 120e6) < 1e-4 * psd(5e6)
+
+
+def test_sunlight_adds_ssi_times_area_times_filter_at_the_detector():
+    """0.75 W/m^2/nm into 1 cm^2 through 2 nm: 150 uW, unpolarised; mean current R*(P_lo + P_sun);
+    the LO beats with its polarisation, S = P_sun/(2*B), B = c*2nm/lambda^2."""
+    fs, r = 250e6, 0.9
+    p_lo = 0.1 * 0.05
+    sc = make_scene(targets=[{"range_m": 1.0, "loss_db": 400.0}], modulator=tones(10e6), digitizer={"sample_rate_hz": fs, "samples": 2**16},
+                    optical_noise={"solar": {"spectral_irradiance_w_per_m2_nm": 0.75, "aperture_area_m2": 1e-4,
+                                             "filter_bandwidth_m": 2e-9}})
+    i = simulate_frame(sc).signal() / 50.0
+    p_sun, b = 150e-6, C * 2e-9 / LAM**2
+    assert np.mean(i) / (r * (p_lo + p_sun)) == pytest.approx(1.0, abs=1e-4)
+    s = p_sun / (2 * b)
+    assert _psd(i, fs, 1e6, 120e6) / (4 * r**2 * p_lo * s + 4 * r**2 * s**2 * b) == pytest.approx(1.0, abs=0.02)
+
+
+def test_bad_optical_noise_names_the_field():
+    with pytest.raises(SceneError, match=r"optical_noise\.amplifier\.gain_db"):
+        make_scene(optical_noise={"amplifier": {"gain_db": -3, "optical_bandwidth_hz": 1e12}})
+    with pytest.raises(SceneError, match=r"optical_noise\.solar\.filter_bandwidth_m"):
+        make_scene(optical_noise={"solar": {"spectral_irradiance_w_per_m2_nm": 0.7, "aperture_area_m2": 1e-4,
+                                            "filter_bandwidth_m": float("nan")}})
+    with pytest.raises(SceneError, match=r"optical_noise\.amplifier\.optical_bandwidth_hz"):
+        make_scene(optical_noise={"amplifier": {"gain_db": 3.0}})

@@ -11,7 +11,7 @@ from mtcw_core.dsp.doppler import DopplerEstimate
 from mtcw_core.dsp.extract import LineFamily
 from mtcw_core.frame import Frame
 from mtcw_core.phase import C
-from mtcw_core.profiles import ChainSettings
+from mtcw_core.profiles import ChainSettings, get_profile
 from mtcw_core.ranging.mixing import mix
 from mtcw_core.ranging.targets import Reference, median_snr, resolve_targets, select_targets, solve_target, velocity
 from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
@@ -53,20 +53,20 @@ def point(range_m, snrs, sigma=1e-4, residual=0.01, snr_db=None):
 class TestVelocity:
     def test_static_is_zero_with_min_detectable_speed(self):
         d = dop(0.0, detected=False)
-        v, s, direction = velocity(d, frame(), [fam()], False)
+        v, s, direction, _ = velocity(d, frame(), [fam()], False)
         assert v == 0.0 and direction == "static"
         assert s == pytest.approx(d.min_detectable_hz * LAM / 2)
 
     def test_real_doppler_is_2v_over_lambda(self):
         fd = 7.5e6
-        v, s, direction = velocity(dop(fd), frame(), [fam("U", 1, fd=fd), fam("L", 1, fd=-fd)], False)
+        v, s, direction, _ = velocity(dop(fd), frame(), [fam("U", 1, fd=fd), fam("L", 1, fd=-fd)], False)
         assert v == pytest.approx(fd * LAM / 2, rel=1e-15)  # f_d = 2v/lambda
         assert direction == "unknown" and s > 0
 
     @pytest.mark.parametrize("fd,direction", [(7.5e6, "approaching"), (-7.5e6, "receding")])
     def test_iq_sign_gives_direction(self, fd, direction):
         """f_d = -2v/lambda: a positive Doppler is an approaching target (v < 0)."""
-        v, _, d = velocity(dop(fd), frame("iq"), [fam("U", 1, fd=fd)], True)
+        v, _, d, _ = velocity(dop(fd), frame("iq"), [fam("U", 1, fd=fd)], True)
         assert d == direction
         assert v == pytest.approx(-fd * LAM / 2)
 
@@ -75,7 +75,7 @@ class TestVelocity:
         combined by inverse variance over the Doppler-shifted lines (S lines do not count)."""
         var = np.array([1e-4, 2e-4, 4e-4])
         fams = [fam("S", 1, var=(1e-9,) * 3), fam("U", 1, var=var), fam("L", 1, var=var)]
-        _, s, _ = velocity(dop(7.5e6), frame(), fams, False)
+        _, s, _, _ = velocity(dop(7.5e6), frame(), fams, False)
         var_f = 1.5 * var * FS**2 / (np.pi**2 * N**2)
         sig_f = 1 / math.sqrt(2 * np.sum(1 / var_f))
         assert s == pytest.approx(sig_f * LAM / 2, rel=1e-12)
@@ -88,7 +88,7 @@ class TestVelocity:
         assert s == pytest.approx(math.hypot(sig_f, 3e3, 4e3) * LAM / 2, rel=1e-12)
 
     def test_sigma_floor(self):
-        _, s, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)
+        _, s, _, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)
         assert s == pytest.approx(1e-3 * FS / N * LAM / 2)
 
 
@@ -205,3 +205,25 @@ class TestSelectTargets:
 
     def test_empty(self):
         assert select_targets([], self.ST) == []
+
+
+class TestSpeedNotMeasurable:
+    """Issue 12 case 4: a speed that cannot be measured is not zero."""
+
+    def test_carrier_coherence_is_one_line_only_within_coherence(self):
+        from mtcw_core.ranging.targets import carrier_coherence
+
+        ideal = get_profile("balanced")
+        assert carrier_coherence(ideal, 100.0) == 1.0
+        dfb = get_profile("balanced", laser_linewidth_hz=100e3)  # 100 kHz at 6.8 m: 2*pi*dv*dtau = 0.03
+        assert carrier_coherence(dfb, 6.789) == pytest.approx(math.exp(-2 * math.pi * 100e3 * 2 * 6.789 / C))
+        low = get_profile("balanced", laser_linewidth_hz=5.3e9, lo_path_difference_m=9.0)
+        assert carrier_coherence(low, 1.12) < 1e-100
+        assert carrier_coherence(low, 4.5) == 1.0  # the echo path equals the LO's
+
+    def test_no_doppler_line_beyond_coherence_is_unknown_not_static(self):
+        d = DopplerEstimate(0.0, False, 0.0, 10.0, 4e5)
+        v, s, direction, vmin = velocity(d, frame(), [fam()], False, coherence=0.0, fd_max_hz=50e6)
+        assert (v, direction) == (0.0, "unknown") and s == vmin == pytest.approx(50e6 * LAM / 2)
+        v, s, direction, vmin = velocity(d, frame(), [fam()], False, coherence=1.0, fd_max_hz=50e6)
+        assert direction == "static" and s == vmin == pytest.approx(4e5 * LAM / 2)

@@ -178,17 +178,69 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
-    out = []
+    zs = {}
     for target, name, freqs, conj, bad in fams:
         idx = np.clip(np.searchsorted(uniq, np.round(freqs, 6)), 0, uniq.size - 1)
         z = z_all[:, idx].copy()
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
+        zs[target, name] = z
+    if frame.receiver == "single" and settings.extraction != "filter" and not windows:
+        # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
+        # with no Doppler, on top of the static target's (issue 12 cases 3 and 5)
+        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([x.mean()]))
+        zs[0, "S"] = zs[0, "S"] - self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
+    out = []
+    for target, name, freqs, conj, bad in fams:
+        z = zs[target, name]
         amp2 = np.mean(np.abs(z) ** 2, axis=0)
         s2 = np.array([spec.noise_variance(f, list(uniq)) for f in freqs])
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
+    return out
+
+
+def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray) -> np.ndarray:
+    """The movers' self-beat lines at the tones ``f_i``, predicted from their LO-beat lines.
+
+    With an unmodulated LO ``A_L`` and a mover's echo field ``A_m * M(t - tau) * exp(j*Phi(t))``
+    (``M = a_0 + sum_i a_i cos(...)``), a square-law detector sees the baseband line
+    ``B = 2*A_L*A_m*a_0*exp(j*Phi)``, the sidebands ``U_i = A_L*A_m*a_i*exp(j*(theta_i + Phi))``
+    and ``L_i = A_L*A_m*a_i*exp(j*(theta_i - Phi))`` (as this module orients them), and the echo's
+    own beat at ``f_i``: ``2*A_m^2*a_0*a_i*exp(j*theta_i) = U_i*conj(B)/A_L^2 = L_i*B/A_L^2``. The
+    carrier phase ``Phi`` (Doppler, laser phase noise) cancels; ``A_L^2`` is the record's DC less
+    the echoes' own DC (``|B|^2/(4*A_L^2)`` each). Amplitudes are ``fit_lines``'s (cosine
+    amplitudes, V), per segment.
+
+    Parameters
+    ----------
+    zs : {(target, family name): ndarray (S, T)} the lines as extracted
+    z_all, uniq : every fitted amplitude (S, K) and its frequency (K,), Hz
+    fds : the Doppler lines found (Hz), target k = index + 1
+    dc : ndarray, shape (S,), the mean of each segment (V)
+
+    Returns
+    -------
+    ndarray, shape (S, T): the predicted lines (0 where a mover's baseband line was not fitted)
+    """
+    out = np.zeros_like(zs[0, "S"])
+    base = []
+    for k, fd in enumerate(fds, start=1):
+        i = int(np.argmin(np.abs(uniq - abs(fd))))
+        base.append((k, z_all[:, i] if abs(uniq[i] - abs(fd)) < 1e-3 else None))
+    echo_dc = sum(np.abs(b) ** 2 for _, b in base if b is not None)
+    if isinstance(echo_dc, int):
+        return out
+    lo_power = 0.5 * (dc + np.sqrt(np.maximum(dc**2 - echo_dc, 0.0)))  # A_L^2 (V), per segment
+    for k, b in base:
+        if b is None or (k, "U") not in zs:
+            continue
+        u, low = zs[k, "U"], zs[k, "L"]
+        have = (np.abs(u) > 0) & (np.abs(low) > 0)
+        pred = np.where(have, 0.5 * (u * np.conj(b)[:, None] + low * b[:, None]), np.where(
+            np.abs(u) > 0, u * np.conj(b)[:, None], low * b[:, None]))
+        out += pred / np.maximum(lo_power, 1e-300)[:, None]
     return out
 
 

@@ -19,14 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import DopplerEstimate
+from ..dsp.doppler import DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
 from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
 from .mixing import consistency
-from .triangulation import Observations, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
+from .triangulation import Observations, RangeSolution, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
 
 
 @dataclass(frozen=True)
@@ -38,17 +38,40 @@ class Reference:
     tau0_s: float
 
 
-def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool) -> tuple[float, float, str]:
-    """Radial speed (m/s), its sigma (m/s) and direction from a target's Doppler line.
+def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
+    """The part of the LO x echo carrier beat that stays one line, ``exp(-2*pi*linewidth*|dtau|)``.
+
+    ``dtau = (2*L - d_LO)/c`` is the echo's delay relative to the LO (Lorentzian laser, delay much
+    shorter than the record); 1 for an ideal laser or one declared coherent (linewidth 0).
+    """
+    dtau = abs(2 * range_m - settings.lo_path_difference_m) / C
+    return math.exp(-2 * math.pi * settings.laser_linewidth_hz * dtau)
+
+
+#: below this part of the carrier beat in one line, a mover's Doppler line is not there to find
+MIN_CARRIER_COHERENCE = 0.5
+
+
+def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
+             fd_max_hz: float | None = None) -> tuple[float, float, str, float]:
+    """Radial speed (m/s), its sigma (m/s), direction and the smallest measurable speed (m/s).
 
     The sigma combines the frequency Cramér–Rao bound of the target's Doppler-shifted lines, the
-    refinement's own error and the line's wander (incoherent laser), with a floor of 0.001 bin.
-    A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma.
+    refinement's own error (which includes the carrier phase all lines share: the laser's phase
+    noise over the echo delay) and the line's wander (incoherent laser), with a floor of 0.001 bin.
+    A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
+    unless the carrier beat is not a line at the target's range (``coherence`` below
+    :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
+    shown, and the point says 0 with that limit as its sigma, direction ``unknown``.
     """
     lam = frame.wavelength_m
     n, fs = frame.n, frame.fs_hz
+    v_min = dop.min_detectable_hz * lam / 2
     if not dop.detected:
-        return 0.0, dop.min_detectable_hz * lam / 2, "static"
+        if coherence < MIN_CARRIER_COHERENCE and fd_max_hz is not None:
+            v_max = fd_max_hz * lam / 2
+            return 0.0, v_max, "unknown", v_max
+        return 0.0, v_min, "static", v_min
     inv_var = 0.0
     for fam in families:
         if fam.name == "S":
@@ -62,8 +85,8 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     sig_f = max(math.hypot(sig_f, dop.refine_error_hz, dop.wander_hz), 1e-3 * fs / n)
     if iq:
         v = -dop.fd_hz * lam / 2
-        return v, sig_f * lam / 2, "receding" if v > 0 else "approaching"
-    return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown"
+        return v, sig_f * lam / 2, "receding" if v > 0 else "approaching", v_min
+    return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown", v_min
 
 
 def median_snr(p: TargetPoint) -> float:
@@ -95,6 +118,27 @@ def _tone_snr(fams: list[LineFamily]) -> dict[str, float]:
     return out
 
 
+def cycle_slip_probability(fams: list[LineFamily], ref: Reference, sol: RangeSolution, chi2_best: float,
+                           scale: float, min_snr_db: float) -> float:
+    """The odds that another cycle is the true one, from the line phases' likelihood.
+
+    For each runner-up range ``L_k`` of the cycle resolution, ``exp(-(chi2(L_k) - chi2(L))/(2*s))``
+    with ``chi2`` the line phases' misfit (:func:`~mtcw_core.ranging.mixing.consistency`) and ``s``
+    the Birge ratio (>= 1) when the phases are less consistent than their noise; summed. Near the
+    detection threshold a wrong cycle is as likely as the right one and the margin of the cost
+    alone does not say so.
+
+    Returns
+    -------
+    float, the summed odds of the runners-up against the solution, clipped to [0, 1]
+    """
+    total = 0.0
+    for alt in sol.alternatives_m:
+        c2, _ = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * alt / C, min_snr_db)
+        total += math.exp(-max(c2 - chi2_best, 0.0) / (2 * scale))
+    return float(min(total, 1.0))
+
+
 def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate, frame: Frame,
                  settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None,
                  l_unamb: float | None = None) -> TargetPoint:
@@ -122,13 +166,18 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     ratio = chi2 / dof if dof > 0 else 1.0
     if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
         sigma *= math.sqrt(ratio)
-    v, vs, direction = velocity(dop, frame, fams, frame.receiver == "iq")
+    # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
+    sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
+    p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
+    v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
+                                       carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings))
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
-        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
+        residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge,
+        cycle_ambiguous=bool(ambiguous or p_slip > settings.cycle_slip_max), cycle_slip_prob=p_slip,
         blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
-        tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m,
+        tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
 
 

@@ -51,10 +51,16 @@ class RangeSolution:
     residual_rms_rad: float
     near_edge: bool
     seed_sigma_k_m: float | None = None  # the dissertation's row standard deviation (seed only)
+    #: the next-best cycles (m), best first: the local maxima of J (ml) or rows (seed) that come
+    #: closest, for the caller to weigh by the line phases' likelihood
+    alternatives_m: tuple[float, ...] = ()
 
 
-def cost_function(obs: Observations, tau0_s: float):
-    """``J(L)`` of :func:`resolve_ml` as a function of range (m, array) -> shape (len(L),), in [-1, 1]."""
+#: runners-up of the cycle resolution handed to the caller (their likelihood decides a flag)
+ALTERNATIVES = 4
+
+
+def _cost(obs: Observations, tau0_s: float):
     k = 2 * np.pi * obs.df_hz
     wsum = float(np.sum(obs.weight))
 
@@ -64,6 +70,11 @@ def cost_function(obs: Observations, tau0_s: float):
         return (np.cos(arg) @ obs.weight) / wsum
 
     return j
+
+
+def cost(obs: Observations, l_m, tau0_s: float = 0.0) -> np.ndarray:
+    """The ``ml`` cost J(L) at ranges ``l_m`` (m): 1 where every pair phase agrees; shape (len(l_m),)."""
+    return _cost(obs, tau0_s)(l_m)
 
 
 def _newton_polish(obs: Observations, tau0_s: float, l_m: float, iterations: int = 3) -> float:
@@ -100,7 +111,7 @@ def resolve_ml(
     lo, hi = interval_m
     step = float(np.min(obs.synthetic_wavelengths_m)) / points_per_cycle
     grid = np.arange(lo, hi + step, step)
-    j = cost_function(obs, tau0_s)
+    j = _cost(obs, tau0_s)
     # evaluate in blocks to bound memory for long intervals
     vals = np.concatenate([j(grid[i : i + 65536]) for i in range(0, grid.size, 65536)])
     ib = int(np.argmax(vals))
@@ -123,7 +134,14 @@ def resolve_ml(
     j2 = float(cand.max()) if cand.size else -1.0
     margin = float(np.clip(1 - max(j2, 0.0) / jbest, 0, 1)) if jbest > 0 else 0.0
     edge = min(best - lo, hi - best) < half
-    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge))
+    # the runners-up, each refined to its own peak
+    idx = np.flatnonzero(is_max & far)
+    alts = []
+    for i in idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES]]:
+        r = minimize_scalar(lambda l: -j(l)[0], bounds=(grid[i] - step, grid[i] + step), method="bounded",
+                            options={"xatol": 1e-6 * step})
+        alts.append(float(r.x))
+    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), alternatives_m=tuple(alts))
 
 
 def candidate_matrix(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0
@@ -168,7 +186,8 @@ def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range
     best = float(col1[k])
     half = 0.5 * lam[0]
     edge = min(best - min_range_m, max_range_m - best) < half
-    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), float(sigma_k[k]))
+    alts = tuple(float(col1[i]) for i in np.argsort(sigma_k)[1:1 + ALTERNATIVES])
+    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), float(sigma_k[k]), alts)
 
 
 def fisher_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray]) -> float:

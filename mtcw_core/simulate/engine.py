@@ -20,10 +20,10 @@ from scipy import signal
 from ..frame import Frame, PulseInfo, TruthTarget
 from ..phase import C, tone_cycles
 from ..scene import Scene
-from .optics import carrier_cycles, delayed_phase, gate, mzm_transmission, wiener_phase
+from ..snr import K_B, Q_E, BroadbandLight, ase_light, solar_light
+from .optics import beyond_band, broadband_field, carrier_cycles, delayed_phase, gate, mzm_transmission, wiener_phase
 
-Q_E = 1.602176634e-19
-K_B = 1.380649e-23
+__all__ = ["Simulator", "simulate_frame", "K_B", "Q_E"]
 
 
 @dataclass
@@ -53,6 +53,24 @@ class Simulator:
         self._drift = np.zeros(len(scene.modulator.tones))
         self._next = 0
         self._auto_full_scale: float | None = None
+        self._gain, self._broadband = self._optical_noise(scene)
+
+    @staticmethod
+    def _optical_noise(scene: Scene) -> tuple[float, list[BroadbandLight]]:
+        """The amplifier's linear gain and the broadband lights at the detector (ASE, sunlight)."""
+        on = scene.optical_noise
+        lam = scene.laser.wavelength_m
+        gain, lights = 1.0, []
+        if on.amplifier is not None:
+            amp = on.amplifier
+            gain = 10 ** (amp.gain_db / 10)
+            if gain > 1:
+                lights.append(ase_light(gain, amp.spontaneous_emission_factor, lam, amp.optical_bandwidth_hz))
+        if on.solar is not None:
+            sol = on.solar
+            lights.append(solar_light(sol.spectral_irradiance_w_per_m2_nm, sol.aperture_area_m2,
+                                      sol.filter_bandwidth_m, lam, gain))
+        return gain, lights
 
     # -- public ------------------------------------------------------------------------
     def frames(self, count: int | None = None) -> Iterator[Frame]:
@@ -67,6 +85,9 @@ class Simulator:
 
     def frame(self, index: int) -> Frame:
         """Simulate frame ``index`` of the sequence (its RNG draws follow the previous call)."""
+        if self.scene.ptof is not None:  # PToF mode (issue 14): short pulses, direct detection
+            from .pulses import pulse_frame
+            return pulse_frame(self, index)
         sc = self.scene
         dig = sc.digitizer
         fs, n = dig.sample_rate_hz, dig.samples
@@ -194,20 +215,40 @@ class Simulator:
         rx = sc.receiver
         r = rx.responsivity_a_per_w
         nz = sc.noise
+        bb = self._broadband
+        if self._gain != 1.0:
+            e_lo, e_sig = e_lo * math.sqrt(self._gain), e_sig * math.sqrt(self._gain)
+        bb_power = sum(b.power_w for b in bb)
+        if bb:
+            n = e_sig.shape[0]
+            n_par = sum(broadband_field(n, fs, b.psd_w_per_hz, b.bandwidth_hz, rng) for b in bb)
         if rx.kind == "single":
-            i = r * np.abs(e_lo + e_sig) ** 2 + rx.dark_current_a
+            if bb:
+                # the polarisation matching the LO beats with LO and echo, both beat with themselves;
+                # what a band wider than fs adds beyond its sampled part is Gaussian (beyond_band)
+                n_perp = sum(broadband_field(n, fs, b.psd_w_per_hz, b.bandwidth_hz, rng) for b in bb)
+                extra_mean, extra_var = beyond_band([(b.psd_w_per_hz, b.bandwidth_hz) for b in bb], fs)
+                intensity = np.abs(e_lo + e_sig + n_par) ** 2 + np.abs(n_perp) ** 2
+                if extra_var > 0:
+                    intensity += rng.normal(extra_mean, math.sqrt(extra_var), n)
+                i = r * intensity + rx.dark_current_a
+            else:
+                i = r * np.abs(e_lo + e_sig) ** 2 + rx.dark_current_a
             mean_i = float(np.mean(i))
         else:
-            mix = 2 * r * np.conj(e_lo) * e_sig
+            # an ideal balanced / IQ receiver keeps only the beats with the LO
+            mix = 2 * r * np.conj(e_lo) * (e_sig + n_par if bb else e_sig)
             i = mix.real if rx.kind == "balanced" else mix
-            mean_i = r * float(np.mean(np.abs(e_lo) ** 2 + np.abs(e_sig) ** 2)) + rx.dark_current_a
+            mean_i = r * float(np.mean(np.abs(e_lo) ** 2 + np.abs(e_sig) ** 2)) + rx.dark_current_a + r * bb_power
         var = 0.0
         if nz.shot:
             var += Q_E * mean_i * fs  # 2*q*I*B with B = fs/2
         if nz.thermal:
             var += 4 * K_B * nz.temperature_k * nz.noise_figure * (fs / 2) / rx.load_ohm
         if nz.rin_db_per_hz is not None and rx.kind == "single":
-            var += 10 ** (nz.rin_db_per_hz / 10) * mean_i**2 * (fs / 2)
+            # the laser's light (and, as always here, the dark current); not ASE or sunlight
+            i_laser = mean_i - r * bb_power if bb else mean_i
+            var += 10 ** (nz.rin_db_per_hz / 10) * i_laser**2 * (fs / 2)
         if var > 0:
             sd = math.sqrt(var)
             if np.iscomplexobj(i):

@@ -123,3 +123,53 @@ def gate(n: int, fs_hz: float, period_s: float, duty: float, start_s: float, ris
 def carrier_cycles(wavelength_m: float, tau0_s: float, range_m: float) -> float:
     """``f0*tau`` reduced modulo 1 for ``tau = tau0 + 2*L/c`` without losing precision."""
     return frac(frac(C / wavelength_m * tau0_s) + frac(2.0 * range_m / wavelength_m))
+
+
+def broadband_field(n: int, fs_hz: float, psd_w_per_hz: float, bandwidth_hz: float,
+                    rng: np.random.Generator) -> np.ndarray:
+    """One polarisation of unpolarised broadband light (ASE, sunlight) as a complex envelope.
+
+    Circular complex Gaussian, two-sided power spectral density ``psd_w_per_hz`` (W/Hz) flat
+    over ``|f| < bandwidth_hz/2`` around the carrier. A band at least as wide as the sample rate
+    is white on the sample grid (``E|n|^2 = S*fs``: the part of the band the record can hold;
+    :func:`beyond_band` supplies what the rest adds at the detector); a narrower band is cut
+    from white noise with a brick-wall mask in the frequency domain (``E|n|^2 = S*B``).
+
+    Returns
+    -------
+    ndarray, shape (n,), complex128, sqrt(W)
+    """
+    sd = math.sqrt(psd_w_per_hz * fs_hz / 2)
+    x = sd * (rng.standard_normal(n) + 1j * rng.standard_normal(n))
+    if bandwidth_hz < fs_hz:
+        f = np.fft.fftfreq(n, 1 / fs_hz)
+        x = np.fft.ifft(np.fft.fft(x) * (np.abs(f) <= bandwidth_hz / 2))
+    return x
+
+
+def beyond_band(lights: list[tuple[float, float]], fs_hz: float) -> tuple[float, float]:
+    """What broadband light wider than the sample rate adds to ``|field|^2`` beyond its sampled part.
+
+    A field sampled at ``fs`` holds ``fs`` of a band ``B >= fs``; its intensity then has mean
+    ``S*fs`` and a white beat spectrum ``S^2*fs`` (two-sided) per polarisation where the light
+    really has ``S*B`` and ``S^2*(B - |f|) ~ S^2*B`` (``|f| <= fs/2 << B``; relative error
+    ``fs/(2B)``). The missing beat of a band against itself and of two bands against each other
+    (``2*S_a*S_b*min(B_a, B_b)``) is a sum of ~``B/fs`` independent products per sample, hence
+    Gaussian. Both polarisations.
+
+    Parameters
+    ----------
+    lights : list of (psd_w_per_hz, bandwidth_hz), per polarisation
+    fs_hz : sample rate (Hz)
+
+    Returns
+    -------
+    (mean_w, variance_w2) : the added mean intensity (W) and the per-sample variance (W^2)
+    """
+    mean, psd = 0.0, 0.0
+    for a, (sa, ba) in enumerate(lights):
+        mean += sa * max(ba - fs_hz, 0.0)
+        psd += sa * sa * max(ba - fs_hz, 0.0)
+        for sb, bb in lights[a + 1:]:
+            psd += 2 * sa * sb * max(min(ba, bb) - fs_hz, 0.0)
+    return 2 * mean, 2 * psd * fs_hz

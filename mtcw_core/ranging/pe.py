@@ -1,0 +1,638 @@
+"""PE-MTCW (the dissertation's chapter 4): range from the phases of the Doppler-shifted lines.
+
+Architecture ``modulated_reference``: the local oscillator is the *modulated* beam back from a
+reference mirror at ``L_ref``. For a target moving at Doppler ``f_d`` a single photodiode sees,
+per tone ``f_i`` (``shared/spec/physics.md``; derivation in ``docs/techniques.md``, "PE-MTCW"):
+
+==============  ======================================================  =========================
+line            complex amplitude (phase; ``x`` a positive real)        from
+==============  ======================================================  =========================
+``f_i``         ``exp(j*(phi_i - 2*pi*f_i*tau_r))``                     the reference's self-beat
+``f_i + f_d``   ``s_i*x*exp(j*(phi_i - theta - pi*f_i*(tau + tau_r)))``  LO x echo (both sidebands)
+``|f_i - f_d|`` ``s_i*x*exp(j*(phi_i + theta - pi*f_i*(tau + tau_r)))``  (conjugated if folded)
+``2f_i +- f_d`` ``s'_i*x*exp(j*(2*phi_i -+ theta - 2*pi*f_i*(tau+tau_r)))`` MZM 2nd order, LO x echo
+==============  ======================================================  =========================
+
+``tau = tau0 + 2*L/c`` (echo), ``tau_r = 2*L_ref/c`` (reference), ``theta`` the optical carrier's
+phase (``2*pi*f0*(tau - tau_r)`` plus laser noise: random, micrometre-scale), ``s_i = sign(cos(pi*
+f_i*(tau - tau_r)))`` (the AB-MTCW fading). The carrier phase and the sign cancel in the product
+of a line pair, and the RF phase ``phi_i`` (trigger jitter, drift) cancels against the reference
+self-beat:
+
+    Q_i = z(f_i + f_d) * z(|f_i - f_d|) * conj(z(f_i))**2  ->  phase  -2*pi*f_i*(tau - tau_r)
+    Q2_i = z(2f_i + f_d) * z(|2f_i - f_d|) * conj(z(f_i))**4  ->  phase  -2*pi*(2f_i)*(tau - tau_r)
+
+So each tone gives the path difference ``L - L_ref`` modulo ``c/(2*f_i)`` (the second-order
+lines modulo ``c/(4*f_i)``), and together they give it modulo ``c/(2*gcd(f_i))`` -- the
+unambiguous range. The Doppler-shifted line *frequencies* ``f_i +- f_d`` carry no range: the
+shift is the optical carrier's, whose phase is the range modulo ``lambda/2``. ``L_ref`` is a
+setting (``reference_range_m``) or, when not set, measured in the same frame from the reference
+self-beat phases and the tone phases in force (calibration or frame).
+
+Cycle resolution is the PB chain's (:func:`~mtcw_core.ranging.triangulation.resolve_ml`, or the
+dissertation's candidate matrix :func:`~mtcw_core.ranging.triangulation.resolve_seed` with the
+``seed`` method), on observations whose "frequency difference" is ``f_i`` (or ``2f_i``). Line
+amplitudes come from the joint least-squares fit of :func:`mtcw_core.dsp.tones.fit_lines`, with
+every other line the physics predicts (MZM products of the reference's self-beat, the second-
+order Doppler-shifted products) modelled so that none leaks into the used ones.
+
+Two effects are modelled rather than hidden:
+
+- *Motion blur*: within the record the echo's modulation is itself Doppler-shifted by
+  ``delta_i = 2*v*f_i/c`` (490 Hz for 2.45 GHz at 30 m/s), the reference's is not, so the two
+  halves of a line are weighted ``kappa_i = sinc(delta_i*T) < 1`` against each other and the
+  line phase moves by ``atan((1 - kappa)/(1 + kappa)*tan(d_i))``, ``d_i = pi*f_i*(tau - tau_r)``.
+  It is corrected at the solution (one iteration); for second-order lines the correction is
+  approximate and its size is added to their variance.
+- *The echo's own self-beat* lies on the reference line ``f_i`` at ``(a_m/a_ref)**2`` of it and
+  moves its phase by up to that (rad); the arm ratio is read from the baseband Doppler line
+  against the DC level, the shift is corrected at the solution (in ``Q`` and in the in-frame
+  ``L_ref``), and 10 % of it stays in the reference lines' variance.
+- *Doppler*: refined by PE itself (:func:`refine_doppler`), not by the PB chain's refinements,
+  which the reference's strong static products pull on short records.
+
+Limits (they are flags or rejections, never silent): a single photodiode is needed (balanced
+and IQ receivers have no reference self-beat); a target with no Doppler line is not PE's
+(``no_target``; AB-MTCW ranges static targets); quasi-CW frames are not gated here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..dsp.doppler import DopplerEstimate
+from ..dsp.extract import LineFamily
+from ..dsp.spectrum import Spectrum
+from ..dsp.tones import fit_lines
+from ..frame import Frame
+from ..phase import C, unambiguous_range, wrap_pi
+from ..profiles import ChainSettings
+from ..results import NoTarget, Rejected, TargetPoint
+from .targets import Reference, velocity
+from .triangulation import Observations, resolve_ml, resolve_seed
+
+
+@dataclass(frozen=True)
+class PeLines:
+    """The lines of one moving target, per tone.
+
+    Attributes
+    ----------
+    target : int
+        1 for the strongest Doppler line, 2 for the next, ...
+    doppler : DopplerEstimate
+    tone_hz : ndarray, shape (T,), Hz
+    z_ref, z_up, z_low, z2_up, z2_low : ndarray, shape (T,), complex128, V
+        Amplitudes (at the record's centre) of the lines at ``f_i``, ``f_i + f_d``,
+        ``|f_i - f_d|``, ``2f_i + f_d``, ``|2f_i - f_d|``; a folded line is conjugated so that it
+        carries ``+theta`` like an unfolded one.
+    var_ref, var_up, var_low, var2_up, var2_low : ndarray, shape (T,), rad^2
+        Phase variance of each line from the local noise floor (inf: not usable -- it lies on
+        another line or above Nyquist).
+    arm_ratio : float
+        ``a_m/a_ref``, echo to reference field amplitude, from the baseband Doppler line over DC.
+    duration_s : float
+        Record length the amplitudes rest on (s).
+    centre_s : float
+        The instant the amplitudes refer to, after the record's first sample (s).
+    """
+
+    target: int
+    doppler: DopplerEstimate
+    tone_hz: np.ndarray
+    z_ref: np.ndarray
+    z_up: np.ndarray
+    z_low: np.ndarray
+    z2_up: np.ndarray
+    z2_low: np.ndarray
+    var_ref: np.ndarray
+    var_up: np.ndarray
+    var_low: np.ndarray
+    var2_up: np.ndarray
+    var2_low: np.ndarray
+    arm_ratio: float
+    duration_s: float
+    centre_s: float
+
+
+def _fold(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``|f|`` and the mask of lines that folded through 0 Hz (their amplitude is conjugated)."""
+    return np.abs(f), f < 0
+
+
+def line_plan(tones_hz, fd_hz: float, fs_hz: float, n: int) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Where a PE target's lines lie, which of them are usable, and every line to fit.
+
+    Parameters
+    ----------
+    tones_hz : array_like, shape (T,), Hz
+    fd_hz : float, the Doppler line (Hz, > 0 for a real detector)
+    fs_hz : float; n : int, record length (samples), which sets the resolution ``fs/n``
+
+    Returns
+    -------
+    wanted : dict name -> ndarray shape (T,) of signed frequencies (Hz) for ``ref``, ``up``,
+        ``low``, ``up2``, ``low2`` (a negative one folds through 0 Hz)
+    usable : ndarray of bool, shape (5, T), in that order: no other predicted line within two
+        record bins, below Nyquist
+    fit_hz : ndarray, every frequency to fit jointly (Hz): the usable wanted lines, the baseband
+        Doppler line, and the static (third-order MZM products of the reference's self-beat) and
+        Doppler-shifted (second-order) lines that do not lie on a wanted one
+    """
+    t = np.asarray(tones_hz, float)
+    nyq = fs_hz / 2
+    res = 1.5 * fs_hz / n
+    fd = abs(fd_hz)
+    wanted = {"ref": t, "up": t + fd, "low": t - fd, "up2": 2 * t + fd, "low2": 2 * t - fd}
+    vecs, static, pairs = _products(tuple(float(f) for f in t), nyq)
+    shifted = np.abs(pairs[:, 0] + pairs[:, 1] * fd)
+    # every physical line, one entry per product (two products on one frequency are two lines)
+    src_f = np.concatenate([static, shifted, [fd]])
+    src_id = [("s", v) for v in vecs] + [("d", c, sg) for c, sg in _pair_ids(t.size)] + [("b",)]
+    ids = {"ref": [("s", _unit(t.size, i)) for i in range(t.size)],
+           "up": [("d", _unit(t.size, i), 1.0) for i in range(t.size)],
+           "low": [("d", _unit(t.size, i), -1.0) for i in range(t.size)],
+           "up2": [("d", tuple(2 * x for x in _unit(t.size, i)), 1.0) for i in range(t.size)],
+           "low2": [("d", tuple(2 * x for x in _unit(t.size, i)), -1.0) for i in range(t.size)]}
+    usable = []
+    for name in ("ref", "up", "low", "up2", "low2"):
+        f = np.abs(wanted[name])
+        ok = []
+        for fi, own in zip(f, ids[name]):
+            near = np.flatnonzero(np.abs(src_f - fi) <= res)
+            ok.append(all(src_id[k] == own for k in near) and res < fi < nyq - res)
+        usable.append(ok)
+    usable = np.asarray(usable, bool)
+    every = np.unique(np.round(src_f[(src_f > res / 3) & (src_f < nyq)], 3))
+    keep: list[float] = []
+    used = np.concatenate([np.abs(wanted[nm])[u] for nm, u in zip(("ref", "up", "low", "up2", "low2"), usable)])
+    for f in np.concatenate([used, every]):
+        if all(abs(f - k) > 0.75 * res for k in keep):
+            keep.append(float(f))
+    return wanted, usable, np.asarray(keep, float)
+
+
+def _unit(size: int, i: int) -> tuple[int, ...]:
+    return tuple(1 if k == i else 0 for k in range(size))
+
+
+def _ball(size: int, radius: int):
+    """Every integer vector of length ``size`` with ``sum|n_i| <= radius`` (written here rather than
+    imported: :mod:`mtcw_core.dsp.doppler` keeps its own private)."""
+    if size == 0:
+        yield ()
+        return
+    for n0 in range(-radius, radius + 1):
+        for rest in _ball(size - 1, radius - abs(n0)):
+            yield (n0, *rest)
+
+
+@lru_cache(maxsize=64)
+def _canonical_vectors(size: int, order: int) -> tuple[tuple[int, ...], ...]:
+    """Integer vectors n with ``1 <= sum|n_i| <= order``, one of each pair ``+-n`` (first nonzero > 0)."""
+    return tuple(n for n in _ball(size, order) if any(n) and next(x for x in n if x != 0) > 0)
+
+
+def _pair_ids(size: int) -> list[tuple[tuple[int, ...], float]]:
+    """The Doppler-shifted products as (vector, sign): the line ``|n.t + sign*f_d|``, n of order <= 2
+    (the zero vector is the baseband line, listed apart)."""
+    return [(n, sg) for n in _canonical_vectors(size, 2) for sg in (1.0, -1.0)]
+
+
+@lru_cache(maxsize=64)
+def _products(tones: tuple[float, ...], nyq: float):
+    """Static products (third-order MZM products of the reference's self-beat): their vectors and
+    frequencies (Hz, ``|n.t|``), and the Doppler-shifted ones as (c, s) rows, line ``|c + s*f_d|``
+    (all vectors listed, none dropped: :func:`line_plan` keeps their identities aligned)."""
+    t = np.asarray(tones, float)
+    vecs = list(_canonical_vectors(t.size, 3))
+    static = np.array([abs(float(np.dot(n, t))) for n in vecs])
+    pairs = np.array([(float(np.dot(n, t)), sg) for n, sg in _pair_ids(t.size)])
+    return vecs, static, pairs
+
+
+def _static_and_shifted(t: np.ndarray, nyq: float) -> tuple[np.ndarray, np.ndarray]:
+    """Static line frequencies (Hz) below ``nyq`` and the Doppler-shifted ones as (c, s) rows,
+    the baseband line ``(0, +1)`` included (see :func:`_products`)."""
+    _, static, pairs = _products(tuple(float(f) for f in t), nyq)
+    return static[(static > 0) & (static < nyq)], np.vstack([pairs, [[0.0, 1.0]]])
+
+
+def _plan_with_others(tones_hz, fd_hz: float, others: list[float], fs: float, n: int):
+    """:func:`line_plan` of a target at ``fd_hz``, with the other targets' lines fitted too (a
+    second mover's ``f_i +- f_d'`` must not leak in) and the wanted lines near them unusable."""
+    wanted, usable, fit_hz = line_plan(tones_hz, fd_hz, fs, n)
+    extra = [f for o in others for f in line_plan(tones_hz, o, fs, n)[2]]
+    allf = np.unique(np.round(np.concatenate([fit_hz, np.asarray(extra, float)]), 6))
+    if extra:
+        res = 2 * fs / n
+        for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
+            if nm != "ref":
+                d = np.abs(np.abs(wanted[nm])[:, None] - np.asarray(extra)[None, :]).min(axis=1)
+                usable[i] &= d > res
+    return wanted, usable, allf
+
+
+def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: list[float], spec: Spectrum
+                   ) -> DopplerEstimate:
+    """The Doppler line below one spectrum bin: the shift whose lines (baseband, ``f_i +- f_d``,
+    ``2f_i +- f_d`` and the other Doppler-shifted products) take the most power in the joint
+    least-squares fit with every static line modelled -- the maximum-likelihood frequency in
+    white noise.
+
+    Why not the PB chain's refinements: next to the reference's strong static lines (the MZM
+    products of its self-beat, on a grid of the tones' gcd) they are pulled by up to a bin on
+    short records (measured: 0.95 MHz at 2^14-2^15 samples on the section 4.3 scene, with a
+    stated error of 0.1 MHz). Searched within 3 times the parabola's stated error of its estimate;
+    the moving lines that would cross a static line there are left out (none left: the parabola's
+    estimate is kept, with its error).
+    """
+    from scipy.optimize import minimize_scalar
+
+    fs, n = frame.fs_hz, x.size
+    f0 = abs(dop.fd_hz)
+    t = np.asarray(frame.tones_hz, float)
+    static, pairs = _static_and_shifted(t, fs / 2)
+    for o in others:  # the other targets' lines are static here
+        static = np.concatenate([static, np.abs(pairs[:, 0] + pairs[:, 1] * o)])
+    res = 1.5 * fs / n
+
+    def lines_at(fd: float) -> np.ndarray:
+        mv = np.abs(pairs[:, 0] + pairs[:, 1] * fd)
+        return mv[(mv > res) & (mv < fs / 2 - res)]
+
+    # the line set is fixed at the search's estimate, so that the objective is smooth in fd: every
+    # static line, and the moving lines that stay clear of them over the searched span (those that
+    # would cross one are neither fitted nor counted)
+    mv0 = lines_at(f0)
+    span = 3 * max(dop.refine_error_hz, 0.01 * fs / n)  # the search's parabola: ~0.1 bin
+    st = np.unique(np.round(static[(static > res / 3) & (static < fs / 2 - res)], 3))
+    clear = np.abs(mv0[:, None] - st[None, :]).min(axis=1) > span + 0.5 * fs / n if st.size else \
+        np.ones(mv0.size, bool)
+    if not clear.any():
+        return dop
+
+    def neg_power(fd: float) -> float:
+        mv = lines_at(fd)
+        mv = np.unique(np.round(mv[clear] if mv.size == clear.size else mv[:0], 3))
+        z = fit_lines(x, np.concatenate([st, mv]), fs)
+        return -float(np.sum(np.abs(z[st.size:]) ** 2))
+
+    r = minimize_scalar(neg_power, bounds=(max(f0 - span, 0.5 * f0), f0 + span), method="bounded",
+                        options={"xatol": 1e-4 * fs / n})
+    # an optimum at the edge of the span is no optimum: the parabola was further off than it said
+    at_edge = min(r.x - (f0 - span), (f0 + span) - r.x) < 0.05 * span
+    # the echo's sidebands sit 2*v*f_i/c below the reference's (module docstring): the line's power
+    # centre is pulled by up to half of that for the highest tone
+    err = spec.df_hz if at_edge else 0.5 * f0 * float(np.max(t)) * frame.wavelength_m / C
+    # a bias of up to 0.6 % of a record bin is measured on the section 4.4 scene at 2^17 samples,
+    # noiseless and with an ideal laser (not yet explained; products of order 3 and above are not
+    # modelled): stated as a floor of 1 % of a bin
+    err = max(err, 0.01 * fs / n)
+    return DopplerEstimate(float(r.x), True, dop.score, dop.threshold, dop.min_detectable_hz, err, dop.wander_hz)
+
+
+def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
+               settings: ChainSettings) -> list[PeLines]:
+    """The stage ``pe_lines``: per moving target, the complex amplitude of its PE lines.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64, V (single photodiode)
+    dops : the Doppler lines found (stage ``doppler``)
+    spec : the search spectrum, for the lines' local noise floors
+
+    Raises
+    ------
+    Rejected
+        ``architecture`` (not ``modulated_reference``), ``receiver`` (not a single photodiode),
+        ``pulse`` (quasi-CW frames are not gated by PE).
+    NoTarget
+        No Doppler line: PE ranges moving targets only.
+    """
+    if frame.architecture != "modulated_reference":
+        raise Rejected("architecture", f"pe needs the modulated_reference architecture, the frame has "
+                                       f"{frame.architecture}")
+    if frame.receiver != "single" or np.iscomplexobj(x):
+        raise Rejected("receiver", f"pe needs a single photodiode (the reference self-beat lines), "
+                                   f"the frame has {frame.receiver}")
+    if frame.pulse is not None:
+        raise Rejected("pulse", "pe has no quasi-CW gating")
+    moving = [d for d in dops if d.detected and d.fd_hz != 0.0]
+    if not moving:
+        raise NoTarget("pe: no Doppler line (PE ranges moving targets from f_i +- f_d; a static target is AB-MTCW's)")
+    n, fs = x.size, frame.fs_hz
+    dc = float(np.mean(x))
+    out = []
+    for k, dop in enumerate(moving, start=1):
+        others = [abs(d.fd_hz) for d in moving if d is not dop]
+        dop = refine_doppler(x, frame, dop, others, spec)
+        wanted, usable, allf = _plan_with_others(frame.tones_hz, dop.fd_hz, others, fs, n)
+        z_all = fit_lines(x, allf, fs)
+        amps, vars_ = {}, {}
+        for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
+            f, folded = _fold(wanted[nm])
+            idx = np.clip(np.searchsorted(allf, np.round(f, 6)), 0, allf.size - 1)
+            z = z_all[idx].copy()
+            z[folded] = np.conj(z[folded])
+            ok = usable[i] & (np.abs(allf[idx] - f) < 1e-3)
+            s2 = np.array([spec.noise_variance(fi, list(allf)) for fi in f])
+            var = 2.0 * s2 / (n * np.maximum(np.abs(z) ** 2, 1e-300))
+            var[~ok] = np.inf
+            z[~ok] = 0.0
+            amps[nm], vars_[nm] = z, var
+        a_d = float(np.abs(z_all[np.argmin(np.abs(allf - abs(dop.fd_hz)))]))
+        rho = min(a_d / abs(dc), 1.0) if dc != 0 else 1.0
+        ratio = (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
+        out.append(PeLines(k, dop, np.asarray(frame.tones_hz, float), amps["ref"], amps["up"], amps["low"],
+                           amps["up2"], amps["low2"], vars_["ref"], vars_["up"], vars_["low"], vars_["up2"],
+                           vars_["low2"], ratio, n / fs, (n - 1) / (2 * fs)))
+    return out
+
+
+def blur_phase(kappa: np.ndarray, d_rad: np.ndarray) -> np.ndarray:
+    """Phase (rad) that motion blur adds to a line *pair product* (``U*L``) whose echo half is
+    weighted ``kappa`` against its reference half: ``2*atan((1-kappa)/(1+kappa)*tan(d))``,
+    ``d = pi*f*(tau - tau_r)`` (modulo pi: the sign of the line cancels in the product)."""
+    g = (1 - kappa) / (1 + kappa)
+    return 2 * np.arctan(g * np.tan(d_rad))
+
+
+@dataclass(frozen=True)
+class PeObservations:
+    """The phase observations of one target.
+
+    ``obs`` holds ``Q_i`` (df = f_i) and, where usable, ``Q2_i`` (df = 2 f_i), not yet corrected
+    for blur and the echo's self-beat; ``var`` their variances (rad^2); ``kappa`` each one's blur
+    weight; ``order`` 1 or 2; ``kappa_ref`` the blur of the echo self-beat on the tone's reference
+    line. ``ref_obs`` holds the reference lines' phases at the record's start less the tone phases
+    (model ``-2*pi*f_i*tau_r``), ``ref_var`` their variances and ``ref_kappa`` their echo self-beat's blur.
+    """
+
+    obs: Observations
+    var: np.ndarray
+    kappa: np.ndarray
+    order: np.ndarray
+    ref_obs: Observations
+    ref_var: np.ndarray
+    kappa_ref: np.ndarray
+    ref_kappa: np.ndarray
+
+
+def pe_observations(lines: PeLines, tone_phases_rad: dict[float, float], wavelength_m: float,
+                    min_snr_db: float) -> PeObservations:
+    """The carrier-free, RF-phase-free observations of a target (module docstring).
+
+    Lines below ``min_snr_db`` (post-integration, ``-10*log10(var)``) are left out.
+    """
+    t = lines.tone_hz
+    # the echo self-beat on the reference line is corrected at the solution (see solve_pe); what
+    # is left is the error of the arm ratio read from the baseband line over DC (which counts the
+    # sidebands' power in DC: a few % at m = 0.1 per tone; taken as 10 %)
+    sys_ref = 0.5 * (0.1 * lines.arm_ratio**2) ** 2
+    var_ref = lines.var_ref + sys_ref
+    v = abs(lines.doppler.fd_hz) * wavelength_m / 2
+    delta = 2 * v * t / C
+    kappa1 = _kappa(delta, lines.duration_s)
+    kappa2 = _kappa(2 * delta, lines.duration_s)
+    q1 = lines.z_up * lines.z_low * np.conj(lines.z_ref) ** 2
+    q2 = lines.z2_up * lines.z2_low * np.conj(lines.z_ref) ** 4
+    v1 = lines.var_up + lines.var_low + 4 * var_ref
+    v2 = lines.var2_up + lines.var2_low + 16 * var_ref
+    lim = 10 ** (-min_snr_db / 10)
+    ok1 = np.isfinite(v1) & (lines.var_up <= lim) & (lines.var_low <= lim) & (lines.var_ref <= lim)
+    ok2 = np.isfinite(v2) & (lines.var2_up <= lim) & (lines.var2_low <= lim) & (lines.var_ref <= lim)
+    df = np.concatenate([t[ok1], 2 * t[ok2]])
+    ph = np.concatenate([np.angle(q1[ok1]), np.angle(q2[ok2])])
+    var = np.concatenate([v1[ok1], v2[ok2]])
+    kappa = np.concatenate([kappa1[ok1], kappa2[ok2]])
+    order = np.concatenate([np.ones(int(ok1.sum()), int), np.full(int(ok2.sum()), 2)])
+    kappa_ref = np.concatenate([kappa1[ok1], kappa1[ok2]])
+    obs = Observations(df, wrap_pi(ph), 1 / var)
+    okr = np.isfinite(var_ref) & (lines.var_ref <= lim)
+    phi = np.array([tone_phases_rad.get(float(f), 0.0) for f in t[okr]])
+    # the reference line's phase at the record's first sample (where the tone phases are referred)
+    z0 = lines.z_ref[okr] * np.exp(-2j * np.pi * np.mod(t[okr] * lines.centre_s, 1.0))
+    ref_obs = Observations(t[okr], wrap_pi(np.angle(z0) - phi), 1 / var_ref[okr])
+    return PeObservations(obs, var, kappa, order, ref_obs, var_ref[okr], kappa_ref, kappa1[okr])
+
+
+def self_beat_phase(ratio: float, kappa: np.ndarray, d_rad: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Phase (rad) the echo's own self-beat adds to ``Q`` (order 1) or ``Q2`` (order 2).
+
+    The line at ``f_i`` is the reference's self-beat ``exp(-j*2*pi*f_i*tau_r)`` plus the echo's,
+    ``ratio**2 * kappa * exp(-j*2*pi*f_i*tau)`` (the same intensity waveform, scaled by the power
+    ratio of the arms and blurred by the echo's motion); ``Q`` holds its conjugate squared
+    (``Q2``: to the fourth), so it moves by ``-2*order*arg(1 + ratio**2*kappa*exp(-j*2*d))``,
+    ``d = pi*f_i*(tau - tau_r)``.
+    """
+    return -2 * order * np.angle(1 + ratio**2 * kappa * np.exp(-2j * d_rad))
+
+
+def _subset(po: PeObservations, mask: np.ndarray) -> PeObservations:
+    """The observations of ``po`` where ``mask`` (the reference lines unchanged)."""
+    o = po.obs
+    return PeObservations(Observations(o.df_hz[mask], o.phase_rad[mask], o.weight[mask]), po.var[mask],
+                          po.kappa[mask], po.order[mask], po.ref_obs, po.ref_var, po.kappa_ref[mask], po.ref_kappa)
+
+
+def _kappa(delta_hz: np.ndarray, duration_s: float) -> np.ndarray:
+    """The centred rectangular kernel of a record of ``duration_s`` at offset ``delta_hz``:
+    ``sinc(delta*T)`` (the record's sample count changes it by far less than the blur itself)."""
+    return np.sinc(np.asarray(delta_hz, float) * duration_s)
+
+
+def _info_sigma(df_hz: np.ndarray, var: np.ndarray) -> float:
+    """Range sigma (m) of absolute phase observations ``-2*pi*df*2*L/c`` with variances ``var``."""
+    k = 4 * np.pi * df_hz / C
+    info = float(np.sum(k**2 / var))
+    return 1 / math.sqrt(info) if info > 0 else math.inf
+
+
+def runner_up_log_odds(obs: Observations, tau0_s: float, interval_m: tuple[float, float], best_m: float,
+                       points_per_cycle: int = 16, candidates: int = 8) -> float:
+    """Log-likelihood of ``best_m`` over the best other cycle in ``interval_m``.
+
+    With phase noise of variance ``1/w`` the log-likelihood is ``sum_l w_l*cos(r_l(L))`` (von Mises,
+    concentration ``w``). The ``candidates`` highest other local maxima of the grid (step
+    ``Lambda_min/points_per_cycle``, as :func:`resolve_ml`) are refined before comparing: on the
+    grid alone a peak is under-rated by up to ``sum(w)*(1 - cos(pi/points_per_cycle))``, far more
+    than the difference that matters.
+    """
+    from scipy.optimize import minimize_scalar
+
+    k = 2 * np.pi * obs.df_hz
+
+    def loglik(l_m):
+        l_m = np.atleast_1d(np.asarray(l_m, float))
+        return np.cos(obs.phase_rad[None, :] + k[None, :] * (tau0_s + 2 * l_m[:, None] / C)) @ obs.weight
+
+    lam = float(np.min(obs.synthetic_wavelengths_m))
+    step = lam / points_per_cycle
+    grid = np.arange(interval_m[0], interval_m[1] + step, step)
+    vals = np.concatenate([loglik(grid[i:i + 65536]) for i in range(0, grid.size, 65536)])
+    is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
+    far = np.abs(grid - best_m) > 0.5 * lam
+    idx = np.flatnonzero(is_max & far)
+    if idx.size == 0:
+        return math.inf
+    top = idx[np.argsort(vals[idx])[::-1][:candidates]]
+    second = max(-minimize_scalar(lambda l: -loglik(l)[0], bounds=(grid[i] - step, grid[i] + step),
+                                  method="bounded", options={"xatol": 1e-6 * lam}).fun for i in top)
+    return float(loglik(best_m)[0] - second)
+
+
+def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 0.0,
+                    tau_diff_s: float | None = None) -> tuple[float, float]:
+    """``L_ref`` (m) and its sigma: the setting (sigma 0) or the reference self-beat phases.
+
+    Parameters
+    ----------
+    ratio : float
+        ``a_m/a_ref``; with ``tau_diff_s`` (``tau - tau_r`` of the solution, s), the echo's own
+        self-beat on the reference lines is removed first (:func:`self_beat_phase`).
+
+    Raises
+    ------
+    NoTarget
+        ``reference_range_m`` not set and fewer than two reference lines above the SNR threshold.
+    """
+    if settings.reference_range_m is not None:
+        return settings.reference_range_m, 0.0
+    ro = po.ref_obs
+    if ro.df_hz.size < 2:
+        raise NoTarget("pe: reference_range_m not set and fewer than two reference self-beat lines to measure it")
+    if tau_diff_s is not None:
+        d = np.pi * ro.df_hz * tau_diff_s
+        echo = np.angle(1 + ratio**2 * po.ref_kappa * np.exp(-2j * d))
+        ro = Observations(ro.df_hz, wrap_pi(ro.phase_rad - echo), ro.weight)
+    lu = unambiguous_range(ro.df_hz)
+    sol = resolve_ml(ro, 0.0, (settings.range_min_m, settings.range_min_m + lu), settings.points_per_cycle)
+    return sol.range_m, _info_sigma(ro.df_hz, po.ref_var)
+
+
+def _velocity(lines: PeLines, frame: Frame) -> tuple[float, float, str]:
+    """Speed, sigma and direction from the refined Doppler line, by the PB chain's
+    :func:`~mtcw_core.ranging.targets.velocity` on the target's U and L lines."""
+    fams = [LineFamily("U", lines.tone_hz, np.abs(lines.tone_hz + lines.doppler.fd_hz), lines.z_up[None, :],
+                       np.array([lines.centre_s]), lines.var_up, lines.target),
+            LineFamily("L", lines.tone_hz, np.abs(lines.tone_hz - lines.doppler.fd_hz), lines.z_low[None, :],
+                       np.array([lines.centre_s]), lines.var_low, lines.target)]
+    return velocity(lines.doppler, frame, fams, False)[:3]
+
+
+def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
+    """One target's point and the unambiguous range (m) of the observations it used.
+
+    Raises
+    ------
+    NoTarget
+        Fewer than two usable observations.
+    """
+    po_all = pe_observations(lines, ref.tone_phases_rad, frame.wavelength_m, settings.min_line_snr_db)
+    po = _subset(po_all, po_all.order == 1)
+    obs = po.obs
+    if obs.df_hz.size < 2:
+        raise NoTarget(f"pe: fewer than two tones with their f_i +- f_d and reference lines above "
+                       f"{settings.min_line_snr_db} dB")
+    l_ref, s_ref = reference_range(po, settings)
+    l_unamb = unambiguous_range(obs.df_hz)
+    lo = settings.range_min_m
+    hi = settings.range_max_m if settings.range_max_m is not None else lo + l_unamb
+    interval = (lo - l_ref, hi - l_ref)  # the path difference L - L_ref is what the phases give
+
+    def solve(o: Observations):
+        if settings.method == "seed":
+            return resolve_seed(o, ref.tau0_s, interval[1], interval[0])
+        return resolve_ml(o, ref.tau0_s, interval, settings.points_per_cycle)
+
+    def corrected(p: PeObservations, range_m: float) -> tuple[Observations, np.ndarray]:
+        """Blur and the echo's self-beat at ``range_m`` (the path difference) removed; a
+        second-order line's correction is approximate, its size joins its variance; a first-order
+        line's two-term model leaves ~10 % of it (the exact MZM's higher products: 11.5 um left
+        against 5 um stated at 2^22 samples on the section 4.3 scene without this term)."""
+        d = np.pi * p.obs.df_hz * (ref.tau0_s + 2 * range_m / C)
+        corr = blur_phase(p.kappa, d) + self_beat_phase(lines.arm_ratio, p.kappa_ref, d / p.order, p.order)
+        v = p.var + np.where(p.order == 2, corr**2, (0.1 * corr) ** 2)
+        return Observations(p.obs.df_hz, wrap_pi(p.obs.phase_rad - corr), 1 / v), v
+
+    sol = solve(obs)
+    for _ in range(2):  # corrections evaluated at the solution, then solved again
+        obs, var = corrected(po, sol.range_m)
+        sol = solve(obs)
+    if settings.pe_second_order and np.any(po_all.order == 2):
+        # the 2f_i +- f_d lines carry products of other tones too (m^3 terms) that can rival them
+        # where their bracket fades: each joins only if it agrees with the first-order solution
+        o_all, v_all = corrected(po_all, sol.range_m)
+        r = wrap_pi(o_all.phase_rad + 2 * np.pi * o_all.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
+        po = _subset(po_all, (po_all.order == 1) | (np.abs(r) < 3 * np.sqrt(v_all)))
+        obs, var = corrected(po, sol.range_m)
+        sol = solve(obs)
+        obs, var = corrected(po, sol.range_m)
+    l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
+    sigma = _info_sigma(obs.df_hz, var)
+    if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
+        i = int(np.argmax(obs.df_hz))
+        sigma = _info_sigma(obs.df_hz[i:i + 1], var[i:i + 1])
+    # do the tones agree with one range within their noise? (Birge ratio, as the PB chain)
+    res = wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
+    chi2 = float(np.sum(res**2 / var))
+    dof = obs.df_hz.size - 1
+    ratio = chi2 / dof if dof > 0 else 1.0
+    if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
+        sigma *= math.sqrt(ratio)
+    sigma = math.hypot(sigma, s_ref)
+    # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range
+    # over the runner-up's, sum_l w_l*(cos r_l(best) - cos r_l(second)) = sum(w)*J(best)*margin;
+    # below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
+    ml = sol if settings.method != "seed" else resolve_ml(obs, ref.tau0_s, interval, settings.points_per_cycle)
+    log_odds = runner_up_log_odds(obs, ref.tau0_s, interval, ml.range_m, settings.points_per_cycle)
+    ambiguous = bool(log_odds < settings.pe_min_log_odds)
+    # the dissertation's row spread may pick another cycle than the likelihood does: not trusted then
+    finest = float(np.min(obs.synthetic_wavelengths_m))
+    ambiguous |= abs(wrap_pi(2 * np.pi * (sol.range_m - ml.range_m) / l_unamb)) * l_unamb / (2 * np.pi) > finest / 2
+    v, vs, direction = _velocity(lines, frame)
+    snr = -10 * np.log10(po.var)
+    tone_snr: dict[str, float] = {}
+    for f, o, s in zip(obs.df_hz, po.order, snr):
+        key = f"{f / o:.0f}"
+        tone_snr[key] = max(tone_snr.get(key, -np.inf), float(s))
+    point = TargetPoint(
+        range_m=float(sol.range_m + l_ref), range_sigma_m=float(sigma), velocity_mps=v, velocity_sigma_mps=vs,
+        direction=direction, snr_db=float(np.max(snr)), margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
+        near_edge=sol.near_edge, cycle_ambiguous=ambiguous, blended=bool(dof > 0 and ratio > settings.blended_chi2),
+        doppler_hz=lines.doppler.fd_hz, chi2_per_dof=float(ratio), tone_snr_db=tone_snr,
+        seed_sigma_k_m=sol.seed_sigma_k_m,
+    )
+    return point, l_unamb
+
+
+def resolve_pe(lines: list[PeLines], frame: Frame, settings: ChainSettings, ref: Reference
+               ) -> tuple[list[tuple[int, TargetPoint]], float | None]:
+    """The stage ``pe_resolve``: a point per moving target that can be ranged, and the largest
+    unambiguous range (m) among them (``c/(2*gcd)`` of the tones used).
+
+    Raises
+    ------
+    NoTarget
+        No target had enough lines (the reason of the first is given).
+    """
+    points: list[tuple[int, TargetPoint]] = []
+    l_unamb = None
+    why = None
+    for ln in lines:
+        try:
+            p, lu = solve_pe(ln, frame, settings, ref)
+        except NoTarget as err:
+            why = why or str(err)
+            continue
+        points.append((ln.target, p))
+        l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+    if not points:
+        raise NoTarget(why or "pe: nothing to range")
+    return points, l_unamb
