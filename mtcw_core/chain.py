@@ -182,18 +182,15 @@ TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES
 
 
 def stages_of(technique: str) -> tuple[Stage, ...]:
-    """The stage table of ``technique``; :class:`Rejected` (``technique``) when this build has none."""
-    try:
-        return TECHNIQUES[technique]
-    except KeyError:
-        raise Rejected("technique", f"{technique!r} is not available (one of {', '.join(TECHNIQUES)})") from None
+    """The stage table of ``technique`` (one of ``ChainSettings.technique``'s values, all in :data:`TECHNIQUES`)."""
+    return TECHNIQUES[technique]
 
 
 def _start(frame: Frame, settings: ChainSettings | str, calibration: Calibration | None) -> FrameState:
     if isinstance(settings, str):
         settings = get_profile(settings)
-    res = FrameResult(status="rejected", profile=settings.profile, technique=settings.technique, seq=frame.seq, t_ns=frame.t_ns,
-                      source=frame.source, calibrated=calibration is not None)
+    res = FrameResult(status="rejected", profile=settings.profile, technique=settings.technique, seq=frame.seq,
+                      t_ns=frame.t_ns, source=frame.source, calibrated=calibration is not None)
     return FrameState(frame, settings, calibration, res)
 
 
@@ -231,6 +228,12 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
     """Run the chain on one frame. Never raises: a bad frame comes back ``rejected`` with a reason,
     a frame with nothing to range ``no_target`` with a reason."""
     state = _start(frame, settings, calibration)
+    walk_total(state)
+    return state.result
+
+
+def walk_total(state: FrameState) -> None:
+    """Walk the stages; a stage's end (``NoTarget``, ``Rejected``, any error) becomes the result's status."""
     res = state.result
     try:
         _walk(state)
@@ -240,7 +243,6 @@ def process_frame(frame: Frame, settings: ChainSettings | str = "balanced",
         res.status, res.reason = "rejected", str(rej)
     except Exception as err:  # the chain never lets an exception escape
         res.status, res.reason = "rejected", f"internal_error: {type(err).__name__}: {err}"
-    return res
 
 
 __all__ = ["STAGES", "STAGE_NAMES", "TECHNIQUES", "stages_of", "Stage", "FrameState", "run_stages", "process_frame", "ChainSettings",

@@ -32,14 +32,13 @@ from typing import Any
 import numpy as np
 
 from .calibration import Calibration
-from .chain import FrameState, _start, _walk
+from .chain import FrameState, _start, walk_total
 from .dsp.doppler import fd_max, intermod_frequencies
 from .dsp.spectrum import LN2, Spectrum, local_floor
 from .frame import Frame
 from .profiles import ChainSettings
 from .ranging.targets import _search_interval
 from .ranging.triangulation import Observations, candidate_matrix, cost, unambiguous_range
-from .results import NoTarget, Rejected
 
 #: display points of the spectrum, the cost curve and the sigma_k curve at most
 MAX_POINTS = 2048
@@ -235,12 +234,7 @@ def explain_frame(frame: Frame, settings: ChainSettings | str = "balanced", cali
     """
     s = _start(frame, settings, calibration)
     res = s.result
-    try:
-        _walk(s)
-    except NoTarget as why:
-        res.status, res.reason = "no_target", str(why)
-    except Rejected as rej:
-        res.status, res.reason = "rejected", str(rej)
+    walk_total(s)
     marks = _line_marks(s)
     out = {
         "seq": int(frame.seq), "source": frame.source, "t_ns": int(frame.t_ns), "profile": res.profile,

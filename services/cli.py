@@ -102,6 +102,18 @@ def _settings(profile: str, method: Optional[str], technique: str = "pb", timing
         _fail(str(err))
 
 
+def _calibration(path: Optional[Path]):
+    """The calibration file at ``path`` (None: none); a bad file ends the command naming it."""
+    from mtcw_core.calibration import Calibration, CalibrationError
+
+    if path is None:
+        return None
+    try:
+        return Calibration.load(path)
+    except CalibrationError as err:
+        _fail(str(err))
+
+
 def _point_rows(res) -> list[dict]:
     base = {"seq": res.seq, "t_ns": res.t_ns, "source": res.source, "status": res.status, "reason": res.reason,
             "profile": res.profile, "unambiguous_range_m": res.unambiguous_range_m}
@@ -127,19 +139,13 @@ def process(
 
     import numpy as np
 
-    from mtcw_core.calibration import Calibration, CalibrationError
     from mtcw_core.chain import process_frame
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
     settings = _settings(profile, method, technique, timing_jitter_s)
-    cal = None
-    if calibration is not None:
-        try:
-            cal = Calibration.load(calibration)
-        except CalibrationError as err:
-            _fail(str(err))
-    else:
+    cal = _calibration(calibration)
+    if cal is None:
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
                     err=True, fg=typer.colors.YELLOW)
     rows, times, stages, status, log = [], [], {}, {}, ErrorLog()
@@ -182,7 +188,6 @@ def explain(
 ) -> None:
     """One frame's triangulation made visible: spectrum with every line marked, J(L) with the chosen
     peak and the runner-up, the seed's candidate matrix and sigma_k (PNGs and explain.json)."""
-    from mtcw_core.calibration import Calibration, CalibrationError
     from mtcw_core.explain import explain_frame
     from services.explain_plot import write_explain
 
@@ -194,13 +199,7 @@ def explain(
         _fail(f"--frame: {err}")
     except RecordingError as err:
         _fail(str(err))
-    cal = None
-    if calibration is not None:
-        try:
-            cal = Calibration.load(calibration)
-        except CalibrationError as err:
-            _fail(str(err))
-    d = explain_frame(fr, settings, cal)
+    d = explain_frame(fr, settings, _calibration(calibration))
     written = write_explain(d, output)
     summary = {"frame": frame, "seq": d["seq"], "status": d["status"], "reason": d["reason"],
                "targets": [{"range_m": t["range_m"], "range_sigma_m": t["range_sigma_m"], "margin": t["margin"]}
