@@ -208,20 +208,15 @@ def test_reference_calibration_round_trip_and_validation(tmp_path):
 
 def test_stream_a_worker_with_technique_ab_serves_points_at_the_api(tmp_path):
     """Simulate -> acquisition node -> ``mtcw worker --technique ab`` -> API, over loopback."""
-    from .test_services import Bench, _wait_total
+    from .test_services import Bench
 
     b = Bench(tmp_path)
     try:
         sc = bench_scene(digitizer={"samples": 2**16})
-        b.scene.write_text(sc.model_dump_json())
         cal = tmp_path / "ab-cal.json"
         ab.derive_reference(Simulator(blocked(sc)).frames(2), 0.03).save(cal)
-        b.api()
-        b.acquire(frames=4, rate=10)
-        b.start("worker", "worker", "--technique", "ab", "--calibration", str(cal))
-        h = _wait_total(b, 4)
+        h, pts = b.stream_scene(sc, 4, 10, "--technique", "ab", "--calibration", str(cal))
         assert h["processed"] == 4 and h["dropped"] == 0
-        pts = b.all_points()
         assert [p["technique"] for p in pts] == ["ab"] * 4 and all(p["status"] == "ok" for p in pts)
         for p in pts:
             t = p["targets"][0]

@@ -195,18 +195,13 @@ def test_line_plan_marks_colliding_lines_unusable():
 
 def test_worker_with_technique_pe_streams_points_to_the_api(tmp_path):
     """End to end over loopback: acquisition (section 4.3 scene) -> `mtcw worker --technique pe` -> API."""
-    from .test_services import Bench, _wait_total
+    from .test_services import Bench
 
     bench = Bench(tmp_path)
     try:
         sc = fast_scene(samples=2**14, noise=True, targets=[{"loss_db": 30.0}])
-        bench.scene.write_text(sc.model_dump_json())
-        bench.api()
-        bench.acquire(frames=6, rate=20)
-        bench.start("worker", "worker", "--technique", "pe")
-        h = _wait_total(bench, 6)
+        h, pts = bench.stream_scene(sc, 6, 20, "--technique", "pe")
         assert h["processed"] == 6 and h["rejected"] == 0
-        pts = bench.all_points()
         assert len(pts) == 6
         for p in pts:
             assert p["technique"] == "pe" and p["status"] == "ok", p

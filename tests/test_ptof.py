@@ -110,18 +110,12 @@ def test_what_ptof_cannot_range_is_rejected_or_no_target():
 
 def test_stream_a_worker_with_technique_ptof_serves_points_at_the_api(tmp_path):
     """Simulate (PToF mode) -> acquisition node -> ``mtcw worker --technique ptof`` -> API, over loopback."""
-    from .test_services import Bench, _wait_total
+    from .test_services import Bench
 
     b = Bench(tmp_path)
     try:
-        sc = load_scene("ptof-bench")
-        b.scene.write_text(sc.model_dump_json())
-        b.api()
-        b.acquire(frames=4, rate=10)
-        b.start("worker", "worker", "--technique", "ptof")
-        h = _wait_total(b, 4)
+        h, pts = b.stream_scene(load_scene("ptof-bench"), 4, 10, "--technique", "ptof")
         assert h["processed"] == 4 and h["dropped"] == 0
-        pts = b.all_points()
         assert [p["technique"] for p in pts] == ["ptof"] * 4 and all(p["status"] == "ok" for p in pts)
         for p in pts:
             t = p["targets"][0]

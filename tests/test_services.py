@@ -117,6 +117,15 @@ class Bench:
     def all_points(self) -> list[dict]:
         return self.get("/v1/points", limit=10_000).json()["points"]
 
+    def stream_scene(self, scene, frames: int, rate: float, *worker_args: str) -> tuple[dict, list[dict]]:
+        """``scene`` through the acquisition node and one ``mtcw worker *worker_args`` to the API: the
+        health once every frame is accounted for, and every point served."""
+        self.scene.write_text(scene.model_dump_json())
+        self.api()
+        self.acquire(frames=frames, rate=rate)
+        self.start("worker", "worker", *worker_args)
+        return _wait_total(self, frames), self.all_points()
+
 
 @pytest.fixture
 def bench(tmp_path):

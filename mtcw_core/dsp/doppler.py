@@ -20,7 +20,7 @@ from scipy.optimize import minimize_scalar
 
 from ..frame import Frame
 from ..profiles import ChainSettings
-from .spectrum import Spectrum, line_width_bins, local_floor, widths_at
+from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at
 from .tones import exact_dft
 
 
@@ -332,10 +332,10 @@ COMMON_MODE_MARGIN = 1.5
 PHASE_SEPARATION_BINS = 4.0
 
 
-def _segment_window(length: int) -> np.ndarray:
-    from scipy.signal.windows import kaiser
-
-    return kaiser(length, PHASE_WINDOW_BETA, sym=True)
+def _other_lines(tones, fd: float, others: list[float], iq: bool) -> np.ndarray:
+    """Every line (Hz) there may be besides the target's at ``fd``: the static target's (and 0 Hz),
+    the other targets'."""
+    return np.concatenate([target_lines(tones, o, iq)[0] for o in [0.0, *others] if o != fd])
 
 
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
@@ -367,8 +367,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     if length < 64:
         return est
     freqs, slope = target_lines(frame.tones_hz, fd, iq)
-    # every other line there may be: the static target's (and 0 Hz), the other targets'
-    near = np.concatenate([target_lines(frame.tones_hz, o, iq)[0] for o in [0.0, *others] if o != fd])
+    near = _other_lines(frame.tones_hz, fd, others, iq)
     sep = PHASE_SEPARATION_BINS * fs / length
     use = np.array([np.all(np.abs(near - f) > sep) and np.sum(np.abs(freqs - f) < sep) == 1
                     and (iq or 2 * abs(f) > sep) for f in freqs])
@@ -378,7 +377,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     if max_lines is not None and freqs.size > max_lines:
         top = np.argsort(spec.power[np.clip(spec.bin_of(freqs), 0, spec.power.size - 1)])[::-1][:max_lines]
         freqs, slope = freqs[top], slope[top]
-    w = _segment_window(length)
+    w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
     parts = x[:segments * length].reshape(segments, length)
     parts = (parts - parts.mean(axis=1, keepdims=True)) * w
     z = np.array([exact_dft(p, freqs, fs) for p in parts])  # (S, K)
@@ -431,14 +430,12 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
         return est
     fd0, sig = first.fd_hz, first.refine_error_hz
     freqs0, _ = target_lines(frame.tones_hz, fd0, iq)
-    near = np.concatenate([target_lines(frame.tones_hz, o, iq)[0] for o in [0.0, *others] if o != est.fd_hz])
+    near = _other_lines(frame.tones_hz, est.fd_hz, others, iq)
     sep = 2 * frame.fs_hz / x.size * 4  # record bins: the window's main lobe and a margin
     keep = np.array([np.all(np.abs(near - f) > sep) and (iq or 2 * abs(f) > sep) for f in freqs0])
     if not keep.any():
         return first
-    from scipy.signal.windows import kaiser
-
-    xw = (x - x.mean()) * kaiser(x.size, PHASE_WINDOW_BETA, sym=True)
+    xw = (x - x.mean()) * cached_window(("kaiser", PHASE_WINDOW_BETA), x.size)
 
     def neg_power(fd: float) -> float:
         f, _ = target_lines(frame.tones_hz, fd, iq)

@@ -225,16 +225,17 @@ def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[flo
     ndarray, shape (S, T): the predicted lines (0 where a mover's baseband line was not fitted)
     """
     out = np.zeros_like(zs[0, "S"])
-    base = []
+    base = []  # (target, its baseband line per segment) where that line was fitted
     for k, fd in enumerate(fds, start=1):
         i = int(np.argmin(np.abs(uniq - abs(fd))))
-        base.append((k, z_all[:, i] if abs(uniq[i] - abs(fd)) < 1e-3 else None))
-    echo_dc = sum(np.abs(b) ** 2 for _, b in base if b is not None)
-    if isinstance(echo_dc, int):
+        if abs(uniq[i] - abs(fd)) < 1e-3:
+            base.append((k, z_all[:, i]))
+    if not base:
         return out
+    echo_dc = sum(np.abs(b) ** 2 for _, b in base)
     lo_power = 0.5 * (dc + np.sqrt(np.maximum(dc**2 - echo_dc, 0.0)))  # A_L^2 (V), per segment
     for k, b in base:
-        if b is None or (k, "U") not in zs:
+        if (k, "U") not in zs:
             continue
         u, low = zs[k, "U"], zs[k, "L"]
         have = (np.abs(u) > 0) & (np.abs(low) > 0)

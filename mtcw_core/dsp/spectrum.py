@@ -67,7 +67,7 @@ class Spectrum:
 
 
 @lru_cache(maxsize=8)
-def _window(window: tuple | str, m: int, dtype: str = "float64") -> np.ndarray:
+def cached_window(window: tuple | str, m: int, dtype: str = "float64") -> np.ndarray:
     """The (symmetric) window, cached: a stream's frames share one length, and a Kaiser window
     of 1e6 points costs more than the FFT it weights."""
     w = get_window(window, m, fftbins=False).astype(dtype)
@@ -77,7 +77,7 @@ def _window(window: tuple | str, m: int, dtype: str = "float64") -> np.ndarray:
 
 @lru_cache(maxsize=8)
 def _window_power(window: tuple | str, m: int) -> float:
-    return float(np.sum(_window(window, m) ** 2))
+    return float(np.sum(cached_window(window, m) ** 2))
 
 
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None,
@@ -99,7 +99,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
     win = window if isinstance(window, str) else tuple(window)
     if single:
         seg = seg.astype(np.complex64 if np.iscomplexobj(seg) else np.float32)
-    w = _window(win, m, "float32" if single else "float64")
+    w = cached_window(win, m, "float32" if single else "float64")
     y = (seg - seg.mean()) * w
     if np.iscomplexobj(y):
         X = scipy.fft.fftshift(scipy.fft.fft(y))
