@@ -185,9 +185,11 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
         zs[target, name] = z
-    if frame.receiver == "single" and settings.extraction != "filter" and not windows:
+    if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
+            and not windows):
         # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
-        # with no Doppler, on top of the static target's (issue 12 cases 3 and 5)
+        # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
+        # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([x.mean()]))
         zs[0, "S"] = zs[0, "S"] - self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
     out = []
