@@ -318,7 +318,11 @@ class ApiSettings(TransportSettings):
     @field_validator("store_path")
     @classmethod
     def _store_path(cls, v: str) -> str:
-        if v != ":memory:" and Path(v).expanduser().is_dir():
+        try:
+            is_dir = v != ":memory:" and Path(v).expanduser().is_dir()
+        except (OSError, ValueError) as err:  # a name too long for the file system, a NUL
+            raise ValueError(f"cannot be a file name ({getattr(err, 'strerror', None) or err})") from None
+        if is_dir:
             raise ValueError(f"{v} is a directory; give a file in it (e.g. {Path(v) / 'mtcw-api.sqlite3'})")
         return v
 

@@ -802,6 +802,7 @@ def test_settings_from_flags_are_total(cls: type[BaseSettings], data: st.DataObj
     (AcquisitionSettings, "inf", "end_timeout_s"),  # OverflowError in Publisher.finish
     (ApiSettings, "", "endpoints_file"),  # Path("") is ".": report_endpoints raises ValueError (empty name)
     (AcquisitionSettings, "9" * 5000, "recording"),  # OSError (file name too long) escapes load itself
+    (ApiSettings, "9" * 5000, "store_path"),  # OSError (file name too long) from is_dir, found by CI's fuzzing
     (AcquisitionSettings, "inf", "rate_hz"),
     (ApiSettings, "inf", "stale_after_s"),
     (ApiSettings, "nan", "reorder_timeout_s"),
