@@ -107,7 +107,10 @@ class Frame:
         x = self.samples[idx]
         if x.dtype.kind == "f" and self.scale == 1.0 and self.offset == 0.0:
             return x.astype(np.float64, copy=False)
-        return x.astype(np.float64) * self.scale + self.offset
+        v = x.astype(np.float64)  # one buffer, scaled in place
+        v *= self.scale
+        v += self.offset
+        return v
 
     def signal(self) -> np.ndarray:
         """The detector signal in volts: real float64 (single/balanced) or complex128 (iq), shape (n,)."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.signal import get_window
 
-from mtcw_core.dsp.spectrum import (Spectrum, line_width_bins, local_floor, power_spectrum, search_spectrum,
+from mtcw_core.dsp.spectrum import (Spectrum, line_width_bins, local_floor, power_spectrum, real_power, search_spectrum,
                                     widths_at)
 
 FS = 1.0e9
@@ -237,3 +237,45 @@ class TestSearchSpectrum:
         x = np.random.default_rng(16).standard_normal(1024)
         sp = search_spectrum(x, FS, 0.0, 1.0, False)  # Kaiser(0) is the rectangular window
         np.testing.assert_allclose(sp.power, power_spectrum(x, FS, "boxcar").power, rtol=1e-12)
+
+
+class TestPackedRealFFT:
+    """``real_power`` (one complex FFT of half the length) is ``|rfft|^2``, in both precisions."""
+
+    @pytest.mark.parametrize("m", [2, 4, 10, 1000, 4096, 2 * 3 * 5 * 7 * 11])
+    @pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-12), (np.float32, 2e-5)])
+    def test_equals_the_rfft_power(self, m, dtype, rtol):
+        y = np.random.default_rng(m).standard_normal(m)
+        ref = np.abs(np.fft.rfft(y)) ** 2
+        got = real_power(y.astype(dtype))
+        assert got.shape == ref.shape and got.dtype == dtype
+        np.testing.assert_allclose(got, ref, rtol=0, atol=rtol * ref.mean())
+
+    def test_a_tone_lands_in_its_bin_and_nyquist_is_kept(self):
+        m = 1024
+        k = np.arange(m)
+        y = 3.0 * np.cos(2 * np.pi * 100 * k / m) + 0.5 * (-1.0) ** k  # a tone in bin 100, a Nyquist line
+        p = real_power(y.copy())
+        assert np.argmax(p[:-1]) == 100 and p[100] == pytest.approx((3.0 * m / 2) ** 2, rel=1e-12)
+        assert p[-1] == pytest.approx((0.5 * m) ** 2, rel=1e-12)
+
+    def test_odd_lengths_take_scipys_rfft(self):
+        x = np.random.default_rng(3).standard_normal(1001)
+        sp = power_spectrum(x, FS, "boxcar")
+        np.testing.assert_allclose(sp.power, np.abs(np.fft.rfft(x - x.mean())) ** 2, rtol=1e-10)
+
+
+@pytest.mark.parametrize("mirror_dc", [True, False])
+def test_local_floor_on_ranges_is_the_whole_spectrums(mirror_dc):
+    """The search's floor, computed on bands only (both ends, overlapping and tiny ranges
+    included), equals the whole-spectrum floor there; bins outside are NaN."""
+    rng = np.random.default_rng(5)
+    p = rng.exponential(size=20001) * (1 + np.arange(20001) / 1e3)
+    full = local_floor(p, mirror_dc=mirror_dc)
+    ranges = [(-5, 30), (20, 400), (19950, 20050), (5000, 5001), (7000, 6990)]
+    part = local_floor(p, mirror_dc=mirror_dc, ranges=ranges)
+    inside = np.zeros(p.size, bool)
+    for a, b in ranges:
+        inside[max(a, 0):max(min(b, p.size), 0)] = True
+    np.testing.assert_allclose(part[inside], full[inside], rtol=1e-12)
+    assert np.isnan(part[~inside]).all()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_core.dsp.tones import exact_dft, fit_lines, fit_lines_segments
+from mtcw_core.dsp.tones import exact_dft, exact_dft_parts, fit_lines, fit_lines_segments, phasors
 
 FS = 1.0e9
 
@@ -190,3 +190,36 @@ class TestFitLinesSegments:
         starts = np.array([0, 2048])
         z = fit_lines_segments(x, starts, 2048, self.F, FS)
         np.testing.assert_allclose(z, self.expected(starts, 2048), atol=1e-5)
+
+
+def _direct_dft(x, f, fs):
+    k = np.arange(x.size) - (x.size - 1) / 2
+    return np.array([np.sum(x * np.exp(-2j * np.pi * np.mod(fi / fs * k, 1.0))) for fi in f])
+
+
+@pytest.mark.parametrize("n", [1, 7, 64, 65, 1000, 4097, 2**16 + 3])
+def test_exact_dft_is_the_direct_sum_for_any_length(n):
+    """The factorised DFT (blocks, no padding, a tail of n mod M samples) equals the direct sum."""
+    rng = np.random.default_rng(n)
+    f = np.array([0.0, 123.4567e6, -7.3e6, 2.4e9])
+    for x in (rng.standard_normal(n), rng.standard_normal(n) + 1j * rng.standard_normal(n)):
+        np.testing.assert_allclose(exact_dft(x, f, 5e9), _direct_dft(x, f, 5e9), rtol=0, atol=1e-10 * np.sqrt(n))
+
+
+def test_exact_dft_parts_refers_each_row_to_its_own_centre():
+    rng = np.random.default_rng(2)
+    parts = rng.standard_normal((4, 2501))
+    f = [1e6, 333.3e6]
+    got = exact_dft_parts(parts, f, 5e9)
+    assert got.shape == (4, 2)
+    np.testing.assert_allclose(got, [_direct_dft(p, f, 5e9) for p in parts], atol=1e-10)
+
+
+def test_phasors_keep_float64_phase_at_large_indices():
+    """exp(-2j*pi*((offset + i)*step mod 1)) from two small tables: the phase error stays at the
+    float64 rounding of the reduced cycles, also half a million samples from the origin."""
+    step = np.array([0.1234567891234, 0.4999999, 1e-7])
+    got = phasors(-499999.5, 5000, step)
+    i = -499999.5 + np.arange(5000)
+    ref = np.exp(-2j * np.pi * np.mod(np.outer(i, step), 1.0))
+    assert np.max(np.abs(np.angle(got * np.conj(ref)))) < 1e-9

@@ -21,7 +21,7 @@ from scipy.optimize import minimize_scalar
 from ..frame import Frame
 from ..profiles import ChainSettings
 from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at
-from .tones import exact_dft
+from .tones import exact_dft, exact_dft_parts
 
 
 @dataclass(frozen=True)
@@ -184,9 +184,16 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
         return out
 
     def line(f_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Power at f, and power over the local floor (the search's hot path: one lookup each)."""
-        p = power(f_hz)
-        return p, p / floor[np.clip(spec.bin_of(f_hz), 0, nb - 1)]
+        """Power at f, and power over the local floor (0 beyond the spectrum; the search's hot path)."""
+        idx = spec.bin_of(f_hz)
+        ok = (idx >= 0) & (idx < nb)
+        if ok.all():
+            p = spec.power[idx].astype(np.float64)
+            return p, p / floor[idx]
+        p, ratio = np.zeros(idx.size), np.zeros(idx.size)
+        p[ok] = spec.power[idx[ok]]
+        ratio[ok] = p[ok] / floor[idx[ok]]
+        return p, ratio
 
     b = np.arange(0, bmax + 1)
     fd = sign * b * spec.df_hz
@@ -287,7 +294,10 @@ def search_doppler(
     if bmax <= min_bins + 1:
         return [DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)]
     signs = (1, -1) if spec.complex_input else (1,)
-    floor = local_floor(spec.power, mirror_dc=not spec.complex_input)
+    # the floor where the search looks: about 0 Hz and about every tone (+-f_i for IQ), +-bmax bins
+    centres = np.concatenate([[0.0], tones, -tones]) if spec.complex_input else np.concatenate([[0.0], tones])
+    around = [(int(b) - bmax - 2, int(b) + bmax + 3) for b in spec.bin_of(centres)]
+    floor = local_floor(spec.power, mirror_dc=not spec.complex_input, ranges=around)
     results = {s: _score_candidates(spec, floor, tones, s, bmax, min_bins, fd_max_hz, threshold_factor, use_baseband)
                for s in signs}
     threshold = threshold_factor * (2 * tones.size + (1 if use_baseband else 0))
@@ -379,8 +389,9 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
         freqs, slope = freqs[top], slope[top]
     w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
     parts = x[:segments * length].reshape(segments, length)
-    parts = (parts - parts.mean(axis=1, keepdims=True)) * w
-    z = np.array([exact_dft(p, freqs, fs) for p in parts])  # (S, K)
+    # the DFT of (part - its mean) * w, by linearity: DFT(part * w) - mean * DFT(w) (every part
+    # is referred to its own centre, so the window's DFT is one row for all)
+    z = exact_dft_parts(parts * w, freqs, fs) - parts.mean(axis=1)[:, None] * exact_dft(w, freqs, fs)  # (S, K)
     advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
     prod = z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
     if not np.any(np.abs(prod) > 0):

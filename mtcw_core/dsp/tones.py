@@ -21,14 +21,73 @@ from scipy import linalg
 from scipy.special import diric
 
 
-def _tables(n: int, freqs_hz: np.ndarray, fs_hz: float, m: int):
-    a_count = -(-n // m)
+def _block(n: int) -> int:
+    """Block length M of the factorisation: about sqrt(2n), a power of two (the (A, M) x (M, 2K)
+    product is then close to square, which BLAS does best)."""
+    return int(2 ** max(6, round(math.log2(math.sqrt(n))) + 1))
+
+
+def phasors(offset: float, count: int, step: np.ndarray) -> np.ndarray:
+    """``exp(-2j*pi*((offset + i)*step mod 1))`` for ``i < count``, shape (count, K).
+
+    Built as the outer product of two tables of about ``sqrt(count)`` rows each (``i = i1*L + i2``),
+    so it costs ``2*sqrt(count)*K`` exponentials and ``count*K`` complex products instead of
+    ``count*K`` exponentials; every factor's cycles are reduced modulo 1 in float64 first.
+
+    Parameters
+    ----------
+    offset : float, the first index (may be a half-integer: the record's centre)
+    step : ndarray, shape (K,), cycles per index
+    """
+    step = np.asarray(step, dtype=np.float64)
+    if count <= 64:
+        return np.exp(-2j * np.pi * np.mod(np.outer(offset + np.arange(count, dtype=np.float64), step), 1.0))
+    width = int(math.ceil(math.sqrt(count)))
+    rows = -(-count // width)
+    coarse = np.exp(-2j * np.pi * np.mod(np.outer(offset + width * np.arange(rows, dtype=np.float64), step), 1.0))
+    fine = np.exp(-2j * np.pi * np.mod(np.outer(np.arange(width, dtype=np.float64), step), 1.0))
+    return (coarse[:, None, :] * fine[None, :, :]).reshape(rows * width, step.size)[:count]
+
+
+def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
+    """:func:`exact_dft` of every row of ``parts``, each referred to its own centre.
+
+    One batched product: the phasor tables depend on the frequencies and the row length only,
+    so they are built once for all rows. The last ``L mod M`` samples of each row (those that do
+    not fill a block) are summed against their own small table; nothing is copied or padded.
+
+    Parameters
+    ----------
+    parts : ndarray, shape (S, L), float64 or complex128
+    freqs_hz : array_like, shape (K,), Hz (any sign)
+    fs_hz : float
+
+    Returns
+    -------
+    ndarray, shape (S, K), complex128: ``sum_k parts[s, k] * exp(-j*2*pi*f*(k - (L-1)/2)/fs)``
+    """
+    freqs = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
+    parts = np.atleast_2d(parts)
+    s_count, n = parts.shape
+    m = min(_block(n), n)
+    a_count = n // m
     c = (n - 1) / 2.0
-    r = freqs_hz / fs_hz  # cycles per sample, float64
-    b = np.arange(m, dtype=np.float64) - c
-    cyc_b = np.mod(np.outer(b, r), 1.0)  # (M, K)
-    cyc_a = np.mod(np.outer(np.arange(a_count, dtype=np.float64), np.mod(r * m, 1.0)), 1.0)  # (A, K)
-    return a_count, cyc_a, cyc_b
+    r = freqs / fs_hz  # cycles per sample, float64
+    # sample a*M + b: exp(-j*w*a*M) * exp(-j*w*(b - c)), each factor's cycles reduced modulo 1
+    eb = phasors(-c, m, r)  # (M, K)
+    ea = phasors(0.0, a_count, np.mod(r * m, 1.0))  # (A, K)
+    body = parts[:, :a_count * m].reshape(s_count, a_count, m)  # a view: rows keep their stride
+    k = freqs.size
+    if np.iscomplexobj(parts):
+        y = body @ eb  # (S, A, K)
+    else:
+        yy = body @ np.concatenate([eb.real, eb.imag], axis=1)  # (S, A, 2K) real
+        y = yy[..., :k] + 1j * yy[..., k:]
+    out = np.einsum("sak,ak->sk", y, ea)
+    tail = n - a_count * m
+    if tail:
+        out += parts[:, a_count * m:] @ phasors(a_count * m - c, tail, r)
+    return out
 
 
 def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
@@ -44,21 +103,7 @@ def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     -------
     ndarray, shape (K,), complex128 (not normalised)
     """
-    freqs = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
-    n = x.size
-    m = int(2 ** max(6, round(math.log2(math.sqrt(n))) + 1))
-    a_count, cyc_a, cyc_b = _tables(n, freqs, fs_hz, m)
-    pad = a_count * m - n
-    xr = np.pad(x, (0, pad)).reshape(a_count, m) if pad else x.reshape(a_count, m)
-    eb = np.exp(-2j * np.pi * cyc_b)  # (M, K)
-    if np.iscomplexobj(xr):
-        y = xr @ eb
-    else:
-        tab = np.concatenate([eb.real, eb.imag], axis=1)  # (M, 2K) real
-        yy = xr @ tab
-        k = freqs.size
-        y = yy[:, :k] + 1j * yy[:, k:]
-    return np.sum(y * np.exp(-2j * np.pi * cyc_a), axis=0)
+    return exact_dft_parts(np.asarray(x)[None, :], freqs_hz, fs_hz)[0]
 
 
 def _dirichlet(w: np.ndarray, n: int) -> np.ndarray:
