@@ -20,7 +20,7 @@ from scipy.optimize import minimize_scalar
 
 from ..frame import Frame
 from ..profiles import ChainSettings
-from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at
+from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
 from .tones import exact_dft, exact_dft_parts
 
 
@@ -400,9 +400,9 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # white-noise error per line: phase variance s2*sum(w^2)/(2|Z|^2) per part; the estimate is
     # about (phi_last - phi_first)/(S - 1), so twice that over (S - 1)^2
     exclude = list(freqs) + list(near)
-    s2 = np.array([spec.noise_variance(f, exclude) for f in freqs])
+    s2 = spec.noise_variances(freqs, exclude)
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
-    var_phi = s2 * float(np.sum(w**2)) / (2 * np.maximum(amp2, 1e-300))
+    var_phi = s2 * window_power(("kaiser", PHASE_WINDOW_BETA), length) / (2 * np.maximum(amp2, 1e-300))
     var_line = 2 * var_phi / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
     # combined with power weights (the local floors that inverse-variance weights would trust are
     # rough next to the strongest lines), and that combination's white-noise error

@@ -196,7 +196,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     for target, name, freqs, conj, bad in fams:
         z = zs[target, name]
         amp2 = np.mean(np.abs(z) ** 2, axis=0)
-        s2 = np.array([spec.noise_variance(f, list(uniq)) for f in freqs])
+        s2 = spec.noise_variances(freqs, uniq)
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))

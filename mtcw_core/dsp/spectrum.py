@@ -46,6 +46,38 @@ class Spectrum:
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
 
+    def noise_variances(self, f_hz, exclude_hz, half_width: int = 256, guard: int = 12) -> np.ndarray:
+        """:meth:`noise_variance` at every frequency of ``f_hz`` (shape (L,)) at once, V^2.
+
+        The same statistic, row by row: each line's ``+-half_width`` bins less those within
+        ``guard`` of an excluded frequency (all of them kept when that leaves none), median of
+        the rest.
+        """
+        f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+        if f.size == 0:
+            return np.empty(0)
+        nb = self.power.size
+        b = self.bin_of(f)
+        idx = b[:, None] + np.arange(-half_width, half_width + 1)[None, :]  # (L, W)
+        valid = (idx >= 0) & (idx < nb)
+        ex = np.sort(self.bin_of(np.asarray(exclude_hz, dtype=float))) if len(exclude_hz) else np.empty(0, np.int64)
+        keep = valid.copy()
+        if ex.size:
+            # distance of every bin to the nearest excluded bin, by sorted search
+            j = np.clip(np.searchsorted(ex, idx), 1, max(ex.size - 1, 1))
+            d = np.abs(idx - ex[j - 1]) if ex.size > 1 else np.abs(idx - ex[0])
+            if ex.size > 1:
+                d = np.minimum(d, np.abs(idx - ex[j]))
+            keep &= d > guard
+        keep = np.where(keep.any(axis=1)[:, None], keep, valid)  # nothing left: every bin in reach
+        vals = np.where(keep, self.power[np.clip(idx, 0, nb - 1)], np.inf).astype(self.power.dtype)
+        vals.sort(axis=1)
+        count = keep.sum(axis=1)
+        rows = np.arange(f.size)
+        lo, hi = vals[rows, np.maximum((count - 1) // 2, 0)], vals[rows, np.maximum(count // 2, 0)]
+        med = ((lo + hi) / 2).astype(np.float64)  # as np.median does it, in the spectrum's precision
+        return np.where(count > 0, med, np.nan) / LN2 / self.window_power
+
     def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int = 256, guard: int = 12) -> float:
         """Per-sample noise variance (V^2) equivalent to the local noise density around f.
 
@@ -76,7 +108,8 @@ def cached_window(window: tuple | str, m: int, dtype: str = "float64") -> np.nda
 
 
 @lru_cache(maxsize=8)
-def _window_power(window: tuple | str, m: int) -> float:
+def window_power(window: tuple | str, m: int) -> float:
+    """``sum(w^2)`` of :func:`cached_window` (cached)."""
     return float(np.sum(cached_window(window, m) ** 2))
 
 
@@ -150,7 +183,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
     y = np.empty(m, dtype=dtype)
     np.subtract(seg, seg.mean(), out=y, casting="same_kind")
     y *= cached_window(win, m, "float32" if single else "float64")
-    wp = _window_power(win, m)
+    wp = window_power(win, m)
     if np.iscomplexobj(y):
         X = scipy.fft.fftshift(scipy.fft.fft(y, overwrite_x=True))
         f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)

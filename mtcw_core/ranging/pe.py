@@ -341,7 +341,7 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
             z = z_all[idx].copy()
             z[folded] = np.conj(z[folded])
             ok = usable[i] & (np.abs(allf[idx] - f) < 1e-3)
-            s2 = np.array([spec.noise_variance(fi, list(allf)) for fi in f])
+            s2 = spec.noise_variances(f, allf)
             var = 2.0 * s2 / (n * np.maximum(np.abs(z) ** 2, 1e-300))
             var[~ok] = np.inf
             z[~ok] = 0.0
