@@ -279,3 +279,17 @@ def test_local_floor_on_ranges_is_the_whole_spectrums(mirror_dc):
         inside[max(a, 0):max(min(b, p.size), 0)] = True
     np.testing.assert_allclose(part[inside], full[inside], rtol=1e-12)
     assert np.isnan(part[~inside]).all()
+
+
+def test_noise_variances_equal_the_scalar_statistic():
+    """The vectorised floors are noise_variance's, line by line: with and without excluded lines,
+    at both ends of the spectrum, and when the exclusions leave no bin (then every bin counts)."""
+    n = 20000
+    k = np.arange(n)
+    x = np.random.default_rng(8).standard_normal(n) + 3 * np.cos(2 * np.pi * 0.1 * k)
+    for single in (False, True):
+        sp = power_spectrum(x, FS, single=single)
+        fs = [0.0, 1e8, 2e8, 4.99e8, 5e8, 1e8 + 3e5]
+        for ex in ([1e8, 0.0, 2e8 + 1e5], [], fs, list(np.linspace(0, 5e8, 3000))):
+            ref = np.array([sp.noise_variance(f, ex) for f in fs])
+            np.testing.assert_allclose(sp.noise_variances(fs, ex), ref, rtol=1e-6)
