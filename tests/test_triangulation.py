@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mtcw_core.phase import C, wrap_pi
-from mtcw_core.ranging.triangulation import (Observations, fisher_sigma, resolve_ml, resolve_seed,
+from mtcw_core.ranging.triangulation import (Observations, cost, fisher_sigma, resolve_ml, resolve_seed,
                                              unambiguous_range)
 
 TONES = np.array([100e6, 170e6, 260e6])
@@ -137,3 +137,21 @@ class TestFisherSigma:
         """The common phase per family absorbs a common frequency shift (a Doppler family)."""
         f, v = TONES, np.array([1e-4, 3e-4, 2e-4])
         assert fisher_sigma([f + 5e6], [v]) == pytest.approx(fisher_sigma([f], [v]), rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ml_peak_and_runners_up_are_the_costs_own_maxima(seed):
+    """resolve_ml's range (Newton from the grid) is the maximum of J to 1e-9 m against a dense
+    scan of its cell, and each runner-up is a local maximum (J lower on both sides)."""
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(0.2, 5.0)
+    noisy = wrap_pi(-2 * np.pi * DF * (2 * truth / C) + rng.normal(0, 0.3, DF.size))
+    obs = Observations(DF.copy(), noisy, np.ones(DF.size))
+    sol = resolve_ml(obs, 0.0, (0.0, 6.0), 16)
+    lam = float(np.min(obs.synthetic_wavelengths_m))
+    dense = np.linspace(sol.range_m - lam / 16, sol.range_m + lam / 16, 20001)
+    j = cost(obs, dense)
+    assert abs(dense[np.argmax(j)] - sol.range_m) < 1e-9 + (dense[1] - dense[0])
+    for alt in sol.alternatives_m:
+        ja, jl, jr = cost(obs, [alt, alt - 1e-6 * lam, alt + 1e-6 * lam])
+        assert ja >= jl and ja >= jr

@@ -186,7 +186,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, bad] = 0.0
         zs[target, name] = z
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
-            and not windows):
+            and not windows and any(d.detected for d in dops)):
         # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
         # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
         # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)

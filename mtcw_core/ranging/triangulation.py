@@ -77,21 +77,47 @@ def cost(obs: Observations, l_m, tau0_s: float = 0.0) -> np.ndarray:
     return _cost(obs, tau0_s)(l_m)
 
 
-def _newton_polish(obs: Observations, tau0_s: float, l_m: float, iterations: int = 3) -> float:
-    """Newton steps on dJ/dL = 0 with analytic derivatives: the bounded scalar search stops at
-    its tolerance, a peak of a sum of cosines is found to float precision this way."""
-    k = 2 * np.pi * obs.df_hz * 2 / C  # d(arg)/dL
+def _newton_polish(obs: Observations, tau0_s: float, l_m, iterations: int = 4, limit_m: float | None = None
+                   ) -> np.ndarray:
+    """Newton steps on dJ/dL = 0 with analytic derivatives, from each start in ``l_m`` at once.
+
+    A start within half a grid step of a peak (the grid has ``points_per_cycle`` >= 4 points per
+    finest synthetic wavelength) lies well inside the peak's concave part, where Newton's method
+    reaches it to float precision in a few steps. A start where J is not concave, or a step longer
+    than ``limit_m`` (default: a thousandth of the finest synthetic wavelength), stops that start
+    where it is (the caller checks).
+
+    Returns
+    -------
+    ndarray, shape (len(l_m),), the refined ranges (m)
+    """
+    l_m = np.atleast_1d(np.asarray(l_m, dtype=float)).copy()
+    k = 2 * np.pi * obs.df_hz * 2 / C  # d(arg)/dL, shape (P,)
+    limit = 1e-3 * float(np.min(obs.synthetic_wavelengths_m)) if limit_m is None else limit_m
+    active = np.ones(l_m.size, bool)
     for _ in range(iterations):
-        arg = obs.phase_rad + 2 * np.pi * obs.df_hz * (tau0_s + 2 * l_m / C)
-        d1 = -float(np.sum(obs.weight * k * np.sin(arg)))
-        d2 = -float(np.sum(obs.weight * k**2 * np.cos(arg)))
-        if d2 >= 0:  # not at a maximum: keep what the search found
+        arg = obs.phase_rad[None, :] + 2 * np.pi * obs.df_hz[None, :] * (tau0_s + 2 * l_m[:, None] / C)
+        d1 = -(np.sin(arg) @ (obs.weight * k))
+        d2 = -(np.cos(arg) @ (obs.weight * k**2))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(d2 < 0, -d1 / d2, 0.0)
+        active &= (d2 < 0) & (np.abs(step) <= limit)
+        l_m[active] += step[active]
+        if not active.any():
             break
-        step = -d1 / d2
-        if abs(step) > 1e-3 * float(np.min(obs.synthetic_wavelengths_m)):
-            break
-        l_m += step
     return l_m
+
+
+def _peak(obs: Observations, tau0_s: float, j, start_m: float, step_m: float, xatol_m: float) -> tuple[float, float]:
+    """The local maximum of J near a grid point ``start_m`` and its value: Newton's method from the
+    grid point (:func:`_newton_polish`), or, where that does not stay within the point's grid
+    cell, the bounded scalar search over it (then polished)."""
+    best = float(_newton_polish(obs, tau0_s, start_m, iterations=8, limit_m=step_m)[0])
+    if abs(best - start_m) > step_m:
+        res = minimize_scalar(lambda l: -j(l)[0], bounds=(start_m - step_m, start_m + step_m), method="bounded",
+                              options={"xatol": xatol_m})
+        best = float(_newton_polish(obs, tau0_s, float(res.x))[0])
+    return best, float(j(best)[0])
 
 
 def _residual(obs: Observations, tau0_s: float, l_m: float) -> float:
@@ -115,9 +141,7 @@ def resolve_ml(
     # evaluate in blocks to bound memory for long intervals
     vals = np.concatenate([j(grid[i : i + 65536]) for i in range(0, grid.size, 65536)])
     ib = int(np.argmax(vals))
-    res = minimize_scalar(lambda l: -j(l)[0], bounds=(grid[ib] - step, grid[ib] + step), method="bounded",
-                          options={"xatol": 1e-9})
-    best = _newton_polish(obs, tau0_s, float(res.x))
+    best, jbest = _peak(obs, tau0_s, j, float(grid[ib]), step, 1e-9)
     # J is periodic in the unambiguous range: a peak refined across an end of the interval is
     # the same solution, reported inside it (never a jump of one synthetic wavelength)
     period = unambiguous_range(obs.df_hz)
@@ -125,7 +149,6 @@ def resolve_ml(
         best += period
     elif best >= hi and best - period >= lo - step:
         best -= period
-    jbest = -float(res.fun)
     # second-best local maximum at least half the finest synthetic wavelength away
     half = 0.5 * float(np.min(obs.synthetic_wavelengths_m))
     is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
@@ -138,9 +161,7 @@ def resolve_ml(
     idx = np.flatnonzero(is_max & far)
     alts = []
     for i in idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES]]:
-        r = minimize_scalar(lambda l: -j(l)[0], bounds=(grid[i] - step, grid[i] + step), method="bounded",
-                            options={"xatol": 1e-6 * step})
-        alts.append(float(r.x))
+        alts.append(_peak(obs, tau0_s, j, float(grid[i]), step, 1e-6 * step)[0])
     return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), alternatives_m=tuple(alts))
 
 
