@@ -223,3 +223,15 @@ def test_phasors_keep_float64_phase_at_large_indices():
     i = -499999.5 + np.arange(5000)
     ref = np.exp(-2j * np.pi * np.mod(np.outer(i, step), 1.0))
     assert np.max(np.abs(np.angle(got * np.conj(ref)))) < 1e-9
+
+
+def test_dirichlet_kernel_is_scipys():
+    """The Gram matrices' kernel equals N * scipy.special.diric, at its limits (w = 2*pi*k) too."""
+    from scipy.special import diric
+
+    from mtcw_core.dsp.tones import _dirichlet
+
+    w = np.concatenate([np.random.default_rng(0).uniform(-10, 10, 500), 2 * np.pi * np.arange(-3, 4),
+                        2 * np.pi * np.arange(-3, 4) + 1e-9, [0.0, 1e-12]])
+    for n in (1, 2, 7, 1000, 999_999):
+        np.testing.assert_allclose(_dirichlet(w, n), n * diric(w, n), rtol=0, atol=1e-12 * n)
