@@ -139,23 +139,28 @@ def real_power(y: np.ndarray) -> np.ndarray:
     """
     m = y.size
     half = m // 2
+    # in place: the FFT's output shares y's buffer; two more half-length complex buffers and the
+    # output are all the memory it takes (a 1e6-sample float64 record: 8 + 8 + 4 MB)
     packed = scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128), overwrite_x=True)
     nyquist = float(packed[0].real) - float(packed[0].imag)
-    rev = np.empty_like(packed)
-    rev[0] = packed[0]
-    rev[1:] = packed[:0:-1]
-    np.conjugate(rev, out=rev)
-    even = packed + rev  # 2 * (DFT of the even samples)
-    np.subtract(packed, rev, out=packed)
+    even = np.empty_like(packed)  # conj(Z[-k]), then Z + conj(Z[-k])
+    even[0] = packed[0]
+    even[1:] = packed[:0:-1]
+    np.conjugate(even, out=even)
+    even += packed
+    packed *= 2
+    packed -= even  # Z - conj(Z[-k])
     packed *= _half_twiddle(m, str(packed.dtype))  # 2j * W^k * (DFT of the odd samples)
     # X = (even - j*b)/2 = ((even.re + b.im) + j*(even.im - b.re))/2
     out = np.empty(half + 1, dtype=y.dtype)
-    re = np.add(even.real, packed.imag)
-    im = np.subtract(even.imag, packed.real)
-    np.multiply(re, re, out=out[:half])
-    np.multiply(im, im, out=im)
-    out[:half] += im
-    out[:half] *= 0.25
+    body = out[:half]
+    np.add(even.real, packed.imag, out=body)
+    body *= body
+    scratch = even.real  # even.real is spent once the real part is summed: hold the imaginary part there
+    np.subtract(even.imag, packed.real, out=scratch)
+    scratch *= scratch
+    body += scratch
+    body *= 0.25
     out[half] = nyquist * nyquist
     return out
 
