@@ -213,7 +213,8 @@ def _cpu_fields(row: dict) -> str:
                 walk(v, path + [str(k)])
         elif isinstance(d, (int, float)) and not isinstance(d, bool) and any("cpu" in p.lower() for p in path):
             name = ".".join(path[1:] if len(path) > 1 else path)
-            found.append(f"{name} {1e3 * d:.1f} ms" if name.endswith("_s") else f"{name} {d:.3g}")
+            in_s = name.endswith("_s") or "_s_per_" in name  # seconds by the project's unit suffix
+            found.append(f"{name} {1e3 * d:.1f} ms" if in_s else f"{name} {d:.3g}")
 
     walk(row.get("throughput", {}), ["throughput"])
     walk({k: v for k, v in row.items() if k not in ("throughput", "latency_at_80pct")}, ["row"])
