@@ -245,8 +245,10 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
     repeats = n_frames if profile in spec.profile_frames else max(n_frames, spec.repeats or 0)
     # 1. memory, tracemalloc on (a pass of its own: no timing with it on)
     mem = peak_memory(frames[-1], settings, warmup=frames[0])
-    # 2. warm-up of the chain and the references, untimed, tracemalloc off
-    process_frame(frames[0], settings)
+    # 2. warm-up of the chain and the references, untimed, tracemalloc off (a profile given its own
+    #    frame count, i.e. seed at ~1-3 s a frame, goes on from the memory pass's two frames)
+    if profile not in spec.profile_frames:
+        process_frame(frames[0], settings)
     for fn in reference_tasks(frames[0], settings).values():
         fn()
     # 3. timed repeats, references interleaved in rotating order

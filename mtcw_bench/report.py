@@ -130,7 +130,8 @@ def verdict(value: float | None, limit: float) -> str:
         return "not measured"
     if value <= limit:
         return f"met ({100 * (1 - value / limit):.0f} % under)"
-    return f"missed by {100 * (value / limit - 1):.0f} % ({value / limit:.2f}× the limit)"
+    over = 100 * (value / limit - 1)
+    return f"missed by {over:.{0 if over >= 10 else 1 if over >= 0.1 else 3}f} % ({value / limit:.{2 if over >= 1 else 4}f}× the limit)"
 
 
 def target_cell(cells: list[dict], scene: str, profile: str) -> dict | None:
@@ -371,8 +372,8 @@ def _method_lines(result: dict, refs: dict) -> list[str]:
         f"ratios; a ratio whose spread exceeds {100 * noisy:.0f} % is marked **noisy** (so is one with fewer than 2 repeats). "
         "The per-stage times are `FrameResult.stage_seconds`; `unaccounted` is the time `process_frame` took minus the sum "
         "of its stages (per repeat, then the median), so it holds the runner's own cost. Medians do not add up exactly.",
-        "- **Warm-up.** Before timing, each cell processes its frames under `tracemalloc` (the memory pass below) and once "
-        "more untimed, and runs every reference once. The machine state matters as much as the code: with glibc's allocator "
+        "- **Warm-up.** Before timing, each cell processes two frames under `tracemalloc` (the memory pass below) and one "
+        "more untimed (not `seed`, at 1–3 s a frame: its timing follows the memory pass), and runs every reference once. The machine state matters as much as the code: with glibc's allocator "
         "a 1e6-sample rfft takes ~13 ms on memory fresh from the kernel (page faults on the output) and ~7 ms once the heap "
         "has been warmed, and a process running only `fast` can stay in the fresh state; a reference timed apart from the "
         "chain (as earlier reports did, once, on a loaded machine) measures another state, which is why the reference is "

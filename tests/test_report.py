@@ -70,6 +70,7 @@ def test_verdict_says_met_or_missed_by_how_much():
     assert verdict(1.3, 1.0) == "missed by 30 % (1.30× the limit)"
     assert verdict(2.0, 2.0).startswith("met")
     assert verdict(None, 1.0) == "not measured"
+    assert verdict(4.0012, 4.0) == "missed by 0.030 % (1.0003× the limit)"  # a near miss is not rounded to 0
 
 
 def test_target_cell_takes_the_profiles_own_method_at_the_lowest_loss():
@@ -105,7 +106,7 @@ def test_memory_rows_judge_the_worst_cell_against_4x_and_exempt_seed():
     rows = {r["profile"]: r for r in memory_target_rows(cs)}
     assert MEMORY_LIMIT_X_F64 == 4.0
     assert rows["fast"]["worst_x"] == pytest.approx(4.2) and "94 dB" in rows["fast"]["cell"]
-    assert rows["fast"]["verdict"] == "missed by 5 % (1.05× the limit)"
+    assert rows["fast"]["verdict"] == "missed by 5.0 % (1.05× the limit)"
     assert rows["balanced"]["verdict"].startswith("met")
     assert rows["seed"]["verdict"] == "exempt"
 
