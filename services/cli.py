@@ -248,11 +248,14 @@ def bench(
     profiles: Optional[str] = typer.Option(None, help="comma-separated profiles"),
     losses: Optional[str] = typer.Option(None, help="comma-separated echo losses (dB)"),
     stream_json: Optional[Path] = typer.Option(None, help="include mtcw-bench-stream's stream.json in the report"),
+    repeats: Optional[int] = typer.Option(None, min=1, help="timed repeats per cell, each with its interleaved "
+                                          "references (default: the frame count; seed: its frames only)"),
     honesty: bool = typer.Option(False, "--honesty", help="the honesty map instead (issue 12; --quick, -o, --frames, "
                                                           "--profiles apply; more options: mtcw-bench-honesty --help)"),
 ) -> None:
-    """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB."""
-    import platform
+    """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB,
+    each cell timed against one rfft of its frame interleaved with the chain; stage breakdown and
+    peak memory per profile."""
     import shlex
 
     if honesty:
@@ -267,29 +270,29 @@ def bench(
                 _fail(str(err.code))
         return
 
-    from mtcw_bench.grid import GridSpec, run_grid, simulation_costs
+    from mtcw_bench.grid import GridSpec, cell_count, machine_info, run_grid, simulation_costs
     from mtcw_bench.report import write_report
 
     def csv_list(v: Optional[str], default: list) -> list:
         return [x.strip() for x in v.split(",") if x.strip()] if v else default
 
+    t_start = time.perf_counter()
+    machine = machine_info()
     if quick:
         spec = GridSpec(scenes=csv_list(scenes, ["cw-bench", "six-tone"]),
                         losses_db=[float(x) for x in csv_list(losses, ["30", "55"])],
                         profiles=csv_list(profiles, ["fast", "balanced", "accurate", "seed"]), methods=["ml", "seed"],
-                        frames=frames or 3, samples=samples or 2**16, seed_points=2**20)
+                        frames=frames or 3, samples=samples or 2**16, seed_points=2**20, repeats=repeats)
     else:
         spec = GridSpec(scenes=csv_list(scenes, ["cw-bench", "six-tone", "moving-target", "low-coherence"]),
                         losses_db=[float(x) for x in csv_list(losses, ["20", "60", "80", "88", "94", "100"])],
                         profiles=csv_list(profiles, ["fast", "balanced", "accurate", "seed"]), methods=["ml", "seed"],
-                        frames=frames or 16, samples=samples,
-                        # the seed's resample-and-filter path costs ~1.4 s a frame: three losses
-                        profile_losses={"seed": [20.0, 80.0, 94.0]})
+                        frames=frames or 16, samples=samples, repeats=repeats,
+                        # the seed's resample-and-filter path costs ~1-3 s a frame: two losses, 4 frames
+                        profile_losses={"seed": [20.0, 94.0]}, profile_frames={"seed": min(4, frames or 16)})
     for p in spec.profiles:
         _settings(p, None)
-    n_cells = len(spec.scenes) * len(spec.methods) * sum(
-        len([x for x in spec.losses_db if spec.profile_losses.get(p) is None or x in spec.profile_losses[p]])
-        for p in spec.profiles)
+    n_cells = cell_count(spec)
     bar = tqdm(total=n_cells, unit="cell", desc="bench", file=sys.stderr)
 
     def progress(label: str) -> None:
@@ -302,14 +305,18 @@ def bench(
         _fail(str(err))
     bar.close()
     result["simulation_costs"] = simulation_costs(spec.samples or 1_000_000, repeat=2 if quick else 3)
-    result["machine"] = f"{platform.machine()}, {platform.processor() or 'cpu'}, Python {platform.python_version()}"
+    machine["load_avg_end"] = machine_info()["load_avg"]
+    result["machine"] = machine
     if stream_json is not None:
         try:
             result["stream"] = json.loads(stream_json.read_text())
         except (OSError, ValueError) as err:
             _fail(f"stream-json: {err}")
+        if not isinstance(result["stream"], dict):
+            _fail(f"stream-json: {stream_json} holds a {type(result['stream']).__name__}, not an object with `rows`")
+    result["total_s"] = time.perf_counter() - t_start
     given = {"--quick": quick, "-o": out, "--frames": frames, "--samples": samples, "--scenes": scenes,
-             "--profiles": profiles, "--losses": losses, "--stream-json": stream_json}
+             "--profiles": profiles, "--losses": losses, "--repeats": repeats, "--stream-json": stream_json}
     cmd = "mtcw bench" + "".join(f" {k}" if v is True else f" {k} {shlex.quote(str(v))}"
                                  for k, v in given.items() if v not in (None, False))
     path = write_report(result, out, cmd)
