@@ -63,7 +63,7 @@ from ..dsp.doppler import DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
 from ..dsp.tones import fit_lines
 from ..dsp.validate import validate
-from ..frame import Frame
+from ..frame import Frame, TruthTarget
 from ..phase import unambiguous_range
 from ..profiles import ChainSettings
 from ..results import FrameResult, NoTarget, Rejected, TargetPoint
@@ -401,5 +401,25 @@ class Accumulator:
         return [e.seq for e in self._window]
 
 
-__all__ = ["AccumulateSettings", "Accumulator", "MAX_FRAMES", "SquaredLines", "square_lines", "product_lines",
+def mean_truth(truths: list[tuple[TruthTarget, ...]]) -> tuple[TruthTarget, ...]:
+    """The truth an accumulated point answers: each target's range and speed averaged over the
+    frames it rests on (for a target moving linearly, its position at the window's centre).
+
+    Parameters
+    ----------
+    truths : one tuple of TruthTarget per frame (oldest first); frames with a different number of
+        targets than the newest are left out
+
+    Returns
+    -------
+    tuple of TruthTarget (empty when ``truths`` is)
+    """
+    if not truths:
+        return ()
+    same = [t for t in truths if len(t) == len(truths[-1])]
+    return tuple(TruthTarget(float(np.mean([t[i].range_m for t in same])),
+                             float(np.mean([t[i].velocity_mps for t in same]))) for i in range(len(truths[-1])))
+
+
+__all__ = ["AccumulateSettings", "mean_truth", "Accumulator", "MAX_FRAMES", "SquaredLines", "square_lines", "product_lines",
            "family_of", "range_from_lines", "weighted_mean", "same_phasors_p"]
