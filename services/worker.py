@@ -44,6 +44,10 @@ class Worker:
         without terminating the context loses the last points.
     """
 
+    #: ``--accumulate K`` (None: the chain per frame) and its accumulators by source
+    _accumulate: AccumulateSettings | None = None
+    _accumulators: dict[str, Accumulator]
+
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
         self.chain = get_profile(settings.profile, technique=settings.technique,
