@@ -80,6 +80,7 @@ from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.dsp.tones import fit_lines
 from mtcw_core.evaluate import Z_WRONG, FrameVerdict, judge_frame, range_bound
 from mtcw_core.phase import C
+from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator, mean_truth
 from mtcw_core.scene import Scene, load_scene, scene_from_dict, scene_variant
 from mtcw_core.simulate import Simulator
 
@@ -151,6 +152,8 @@ class Config:
     fixed_losses_db: tuple[float, ...] = ()
     frames: int | None = None  # overrides the grid's frames per cell
     note: str = ""
+    #: K > 0: also a cell of mtcw_core.ranging.accumulate's points over K frames (profile "balanced+accK")
+    accumulate: int = 0
 
     @property
     def key(self) -> str:
@@ -309,7 +312,25 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
 
 
 def case_configs() -> list[Config]:
-    return [Config("cases", name, sc, frames=n, note=what) for name, (what, sc, n) in case_scenes().items()]
+    return [Config("cases", name, sc, frames=n, note=what) for name, (what, sc, n) in case_scenes().items()] + \
+        case9_accumulate_configs()
+
+
+def accumulate_label(k: int) -> str:
+    """The profile name of an accumulated cell: the chain's settings of ``balanced``, K frames."""
+    return f"balanced+acc{k}"
+
+
+def case9_accumulate_configs() -> list[Config]:
+    """Case 9's reach (``docs/reach.md``): the low-coherence scene at 1e6 samples ranged from the
+    whole band's digital IF mixing (:mod:`mtcw_core.ranging.accumulate`), one frame at 40 dB and
+    32 frames at 60 and 85 dB (the issue's targets, and past them); 40 frames each, so that the
+    last 9 points of a cell rest on 32 frames."""
+    low = load_scene("low-coherence")
+    rows = ((40.0, 1, 8), (60.0, 32, 40), (85.0, 32, 40))
+    return [Config("cases", f"9 low-coherence {loss:g} dB acc{k}", scene_variant(low, targets=[{"loss_db": loss}]),
+                   frames=n, note=f"beyond coherence, {loss:g} dB, whole-band IF mixing over {k} frame(s)",
+                   accumulate=k) for loss, k, n in rows]
 
 
 # -------------------------------------------------------------------------------------------
@@ -541,14 +562,19 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     # and its laser: the LO x echo carrier beat is no line beyond coherence (case 4: speed unknown, not 0)
     known = {"timing_jitter_s": sc.noise.trigger_jitter_s, "laser_linewidth_hz": sc.laser.linewidth_hz,
              "lo_path_difference_m": sc.paths.lo_path_difference_m}
-    for prof in profiles:
-        settings = get_profile(prof, **known)
-        verdicts, times = [], []
+    runs = list(profiles) + ([accumulate_label(g.config.accumulate)] if g.config.accumulate else [])
+    for prof in runs:
+        settings = get_profile(prof.split("+")[0], **known)
+        # case 9: the accumulator's points answer the truth averaged over the frames they rest on
+        acc = Accumulator(AccumulateSettings(frames=g.config.accumulate), settings) if "+acc" in prof else None
+        verdicts, times, truths = [], [], {}
         for i, fr in enumerate(frames):
             t1 = time.perf_counter()
-            res = process_frame(fr, settings)
+            res = process_frame(fr, settings) if acc is None else acc.add(fr)
             times.append(time.perf_counter() - t1)
-            v = judge_frame(res, fr.truth, z_wrong)
+            truths[fr.seq] = fr.truth
+            truth = fr.truth if acc is None else mean_truth([truths[q] for q in acc.window_seqs()])
+            v = judge_frame(res, truth, z_wrong)
             verdicts.append(v)
             rows.append(_frame_row(g, prof, i, res.reason, v))
         cell = {
@@ -732,7 +758,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {path} ({s['cells']} cells, {s['processed_frames']} processed frames, {result['wall_s']:.0f} s)")
 
 
-__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "issue_scene", "plan", "run_group",
+__all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "issue_scene",
+           "case9_accumulate_configs", "accumulate_label", "plan", "run_group",
            "run_map", "summarise", "check_targets", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
            "bin_speed_mps", "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v",
            "loss_shift_for", "read_result", "main"]

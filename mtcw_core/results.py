@@ -73,6 +73,9 @@ class TargetPoint:
     fit_r2 : float or None
         R^2 of the AB-MTCW sine fit of the normalised tone powers (the dissertation's quality
         figure), ``ab`` technique only.
+    accumulated_frames : int
+        How many frames the point rests on: 1 for the chain's per-frame points; K for a point of
+        :class:`mtcw_core.ranging.accumulate.Accumulator` (its range is the mean over those frames).
     """
 
     range_m: float
@@ -93,6 +96,7 @@ class TargetPoint:
     tone_snr_db: dict[str, float] = field(default_factory=dict)
     seed_sigma_k_m: float | None = None
     fit_r2: float | None = None
+    accumulated_frames: int = 1
 
 
 @dataclass

@@ -102,6 +102,23 @@ def _settings(profile: str, method: Optional[str], technique: str = "pb", timing
         _fail(str(err))
 
 
+def _accumulator(frames: int, settings, calibration: Optional[Path]):
+    """``--accumulate K``: an :class:`~mtcw_core.ranging.accumulate.Accumulator` (None for 0); a bad K
+    or technique ends the command naming the option."""
+    if not frames:
+        return None
+    from pydantic import ValidationError
+
+    from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator
+
+    try:
+        return Accumulator(AccumulateSettings(frames=frames), settings, _calibration(calibration))
+    except ValidationError as err:
+        _fail(f"--accumulate: {err.errors()[0]['msg']} (got {frames})")
+    except ValueError as err:
+        _fail(f"--accumulate: {err}")
+
+
 def _calibration(path: Optional[Path]):
     """The calibration file at ``path`` (None: none); a bad file ends the command naming it."""
     from mtcw_core.calibration import Calibration, CalibrationError
@@ -132,6 +149,9 @@ def process(
     technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
     timing_jitter_s: float = typer.Option(0.0, "--timing-jitter-s", help="the digitizer's known rms timing jitter "
                                                                          "(s); enters every range sigma"),
+    accumulate: int = typer.Option(0, "--accumulate", help="beyond the laser's coherence (a static target): range "
+                                   "from the whole band's digital IF mixing, averaged over the last K frames "
+                                   "(1-32; 0: the chain per frame); docs/reach.md"),
 ) -> None:
     """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
     target."""
@@ -144,20 +164,30 @@ def process(
 
     rec = _open(recording)
     settings = _settings(profile, method, technique, timing_jitter_s)
+    acc = _accumulator(accumulate, settings, calibration)
     cal = _calibration(calibration)
     if cal is None:
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
                     err=True, fg=typer.colors.YELLOW)
     rows, times, stages, status, log = [], [], {}, {}, ErrorLog()
+    truths: dict[int, tuple] = {}  # seq -> truth, for the frames an accumulated point rests on
     try:
         for fr in tqdm(rec, total=len(rec), unit="frame", desc=f"process [{settings.profile}]", file=sys.stderr):
-            res = process_frame(fr, settings, cal)
+            if acc is None:
+                res, truth = process_frame(fr, settings, cal), fr.truth or ()
+            else:
+                from mtcw_core.ranging.accumulate import mean_truth
+
+                res = acc.add(fr)
+                truths[fr.seq] = fr.truth or ()
+                truth = mean_truth([truths[s] for s in acc.window_seqs() if s in truths])
+                truths = {s: truths[s] for s in acc.window_seqs() if s in truths}
             status[res.status] = status.get(res.status, 0) + 1
             times.append(sum(res.stage_seconds.values()))
             for name, sec in res.stage_seconds.items():
                 stages.setdefault(name, []).append(sec)
             rows += _point_rows(res)
-            for t in fr.truth or ():
+            for t in truth:
                 log.add(res, t)
     except RecordingError as err:  # the data file changed under us after it was opened
         _fail(str(err))
@@ -172,6 +202,8 @@ def process(
                 w.writerows(rows)
     summary = {"frames": len(rec), "status": status, "median_ms_per_frame": 1e3 * float(np.median(times)),
                "median_ms_per_stage": {k: round(1e3 * float(np.median(v)), 3) for k, v in stages.items()}}
+    if acc is not None:  # truth of an accumulated point: the mean over the frames it rests on
+        summary["accumulate"] = {"frames": accumulate, "new_windows": dict(acc.resets)}
     if log.range_error_m:
         summary.update(log.summary())
     typer.echo(json.dumps(summary, indent=2))
@@ -650,6 +682,9 @@ def worker(
                                                        "default pb]"),
     timing_jitter_s: Optional[float] = typer.Option(None, "--timing-jitter-s", help="the digitizer's known rms "
                                                     "timing jitter (s) [MTCW_TIMING_JITTER_S; default 0]"),
+    accumulate: Optional[int] = typer.Option(None, "--accumulate", help="static targets beyond the laser's "
+                                             "coherence: whole-band IF mixing averaged over the last K frames of "
+                                             "each source (1-32) [MTCW_ACCUMULATE; default 0: off]"),
 ) -> None:
     """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
@@ -658,7 +693,7 @@ def worker(
 
     _logging()
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
-                           timing_jitter_s=timing_jitter_s)
+                           timing_jitter_s=timing_jitter_s, accumulate=accumulate)
     try:
         w = Worker(st)
     except CalibrationError as err:

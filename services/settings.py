@@ -273,6 +273,9 @@ class WorkerSettings(TransportSettings):
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description="the digitizer's known rms timing jitter (s); "
                                                                    "enters every range sigma")
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
+    accumulate: int = Field(0, ge=0, le=32, description="static targets beyond the laser's coherence: range from "
+                            "the whole band's digital IF mixing averaged over the last K frames of each source "
+                            "(1-32; 0: off, the chain per frame); docs/reach.md")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
 

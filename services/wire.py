@@ -114,6 +114,7 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     cycle_slip_prob: Annotated[float, Meta(ge=0, le=1)] = 0.0
     speed_min_mps: NonNegative = 0.0
     fit_r2: Optional[Finite] = None  # the AB-MTCW sine fit's R^2 (technique ab only)
+    accumulated_frames: Annotated[int, Meta(ge=1, le=1024)] = 1  # frames the point rests on (--accumulate K)
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):

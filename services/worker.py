@@ -18,6 +18,7 @@ import zmq
 
 from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
+from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator
 
 from .auth import terminate
 from .settings import WorkerSettings, log_settings
@@ -26,6 +27,8 @@ from .wire import END_TOPIC, PointMessage, WireError, decode_frame, encode_point
     rejected_point, topic
 
 log = logging.getLogger("mtcw.worker")
+#: sources a worker keeps an accumulator for (``--accumulate``); more and it starts over
+MAX_SOURCES = 64
 
 
 class Worker:
@@ -41,11 +44,21 @@ class Worker:
         without terminating the context loses the last points.
     """
 
+    #: ``--accumulate K`` (None: the chain per frame) and its accumulators by source
+    _accumulate: AccumulateSettings | None = None
+    _accumulators: dict[str, Accumulator]
+
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
         self.chain = get_profile(settings.profile, technique=settings.technique,
                                  timing_jitter_s=settings.timing_jitter_s)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
+        # --accumulate K: one accumulator per source (mtcw_core.ranging.accumulate); frames shared
+        # between several workers are each worker's share of the source
+        self._accumulators: dict[str, Accumulator] = {}
+        self._accumulate = AccumulateSettings(frames=settings.accumulate) if settings.accumulate else None
+        if self._accumulate is not None and settings.technique != "pb":
+            raise ValueError(f"accumulate: technique {settings.technique!r} has no accumulation (pb only)")
         self._own_ctx = ctx is None
         self.ctx = zmq.Context() if ctx is None else ctx
         self.pull, self.push = open_sockets(self.ctx, [frames_pull(settings), points_push(settings)], self._own_ctx)
@@ -65,7 +78,16 @@ class Worker:
         except WireError as err:
             return rejection_point(err, parts, processing_s=time.perf_counter() - t0)
         try:
-            res = process_frame(frame, self.chain, self.calibration)
+            if self._accumulate is None:
+                res = process_frame(frame, self.chain, self.calibration)
+            else:
+                acc = self._accumulators.get(frame.source)
+                if acc is None:
+                    if len(self._accumulators) >= MAX_SOURCES:  # bounded memory: forget the others
+                        self._accumulators.clear()
+                    acc = self._accumulators[frame.source] = Accumulator(self._accumulate, self.chain,
+                                                                         self.calibration)
+                res = acc.add(frame)
         except Exception as err:  # a chain bug must not stop the worker; the frame is counted
             log.exception("worker %s: chain failed on seq %d", self.settings.name, frame.seq)
             return rejected_point(frame.source, frame.seq, frame.t_ns, f"chain_error: {type(err).__name__}: {err}",

@@ -117,3 +117,26 @@ def test_an_endpoint_that_cannot_be_used_is_a_settings_error_naming_the_field(cm
                        timeout=120, cwd=tmp_path)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert f"settings: {field}: " in r.stderr and "tcp://127.0.0.1:x" in r.stderr, r.stderr
+
+
+def test_process_accumulate_ranges_beyond_coherence_and_names_a_bad_k(tmp_path):
+    """``mtcw process --accumulate K`` on the low-coherence scene at 70 dB (the chain: no target);
+    the errors are against the truth averaged over each point's frames."""
+    from importlib.resources import files
+
+    scene = tmp_path / "low70.toml"
+    text = files("mtcw_core.scenes").joinpath("low-coherence.toml").read_text()
+    scene.write_text(text.replace("loss_db = 20.0", "loss_db = 70.0"))
+    rec = tmp_path / "low"
+    r = CliRunner().invoke(app, ["simulate", str(scene), "-o", str(rec), "-n", "6", "--samples", str(2**15)])
+    assert r.exit_code == 0, r.output
+    assert _summary(CliRunner().invoke(app, ["process", str(rec)]).stdout)["status"] == {"no_target": 6}
+    r = CliRunner().invoke(app, ["process", str(rec), "--accumulate", "4", "-o", str(tmp_path / "p.csv")])
+    assert r.exit_code == 0, r.output
+    s = _summary(r.stdout)
+    assert s["status"] == {"ok": 6} and s["matched"] == 6 and s["accumulate"]["frames"] == 4
+    assert s["max_abs_range_error_m"] < 5 * s["median_reported_sigma_m"]
+    rows = list(csv.DictReader(open(tmp_path / "p.csv")))
+    assert [int(row["accumulated_frames"]) for row in rows] == [1, 2, 3, 4, 4, 4]
+    bad = CliRunner().invoke(app, ["process", str(rec), "--accumulate", "40"])
+    assert bad.exit_code != 0 and "--accumulate" in bad.output and "Traceback" not in bad.output

@@ -215,8 +215,11 @@ def test_case8_premise_accurate_is_right_there():
 # 9. beyond coherence only for strong echoes
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 12 case 9: low-coherence (5.3 GHz, 500x L_coh) at 40 dB, 1e6 "
-                                       "samples: no_target in every frame (the self-beat lines are at -3 dB, "
-                                       "13 dB below the line threshold); the target is sigma <= 1 cm in one frame")
+                                       "samples: the chain's stages give no_target in every frame (the self-beat "
+                                       "lines are at -3 dB, 13 dB below the line threshold); met outside the chain "
+                                       "by mtcw_core.ranging.accumulate (whole-band IF mixing, `mtcw process "
+                                       "--accumulate 1`: tests/test_accumulate.py, docs/reach.md) until extract "
+                                       "uses square_lines beyond coherence")
 def test_case9_beyond_coherence_reaches_40_db():
     _, sc, _ = case_scenes()["9 low-coherence 40 dB"]
     runs = run(sc, "balanced", 2, seed=1)

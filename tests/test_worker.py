@@ -13,7 +13,7 @@ import zmq
 from mtcw_core.simulate import simulate_frame
 from services import sockets as S
 from services.settings import WorkerSettings
-from services.wire import FRAME_TOPIC, decode_points, encode_frame
+from services.wire import FRAME_TOPIC, decode_points, encode_frame, encode_points
 from services.worker import Worker
 
 from .conftest import make_scene
@@ -103,3 +103,30 @@ def test_run_accounts_for_every_message_between_good_frames(ctx, frame):
         t.join(10)
         push.close()
         pull.close()
+
+
+def test_accumulate_averages_each_sources_frames_and_says_how_many(ctx):
+    """``--accumulate K``: a point per frame, resting on that source's last K frames (at most);
+    a source's frames do not mix with another's; the point message carries ``accumulated_frames``."""
+    from mtcw_core.scene import load_scene, scene_variant
+    from mtcw_core.simulate import Simulator
+
+    sc = scene_variant(load_scene("low-coherence"), targets=[{"loss_db": 60.0}], digitizer={"samples": 2**14})
+    w = Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9",
+                              accumulate=3), ctx)
+    try:
+        got = []
+        for i, fr in enumerate(Simulator(sc, 2).frames(5)):
+            msg = w.handle(list(encode_frame(fr.with_(source="a" if i != 2 else "b", seq=i, t_ns=10**18 + i))))
+            got.append((msg.source, msg.status, msg.targets[0].accumulated_frames if msg.targets else None))
+        assert got == [("a", "ok", 1), ("a", "ok", 2), ("b", "ok", 1), ("a", "ok", 3), ("a", "ok", 3)], got
+        truth = fr.truth[0].range_m
+        t = msg.targets[0]
+        assert abs(t.range_m - truth) < 5 * t.range_sigma_m and t.direction == "unknown"
+        assert decode_points(encode_points(msg)).targets[0].accumulated_frames == 3
+    finally:
+        w.pull.close(linger=0)
+        w.push.close(linger=0)
+    with pytest.raises(ValueError, match="accumulate"):
+        Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9",
+                              accumulate=3, technique="ab"), ctx)
