@@ -95,16 +95,17 @@ def _newton_polish(obs: Observations, tau0_s: float, l_m, iterations: int = 4, l
     k = 2 * np.pi * obs.df_hz * 2 / C  # d(arg)/dL, shape (P,)
     limit = 1e-3 * float(np.min(obs.synthetic_wavelengths_m)) if limit_m is None else limit_m
     active = np.ones(l_m.size, bool)
+    wk, wk2 = obs.weight * k, obs.weight * k**2
     for _ in range(iterations):
         arg = obs.phase_rad[None, :] + 2 * np.pi * obs.df_hz[None, :] * (tau0_s + 2 * l_m[:, None] / C)
-        d1 = -(np.sin(arg) @ (obs.weight * k))
-        d2 = -(np.cos(arg) @ (obs.weight * k**2))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = np.where(d2 < 0, -d1 / d2, 0.0)
-        active &= (d2 < 0) & (np.abs(step) <= limit)
+        d1 = -(np.sin(arg) @ wk)
+        d2 = -(np.cos(arg) @ wk2)
+        concave = d2 < 0
+        step = -d1 / np.where(concave, d2, -1.0)
+        active &= concave & (np.abs(step) <= limit)
         l_m[active] += step[active]
-        if not active.any():
-            break
+        if not np.any(active & (np.abs(step) > 1e-15 * np.abs(l_m) + 1e-18)):
+            break  # converged (or stopped) everywhere
     return l_m
 
 
