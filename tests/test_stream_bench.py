@@ -120,3 +120,8 @@ def test_markdown_states_targets_with_their_spread():
     assert "| p99 < 3× p50, 1 worker(s) (threads 1) | 1.50× | met |" in md
     assert "| p99 < 3× p50, 2 worker(s) (threads 1) | 4.00× | missed |" in md
     assert math.isclose(rows[1]["latency_at_80pct"]["rate_hz"], 36.0)
+
+
+def test_a_ratio_without_a_target_is_reported_not_judged():
+    r = B.ratio_with_spread(B.spread([40.0]), B.spread([20.0]), None)
+    assert r["ratio"] == 2.0 and r["met"] is None and r["short_by"] is None and not r["noisy"]
