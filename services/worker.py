@@ -11,6 +11,7 @@ API unchanged. Reconnection after a publisher restart is ZeroMQ's.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 
@@ -116,10 +117,15 @@ class Worker:
                 terminate(self.ctx)
 
 
+#: the thread-count variables the numerical libraries read when they load
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def limit_threads(threads: int):
     """Limit the numerical libraries' thread pools (OpenBLAS, OpenMP) of this process to ``threads``
     (0: leave them as they are); returns the :class:`threadpoolctl.threadpool_limits` in force
-    (None for 0).
+    (None for 0). The libraries already loaded are limited by threadpoolctl; for one loaded
+    later, :data:`THREAD_VARS` are set in the environment (they stay set).
 
     A worker handles one frame at a time and more cores are used by more workers; OpenBLAS's own
     threads (as many as cores by default) busy-wait between calls, and on the 1e6-sample cw-bench
@@ -133,7 +139,9 @@ def limit_threads(threads: int):
         return None
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(limits=threads)
+    for var in THREAD_VARS:  # a library loaded later (lazily, at the first frame) reads these when it loads
+        os.environ[var] = str(threads)
+    return threadpool_limits(limits=threads)  # the ones loaded already (numpy's and scipy's OpenBLAS)
 
 
 def _exporter(port: int, host: str, name: str):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -111,7 +112,7 @@ def _blas_threads() -> dict[str, int]:
     return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
 
 
-def test_limit_threads_sets_and_restores_the_blas_pools():
+def test_limit_threads_sets_and_restores_the_blas_pools(monkeypatch):
     """``threads = 1`` puts every BLAS pool of the process at one thread; 0 leaves them alone; the
     limit is undone on restore (the worker's run ends)."""
     from services.worker import limit_threads
@@ -119,9 +120,14 @@ def test_limit_threads_sets_and_restores_the_blas_pools():
     before = _blas_threads()
     assert before, "numpy without a BLAS that threadpoolctl sees: nothing to limit"
     assert limit_threads(0) is None and _blas_threads() == before
+    from services.worker import THREAD_VARS
+
+    for var in THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
     lim = limit_threads(1)
     try:
         assert set(_blas_threads().values()) == {1}
+        assert all(os.environ[v] == "1" for v in THREAD_VARS)  # for a library that loads later
     finally:
         lim.restore_original_limits()
     assert _blas_threads() == before
