@@ -302,6 +302,8 @@ def measure(recording: Path, workers: int, seconds: float, rate: float, policy: 
         "latency_p50_s": med("latency_p50_s"), "latency_p99_s": med("latency_p99_s"),
         "latency_p50_s_spread": spread([w["latency_p50_s"] for w in wins]),
         "latency_p99_s_spread": spread([w["latency_p99_s"] for w in wins]),
+        "latency_p99_over_p50_spread": spread([w["latency_p99_s"] / w["latency_p50_s"] for w in wins
+                                               if w["latency_p99_s"] is not None and w["latency_p50_s"]]),
         "chain_median_s": med("chain_median_s"), "worker_processing_median_s": med("worker_processing_median_s"),
         "points": int(sum(w["points"] for w in wins)),
         "cpu": cpu, "pipeline_cores": med("pipeline_cores"), "other_cores": med("other_cores"),
@@ -374,12 +376,22 @@ def markdown(doc: dict) -> str:
         out.append(f"| {s['workers']} workers{want} one worker's frames/s (threads "
                    f"{_threads(s.get('threads'))}) | {rr['ratio']:.2f}× ({rr['lo']:.2f}–{rr['hi']:.2f})"
                    f"{' noisy' if rr['noisy'] else ''} | {verdict} |")
-    for r in rows:
+    for r in rows:  # the issue's latency target is the 2-worker one; the others are reported
         lt = r["latency_at_80pct"]
-        if lt.get("latency_p50_s"):
-            q = lt["latency_p99_s"] / lt["latency_p50_s"]
-            out.append(f"| p99 < {TARGET_P99_OVER_P50:g}× p50, {r['workers']} worker(s) (threads "
-                       f"{_threads(r.get('threads'))}) | {q:.2f}× | {'met' if q < TARGET_P99_OVER_P50 else 'missed'} |")
+        qs = lt.get("latency_p99_over_p50_spread") or {}
+        if qs.get("median") is None and lt.get("latency_p50_s"):  # a stream.json without the windows' ratios
+            qs = spread([lt["latency_p99_s"] / lt["latency_p50_s"]])
+        if qs.get("median") is not None:
+            q = qs["median"]
+            noisy = " noisy" if (qs["spread"] or 0) > NOISY_SPREAD else ""
+            verdict = (("met" if q < TARGET_P99_OVER_P50 else f"missed by {q - TARGET_P99_OVER_P50:.2f}×")
+                       if r["workers"] == 2 else
+                       f"no target (reported; {'<' if q < TARGET_P99_OVER_P50 else '≥'} {TARGET_P99_OVER_P50:g}×)")
+            if r["workers"] == 2 and qs["max"] >= TARGET_P99_OVER_P50 > q:
+                verdict += f" in the median window, not in all ({qs['max']:.2f}× in the worst)"
+            head = f"p99 < {TARGET_P99_OVER_P50:g}× p50" if r["workers"] == 2 else "p99 / p50"
+            out.append(f"| {head}, {r['workers']} worker(s) (threads {_threads(r.get('threads'))}) | "
+                       f"{_sp(qs, fmt='{:.2f}')}×{noisy} | {verdict} |")
     return "\n".join(out) + "\n"
 
 
