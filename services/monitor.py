@@ -102,6 +102,11 @@ class ViewFeed(threading.Thread):
     one left); it takes every frame that arrives, keeps the newest, and explains one at most every
     ``1/rate_hz`` seconds, only the newest: the frames passed over are counted (``passed_over``),
     and so are the frames ZeroMQ dropped before they reached it (``lost``, from the seq gaps).
+    Between explanations it unsubscribes, so that the acquisition node (which filters for its
+    subscribers) sends it no frame until the next one is due: an open page costs the node and
+    the API a few frames a second, not every frame (a 1e6-sample frame is 4 MB through the
+    kernel twice); the frames already on their way when it unsubscribed arrive and are passed
+    over.
     Each explanation replaces the previous one (:meth:`latest`): a page that takes them slower
     than they come gets the newest and skips the rest (the API counts those).
 
@@ -200,6 +205,7 @@ class ViewFeed(threading.Thread):
         sub: Subscriber | None = None
         gaps = GapCounter()
         next_due = 0.0
+        listening = False
         try:
             while not self.stop_event.is_set():
                 if not self._wanted():
@@ -210,8 +216,17 @@ class ViewFeed(threading.Thread):
                     continue
                 if sub is None:
                     sub = Subscriber(self.settings, self.ctx, rcvhwm=self.rcvhwm)
-                    gaps, self.connected = GapCounter(), True  # frames before connecting are not lost
-                if not sub.sock.poll(100):
+                    gaps, self.connected, listening = GapCounter(), True, True  # frames before connecting are not lost
+                now = time.monotonic()
+                if not listening and now >= next_due:  # an explanation is due: frames again
+                    while sub.sock.poll(0):  # frames still on their way from before: passed over
+                        sub.sock.recv_multipart(copy=False)
+                        self.counts["received"] += 1
+                        self.counts["passed_over"] += 1
+                    sub.sock.setsockopt(zmq.SUBSCRIBE, FRAME_TOPIC)
+                    gaps, listening = GapCounter(), True  # frames while unsubscribed were not lost
+                wait_ms = 100 if listening else int(1000 * min(max(next_due - now, 0.0), 0.1)) + 1
+                if not sub.sock.poll(wait_ms):
                     continue
                 newest = None
                 while True:  # take what is queued; only the newest may be explained
@@ -236,6 +251,9 @@ class ViewFeed(threading.Thread):
                     self.counts["passed_over"] += 1
                     continue
                 next_due = now + self.period_s
+                if listening:  # the publisher filters: no frame is sent here until the next one is due
+                    sub.sock.setsockopt(zmq.UNSUBSCRIBE, FRAME_TOPIC)
+                    listening = False
                 self._explain(newest)
         except Exception:
             log.exception("view: the feed stopped")

@@ -278,6 +278,10 @@ class WorkerSettings(TransportSettings):
                             "(1-32; 0: off, the chain per frame); docs/reach.md")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
+    threads: int = Field(1, ge=0, le=1024, description="threads of the numerical libraries (OpenBLAS/OpenMP) in "
+                         "this worker; 1: a worker takes one core and more cores are used by more workers (the "
+                         "libraries' own threads spin and doubled the CPU per frame for no gain in speed); "
+                         "0: the libraries' default")
 
     _worker_paths = field_validator("calibration", mode="before")(_path_given)
 

@@ -11,6 +11,7 @@ API unchanged. Reconnection after a publisher restart is ZeroMQ's.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 
@@ -99,6 +100,7 @@ class Worker:
         log_settings(f"worker {self.settings.name}", self.settings)
         if self.calibration is None:
             log.warning("worker %s: no calibration: using the frames' tone phases and tau0 = 0", self.settings.name)
+        limits = limit_threads(self.settings.threads)  # for as long as the worker runs
         poller = zmq.Poller()
         poller.register(self.pull, zmq.POLLIN)
         try:
@@ -129,10 +131,39 @@ class Worker:
         finally:
             log.info("worker %s: stopped (received %d, sent %d, undelivered %d)", self.settings.name,
                      self.received, self.sent, self.unsent)
+            if limits is not None:
+                limits.restore_original_limits()
             self.pull.close()
             self.push.close()  # LINGER points_linger_ms: the last points still go out while the context terminates
             if self._own_ctx:
                 terminate(self.ctx)
+
+
+#: the thread-count variables the numerical libraries read when they load
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def limit_threads(threads: int):
+    """Limit the numerical libraries' thread pools (OpenBLAS, OpenMP) of this process to ``threads``
+    (0: leave them as they are); returns the :class:`threadpoolctl.threadpool_limits` in force
+    (None for 0). The libraries already loaded are limited by threadpoolctl; for one loaded
+    later, :data:`THREAD_VARS` are set in the environment (they stay set).
+
+    A worker handles one frame at a time and more cores are used by more workers; OpenBLAS's own
+    threads (as many as cores by default) busy-wait between calls, and on the 1e6-sample cw-bench
+    frames they doubled the worker's CPU per frame (64 ms for a 32 ms frame) for no gain in speed,
+    so that two workers on two cores went no faster than one (issue 16). Which thread computes a
+    product does not change the chain's results (``tests/test_worker.py`` checks they are
+    identical). threadpoolctl rather than ``OPENBLAS_NUM_THREADS``: the environment is read
+    only when the library loads, and numpy is loaded before the settings are read.
+    """
+    if threads <= 0:
+        return None
+    from threadpoolctl import threadpool_limits
+
+    for var in THREAD_VARS:  # a library loaded later (lazily, at the first frame) reads these when it loads
+        os.environ[var] = str(threads)
+    return threadpool_limits(limits=threads)  # the ones loaded already (numpy's and scipy's OpenBLAS)
 
 
 def _exporter(port: int, host: str, name: str):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -13,7 +14,7 @@ import zmq
 from mtcw_core.simulate import simulate_frame
 from services import sockets as S
 from services.settings import WorkerSettings
-from services.wire import FRAME_TOPIC, decode_points, encode_frame, encode_points
+from services.wire import FRAME_TOPIC, decode_points, encode_frame, encode_points, point_from_result
 from services.worker import Worker
 
 from .conftest import make_scene
@@ -130,3 +131,61 @@ def test_accumulate_averages_each_sources_frames_and_says_how_many(ctx):
     with pytest.raises(ValueError, match="accumulate"):
         Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9",
                               accumulate=3, technique="ab"), ctx)
+
+
+def _blas_threads() -> dict[str, int]:
+    from threadpoolctl import threadpool_info
+
+    return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+
+def test_limit_threads_sets_and_restores_the_blas_pools(monkeypatch):
+    """``threads = 1`` puts every BLAS pool of the process at one thread; 0 leaves them alone; the
+    limit is undone on restore (the worker's run ends)."""
+    from services.worker import limit_threads
+
+    before = _blas_threads()
+    assert before, "numpy without a BLAS that threadpoolctl sees: nothing to limit"
+    assert limit_threads(0) is None and _blas_threads() == before
+    from services.worker import THREAD_VARS
+
+    for var in THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
+    lim = limit_threads(1)
+    try:
+        assert set(_blas_threads().values()) == {1}
+        assert all(os.environ[v] == "1" for v in THREAD_VARS)  # for a library that loads later
+    finally:
+        lim.restore_original_limits()
+    assert _blas_threads() == before
+
+
+def test_one_blas_thread_changes_no_result():
+    """The chain's results with the BLAS pools at one thread are those with the libraries' default,
+    to the last bit (issue 16: the worker's threads are a speed setting, not a numerical one);
+    checked on a 2^16-sample frame with a moving target, `balanced`, where the products and
+    solves of every stage run."""
+    from threadpoolctl import threadpool_limits
+
+    from mtcw_core.chain import get_profile, process_frame
+
+    fr = simulate_frame(make_scene(digitizer={"samples": 2**16}, targets=[{"range_m": 1.7, "velocity_mps": 1.0, "loss_db": 20.0}]),
+                        seed=3)
+    chain = get_profile("balanced")
+    default = process_frame(fr, chain, None)
+    with threadpool_limits(limits=1):
+        one = process_frame(fr, chain, None)
+    assert default.status == "ok" and default.targets
+    strip = lambda r: msgspec.to_builtins(  # noqa: E731 - everything but the stage times
+        {k: v for k, v in msgspec.structs.asdict(point_from_result(r)).items() if k not in ("stage_seconds",)})
+    assert strip(one) == strip(default)
+
+
+def test_threads_setting_is_validated_naming_the_field(monkeypatch):
+    monkeypatch.setenv("MTCW_THREADS", "-1")
+    with pytest.raises(ValueError, match="threads"):
+        WorkerSettings()
+    monkeypatch.setenv("MTCW_THREADS", "2")
+    assert WorkerSettings().threads == 2
+    monkeypatch.delenv("MTCW_THREADS")
+    assert WorkerSettings().threads == 1
