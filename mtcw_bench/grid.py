@@ -399,7 +399,17 @@ def machine_info() -> dict:
         load = None
     return {"cpu": _cpu_model(), "arch": platform.machine(), "cores": os.cpu_count(), "usable_cores": usable,
             "load_avg": load, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "fft_backend": fft_backend(), "scipy_fft_workers": scipy.fft.get_workers()}
+            "scipy": scipy.__version__, "fft_backend": fft_backend(), "scipy_fft_workers": scipy.fft.get_workers(),
+            "blas_threads": _blas_threads()}
+
+
+def _blas_threads() -> list[int] | None:
+    """Threads of every BLAS/OpenMP pool loaded in this process (threadpoolctl), None without it."""
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return None
+    return [int(p.get("num_threads", 0)) for p in threadpool_info()]
 
 
 def simulation_costs(samples: int, repeat: int = 3, seed: int = 1) -> list[dict]:

@@ -284,6 +284,9 @@ def bench(
                                           "references (default: the frame count; seed: its frames only)"),
     honesty: bool = typer.Option(False, "--honesty", help="the honesty map instead (issue 12; --quick, -o, --frames, "
                                                           "--profiles apply; more options: mtcw-bench-honesty --help)"),
+    threads: int = typer.Option(1, min=0, help="BLAS/OpenMP threads of this process, as a worker's MTCW_THREADS "
+                                               "(1: the chain on one core, like its one-core rfft reference; "
+                                               "0: the libraries' own)"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB,
     each cell timed against one rfft of its frame interleaved with the chain; stage breakdown and
@@ -304,6 +307,9 @@ def bench(
 
     from mtcw_bench.grid import GridSpec, cell_count, machine_info, run_grid, simulation_costs
     from mtcw_bench.report import write_report
+    from services.worker import limit_threads
+
+    limit_threads(threads)  # before machine_info, which records the pools' threads
 
     def csv_list(v: Optional[str], default: list) -> list:
         return [x.strip() for x in v.split(",") if x.strip()] if v else default

@@ -165,3 +165,27 @@ def test_write_report_renders_every_target_stage_memory_and_noisy_mark(tmp_path)
     assert (tmp_path / "stages.png").stat().st_size > 1000
     rows = list(csv.DictReader(open(tmp_path / "results.csv")))
     assert len(rows) == len(cs) and f"stage_{UNACCOUNTED}_s" in rows[0] and "ratio_spread" in rows[0]
+
+
+def test_stream_section_reads_mtcw_bench_streams_windows_and_cpu():
+    """stream.json from ``mtcw-bench-stream --threads 1 0 --windows 3``: the targets are the
+    one-thread rows', the 2-worker ratio comes with its windows' range and spread, and the CPU
+    column gives each process's median CPU per published frame."""
+    from mtcw_bench.report import stream_section
+
+    def row(workers, threads, fps, cpu_ms):
+        return {"workers": workers, "threads": threads,
+                "throughput": {"frames_per_s": fps, "chain_median_s": 0.03,
+                               "cpu": {"acq": {"cpu_s_per_frame": {"median": 1.1e-3}},
+                                       "w0": {"cpu_s_per_frame": {"median": cpu_ms * 1e-3}}}},
+                "latency_at_80pct": {"latency_p50_s": 0.03, "latency_p99_s": 0.06}}
+
+    stream = {"rows": [row(1, 1, 36.8, 28.0), row(2, 1, 59.7, 15.6), row(1, 0, 32.7, 60.0), row(2, 0, 31.8, 30.0)],
+              "scaling": [{"workers": 2, "threads": 0, "ratio": {"ratio": 0.97, "lo": 0.9, "hi": 1.0, "spread": 0.05}},
+                          {"workers": 2, "threads": 1, "ratio": {"ratio": 1.63, "lo": 1.51, "hi": 1.71,
+                                                                 "spread": 0.12, "noisy": True}}]}
+    targets, table = stream_section(stream)
+    scaling = dict(targets)["replay -> 2 workers ≥ 1.6× one worker's frames/s"]
+    assert scaling.startswith("1.63×") and "1.51–1.71" in scaling and "noisy" in scaling and "met" in scaling
+    assert len(table) == 2 + 2  # header, rule, and the one-thread rows only
+    assert "acq 1.1, w0 28.0 ms" in table[2]
