@@ -282,7 +282,7 @@ def test_local_floor_on_ranges_is_the_whole_spectrums(mirror_dc):
 
 
 def test_noise_variances_equal_the_scalar_statistic():
-    """The vectorised floors are noise_variance's, line by line: with and without excluded lines,
+    """The vectorised floors are the median statistic, line by line: with and without excluded lines,
     at both ends of the spectrum, and when the exclusions leave no bin (then every bin counts)."""
     n = 20000
     k = np.arange(n)
@@ -291,5 +291,17 @@ def test_noise_variances_equal_the_scalar_statistic():
         sp = power_spectrum(x, FS, single=single)
         fs = [0.0, 1e8, 2e8, 4.99e8, 5e8, 1e8 + 3e5]
         for ex in ([1e8, 0.0, 2e8 + 1e5], [], fs, list(np.linspace(0, 5e8, 3000))):
-            ref = np.array([sp.noise_variance(f, ex) for f in fs])
+            ref = np.array([_median_floor(sp, f, ex) for f in fs])
             np.testing.assert_allclose(sp.noise_variances(fs, ex), ref, rtol=1e-6)
+            assert sp.noise_variance(fs[1], ex) == sp.noise_variances(fs[1:2], ex)[0]
+
+
+def _median_floor(sp, f, exclude, half_width=256, guard=12):
+    """The statistic written out plainly: the median of the bins around f farther than guard
+    from every excluded line (all of them when that leaves none), as a per-sample variance."""
+    b = int(sp.bin_of(f))
+    idx = np.arange(max(b - half_width, 0), min(b + half_width + 1, sp.power.size))
+    ex = sp.bin_of(np.asarray(exclude, float)) if len(exclude) else np.empty(0, int)
+    keep = np.all(np.abs(idx[:, None] - ex[None, :]) > guard, axis=1) if ex.size else np.ones(idx.size, bool)
+    vals = sp.power[idx[keep]] if keep.any() else sp.power[idx]
+    return float(np.median(vals.astype(np.float64))) / np.log(2) / sp.window_power

@@ -83,19 +83,9 @@ class Spectrum:
 
         Median of the periodogram over ``+-half_width`` bins, excluding ``+-guard`` bins around
         every frequency in ``exclude_hz`` (the lines); the median of an exponential variable is
-        ``ln 2`` times its mean.
+        ``ln 2`` times its mean. One line of :meth:`noise_variances`.
         """
-        b = int(self.bin_of(f_hz))
-        lo, hi = max(b - half_width, 0), min(b + half_width + 1, self.power.size)
-        idx = np.arange(lo, hi)
-        mask = np.ones(idx.size, bool)
-        ex = self.bin_of(np.asarray(exclude_hz, dtype=float)) if len(exclude_hz) else np.empty(0, np.int64)
-        for e in ex[(ex > lo - guard) & (ex < hi + guard)]:
-            mask &= np.abs(idx - e) > guard
-        vals = self.power[idx[mask]] if mask.any() else self.power[idx]
-        if vals.size == 0:
-            return float("nan")
-        return float(np.median(vals) / LN2 / self.window_power)
+        return float(self.noise_variances([f_hz], exclude_hz, half_width, guard)[0])
 
 
 @lru_cache(maxsize=8)
