@@ -160,8 +160,8 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
 def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz, fs_hz: float) -> np.ndarray:
     """:func:`fit_lines` on many equal-length segments at once, each referred to its own centre.
 
-    One (S, L) x (L, 2K) product gives every segment's DFTs (the phasor table is the same for
-    all segments once each is referred to its centre); the Gram matrices are shared.
+    :func:`exact_dft_parts` gives every segment's DFTs (the phasor tables are the same for all
+    segments once each is referred to its centre); the Gram matrices are shared.
 
     Parameters
     ----------
@@ -178,15 +178,11 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
     starts = np.asarray(starts, dtype=np.int64)
     idx = starts[:, None] + np.arange(length)[None, :]
     seg = x[idx]  # (S, L)
-    c = (length - 1) / 2.0
-    cyc = np.mod(np.outer(np.arange(length, dtype=np.float64) - c, f / fs_hz), 1.0)
-    eb = np.exp(-2j * np.pi * cyc)  # (L, K)
+    dft = exact_dft_parts(seg, f, fs_hz)  # (S, K), each segment about its own centre
     w = 2 * np.pi * f / fs_hz
     if np.iscomplexobj(seg):
-        dft = seg @ eb
         g = _dirichlet(w[:, None] - w[None, :], length)
         return linalg.solve(g, dft.T, assume_a="sym").T
-    dft = seg @ eb.real + 1j * (seg @ eb.imag)
     wc = np.concatenate([[0.0], w])
     gc = 0.5 * (_dirichlet(wc[:, None] - wc[None, :], length) + _dirichlet(wc[:, None] + wc[None, :], length))
     gs = 0.5 * (_dirichlet(w[:, None] - w[None, :], length) - _dirichlet(w[:, None] + w[None, :], length))
