@@ -131,6 +131,14 @@ class TestValidate:
         ok = Calibration(tones_hz=TONES, tone_phases_rad=(0.0, 0.0), tau0_s=0.0)
         validate(make(), ChainSettings(), ok)
 
+    @pytest.mark.parametrize("phases", [(0.0, 1e300), (-1.797e308, 0.0), (0.0, float("nan")), (2e6, 0.0)])
+    def test_tone_phases_that_are_no_phase(self, phases):
+        """Stated tone phases beyond 1e6 rad (or NaN) are refused, naming the field: their pair
+        differences overflowed into a NaN chi2 and a point the wire refused (found by fuzzing)."""
+        with pytest.raises(Rejected, match=r"tone_phases_rad\[\d\]"):
+            validate(make(tone_phases_rad=phases), ChainSettings(), None)
+        validate(make(tone_phases_rad=(-3.1, 1e5)), ChainSettings(), None)
+
     def test_bad_channels_single(self):
         assert reason(make(channels=("x",))) == "bad_channels"
 

@@ -105,6 +105,12 @@ def _check_limits(frame: Frame, settings: ChainSettings) -> None:
                                         f"or set range_max_m)")
 
 
+#: the largest tone phase a frame or calibration may state (rad): any wrapped or unwrapped phase a
+#: bench reports is far below, and float64 still resolves 1e-10 rad there; beyond it the pair
+#: differences lose every digit (1e300 - (-1.8e308) is inf: found by fuzzing the worker)
+MAX_PHASE_RAD = 1e6
+
+
 def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration | None) -> None:
     """Sample rate, shape, length, tone plan and channels against the frame and the settings."""
     if not (frame.fs_hz > 0 and math.isfinite(frame.fs_hz)):
@@ -130,6 +136,11 @@ def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration 
         raise Rejected("tone_plan", f"frame tones {list(tones)} != configured {list(settings.expected_tones_hz)}")
     if calibration is not None and tuple(calibration.tones_hz) != tuple(tones):
         raise Rejected("calibration_mismatch", f"calibration tones {list(calibration.tones_hz)} != frame {list(tones)}")
+    phases = calibration.tone_phases_rad if calibration is not None else frame.tone_phases_rad
+    for i, ph in enumerate(phases or ()):
+        if not abs(ph) <= MAX_PHASE_RAD:  # NaN-safe
+            where = "calibration tone_phases_rad" if calibration is not None else "tone_phases_rad"
+            raise Rejected("tone_phases", f"{where}[{i}] = {ph!r} rad is not a phase (|phase| <= {MAX_PHASE_RAD:g} rad)")
     if frame.receiver == "iq" and not {"i", "q"} <= set(frame.channels):
         raise Rejected("bad_channels", "iq receiver needs channels 'i' and 'q'")
     if frame.receiver != "iq" and "pd" not in frame.channels:
