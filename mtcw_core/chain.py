@@ -90,7 +90,8 @@ def _gate(s: FrameState) -> None:
     r = s.result
     r.coarse_range_m, r.coarse_sigma_m = C * (g.tau_s - s.reference.tau0_s) / 2, C * g.sigma_s / 2
     if not g.detected:
-        raise NoTarget(f"no echo pulse (gate snr {g.snr:.1f} < {s.settings.gate_min_snr})")
+        raise NoTarget(f"no echo pulse (gate snr {g.snr:.1f} < {s.settings.gate_min_snr})" if not g.snr >= s.settings.gate_min_snr
+                       else "no echo pulse (the gate fit gives no finite delay)")
     half = s.settings.gate_k_sigma * r.coarse_sigma_m
     s.coarse = (r.coarse_range_m - half, r.coarse_range_m + half)
 

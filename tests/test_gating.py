@@ -194,3 +194,16 @@ class TestGateFrame:
                    pulse=PulseInfo(p, d, 0.0))  # the wrong delay: the reference channel knows better
         g = gate_frame(x, fr, ChainSettings())
         assert g.detected and abs(g.tau_s - tau) < 3 * g.sigma_s
+
+
+def test_a_record_toggling_between_the_rails_is_no_echo_not_a_crash():
+    """A pulsed frame whose samples alternate between the int16 rails (found by fuzzing the worker)
+    made the gate fit's delay infinite and the window placement raise OverflowError; it is no echo."""
+    from mtcw_core.chain import process_frame
+
+    x = np.resize(np.array([32767, -32768], "<i2"), (1, 4096))
+    fr = Frame(samples=x, fs_hz=5e9, tones_hz=(500e6, 700e6, 950e6), channels=("pd",), scale=0.00015894517924293028,
+               wavelength_m=1.064e-6, receiver="balanced", pulse=PulseInfo(period_s=1.6384e-6, duty=0.75, delay_s=0.0))
+    for profile in ("fast", "balanced"):
+        res = process_frame(fr, profile)
+        assert res.status == "no_target" and res.reason.startswith("no echo pulse"), res.reason

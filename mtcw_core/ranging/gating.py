@@ -544,7 +544,9 @@ def coarse_gate(x: np.ndarray, fs_hz: float, period_s: float, duty: float, delay
     ramp_s = ramp_duration(ref, fs_hz, levels)
     t_tx = c_tx - width / 2  # transmitted gate start (s), modulo P
     tau, sigma, snr, amp = _block_fit(e, bs, t_tx, width, period_s)
-    detected = bool(amp > 0 and snr >= min_snr)
+    # a fit whose delay or spread is not finite (a record that is all rail-to-rail toggling, say)
+    # places no window: no echo, not an exception
+    detected = bool(amp > 0 and snr >= min_snr and math.isfinite(tau) and math.isfinite(sigma))
     if not detected:
         return GateEstimate(tau, sigma, [], snr, detected, width)
     # 3. the edges themselves, on the band envelope about the echo-off level
