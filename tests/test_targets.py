@@ -227,3 +227,39 @@ class TestSpeedNotMeasurable:
         assert (v, direction) == (0.0, "unknown") and s == vmin == pytest.approx(50e6 * LAM / 2)
         v, s, direction, vmin = velocity(d, frame(), [fam()], False, coherence=1.0, fd_max_hz=50e6)
         assert direction == "static" and s == vmin == pytest.approx(4e5 * LAM / 2)
+
+
+class TestScaledCopy:
+    """A strong mover's phase-noise pedestal puts a weak "mover" beside it whose lines are the
+    mover's times one complex number (issue 12 case 5: a ghost at 62 m/s beside 60 m/s)."""
+
+    @staticmethod
+    def noisy(f, ratio, var, seed):
+        from dataclasses import replace
+        rng = np.random.default_rng(seed)
+        z = ratio * f.z
+        sigma = np.sqrt(2 * np.asarray(var) * np.abs(z) ** 2 / 2)  # per quadrature
+        z = z + sigma * (rng.standard_normal(z.shape) + 1j * rng.standard_normal(z.shape))
+        return replace(f, z=z, phase_var=np.asarray(var, float), target=2)
+
+    def parent(self):
+        return [fam("U", 1, fd=5e6, range_m=3.7), fam("L", 1, fd=-5e6, range_m=3.7)]
+
+    def test_a_pedestal_copy_is_one(self):
+        from mtcw_core.ranging.targets import is_scaled_copy
+        p = self.parent()
+        r = 0.02 * np.exp(0.7j)
+        for seed in range(5):
+            ghost = [self.noisy(p[0], r, (0.05,) * 3, seed), self.noisy(p[1], np.conj(r), (0.05,) * 3, seed + 10)]
+            assert is_scaled_copy(ghost, p)
+
+    def test_a_target_at_another_range_is_not(self):
+        from mtcw_core.ranging.targets import is_scaled_copy
+        other = [fam("U", 2, fd=5.3e6, range_m=1.3), fam("L", 2, fd=-5.3e6, range_m=1.3)]
+        weak = [self.noisy(f, 0.02, (0.01,) * 3, i) for i, f in enumerate(other)]
+        assert not is_scaled_copy(weak, self.parent())
+
+    def test_a_strong_candidate_is_not(self):
+        from mtcw_core.ranging.targets import is_scaled_copy
+        p = self.parent()
+        assert not is_scaled_copy([self.noisy(f, 0.5, (1e-4,) * 3, 1) for f in p], p)

@@ -17,6 +17,8 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy.stats import chi2 as chi2_dist
+from scipy.stats import t as student_t
 
 from ..frame import Frame
 from ..profiles import ChainSettings
@@ -44,6 +46,11 @@ class DopplerEstimate:
     #: a Lorentzian of FWHM ``G``, whose centre over ``T`` seconds wanders by ``sqrt(G/(2*pi*T))``
     #: (the phase random walk's end-to-end change over ``2*pi*T``); 0 for a coherent line
     wander_hz: float = 0.0
+
+
+#: below this part of the carrier beat in one line, a mover's Doppler line is not there to find
+#: (the LO x echo carrier beat keeps exp(-2*pi*linewidth*|dtau|) of its power in the line)
+MIN_CARRIER_COHERENCE = 0.5
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,8 +355,43 @@ def _other_lines(tones, fd: float, others: list[float], iq: bool) -> np.ndarray:
     return np.concatenate([target_lines(tones, o, iq)[0] for o in [0.0, *others] if o != fd])
 
 
+#: a refinement's parts are short enough that its start lies within this fraction of the phase
+#: advance's unambiguous interval +-fs/(2L) (in start sigmas: 0.1 bin of a parabola plus the wander)
+WRAP_SIGMAS = 4.0
+#: ... and never more parts than this in the first step
+MAX_FIRST_PARTS = 32
+
+
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
                     spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
+    """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts
+    (:func:`phase_advance`), starting close enough for the advance not to wrap.
+
+    The advance over a part of ``L`` samples is unambiguous within ``+-fs/(2L)``. A parabola
+    through a spectrum of a fraction of the record (the ``fast`` profile's eighth) is known to
+    ~0.1 of *its* bin, and a line broadened by the laser's phase noise wanders further: where
+    :data:`WRAP_SIGMAS` times that exceeds the interval of ``segments`` parts, a first step on as
+    many more parts as it takes (up to :data:`MAX_FIRST_PARTS`) brings the start close; when even
+    that leaves the quarters' interval in doubt, the first step's answer stands (a slipped cycle of
+    the advance would be a confident error of ``fs/L``).
+    """
+    fs, n = frame.fs_hz, x.size
+    start_err = est.refine_error_hz + est.wander_hz
+    parts = segments
+    while WRAP_SIGMAS * start_err > fs * parts / (2 * n) and parts < MAX_FIRST_PARTS:
+        parts *= 2
+    if parts == segments:
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts)
+    if first is est:
+        return est
+    if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
+        return first
+    return phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
+
+
+def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
+                  spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -413,17 +455,111 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
     spread = stat * math.sqrt(max(chi2 / max(len(wt) - 1, 1), 1.0))
     # what every line shares -- the laser's phase noise over the echo delay moves the carrier
-    # phase of all of them alike, so their agreement cannot show it: the common phase of the
-    # parts about a straight line (its scatter, with segments - 2 degrees of freedom; so few that
-    # a low draw would make a confident answer, hence COMMON_MODE_MARGIN)
+    # phase of all of them alike, so their agreement cannot show it: the common phase's wander
+    # across the record does (common_mode_error)
     if segments >= 3:
-        cum = np.vstack([np.zeros(len(wt)), np.cumsum(np.angle(prod), axis=0)])  # (S, K), unwrapped
-        common = (cum * slope) @ wt / np.sum(wt)  # (S,) rad
-        k = np.arange(segments, dtype=float)
-        res = common - np.polyval(np.polyfit(k, common, 1), k)
-        var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
-        spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
+        all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
+        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
+        if fine is not None:
+            spread = math.hypot(spread, fine)
+        else:
+            # the parts themselves: segments - 2 degrees of freedom (2 for quarters), so few that
+            # a low draw would make a confident answer, hence COMMON_MODE_MARGIN on the whole scatter
+            cum = np.vstack([np.zeros(len(wt)), np.cumsum(np.angle(prod), axis=0)])  # (S, K), unwrapped
+            common = (cum * slope) @ wt / np.sum(wt)  # (S,) rad
+            k = np.arange(segments, dtype=float)
+            res = common - np.polyval(np.polyfit(k, common, 1), k)
+            var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
+            spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread)
+
+
+#: the common phase is measured on up to this many parts of the record, and at least this many
+#: (more parts, more degrees of freedom in its scatter: 14 at 16 parts, where quarters leave 2)
+COMMON_MODE_MAX_PARTS = 16
+COMMON_MODE_MIN_PARTS = 6
+#: ... each part's combined line phase at most this noisy from white noise (rad^2; ~10 dB SNR),
+#: so that the phase steps between parts stay far from a wrap
+COMMON_MODE_MAX_PHASE_VAR = 0.1
+#: the tail the common-mode margin keeps: P(|z| > 5) from the scatter's few degrees of freedom
+COMMON_MODE_TAIL = 1e-5
+#: the common phase's scatter counts as phase noise when white noise alone would exceed it this
+#: rarely (a chance excess in a coherent record would otherwise widen its sigma by the margin)
+COMMON_MODE_SIGNIFICANCE = 0.01
+
+
+def common_mode_margin(dof: int) -> float:
+    """The factor on a phase-noise sigma estimated with ``dof`` degrees of freedom that keeps the
+    chance of a 5-sigma error at :data:`COMMON_MODE_TAIL`: the error over the estimate is
+    Student-t distributed, ``P(|t_dof| > 5*m) = tail`` (4 dof: 5.6, 8: 2.0, 14: 1.34); at least 1."""
+    return max(1.0, float(student_t.ppf(1 - COMMON_MODE_TAIL / 2, dof)) / 5.0)
+
+
+def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
+                      var_phi: np.ndarray, segments: int, length: int, all_freqs: np.ndarray, near: np.ndarray,
+                      iq: bool) -> float | None:
+    """The Doppler error (Hz) of :func:`refine_by_phase` from the phase all its lines share.
+
+    The laser's phase noise over the echo delay moves the carrier phase of every line alike; the
+    lines' agreement cannot show it, the common phase's wander across the record does. It is
+    measured on as many parts as the lines allow (from :data:`COMMON_MODE_MAX_PARTS` down to
+    :data:`COMMON_MODE_MIN_PARTS`: each line still :data:`PHASE_SEPARATION_BINS` part bins from
+    every other line and its image, and each part's combined phase within
+    :data:`COMMON_MODE_MAX_PHASE_VAR` of white noise). The scatter of the common phase about a
+    straight line, less what white noise explains (the refinement states that part already), is
+    the phase noise per part -- counted when white noise alone would leave less scatter only with
+    odds :data:`COMMON_MODE_SIGNIFICANCE`. Scaled to the refinement's segments (the estimate is
+    about ``(phi_S - phi_1)/(S - 1)``) and widened by :func:`common_mode_margin` for its degrees
+    of freedom.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V
+    freqs, slope, wt, var_phi : ndarray, shape (K,)
+        The refinement's lines (Hz), how each moves with ``f_d``, its weight and its white-noise
+        phase variance per segment (rad^2).
+    segments, length : the refinement's segments and their length (samples)
+    all_freqs : every line of the target (Hz); near: every other line there may be (Hz)
+
+    Returns
+    -------
+    float (Hz, 0 when the scatter is what white noise leaves), or None when no line allows
+    :data:`COMMON_MODE_MIN_PARTS` parts
+    """
+    choice = None
+    for parts in range(COMMON_MODE_MAX_PARTS, COMMON_MODE_MIN_PARTS - 1, -1):
+        lc = x.size // parts
+        if lc < 64:
+            continue
+        sep = PHASE_SEPARATION_BINS * fs / lc
+        use = np.array([np.all(np.abs(near - f) > sep) and np.sum(np.abs(all_freqs - f) < sep) == 1
+                        and (iq or 2 * abs(f) > sep) for f in freqs])
+        if not use.any():
+            continue
+        # white noise on a part's combined phase: a line's phase variance grows as its part shortens
+        white = float(np.sum(wt[use] ** 2 * var_phi[use])) / float(np.sum(wt[use])) ** 2 * length / lc
+        if white <= COMMON_MODE_MAX_PHASE_VAR:
+            choice = parts, lc, use, white
+            break
+    if choice is None:
+        return None
+    parts, lc, use, white = choice
+    f, sl, w_ = freqs[use], slope[use], wt[use]
+    win = cached_window(("kaiser", PHASE_WINDOW_BETA), lc)
+    seg = x[:parts * lc].reshape(parts, lc)
+    z = exact_dft_parts(seg * win, f, fs) - seg.mean(axis=1)[:, None] * exact_dft(win, f, fs)  # (parts, K)
+    steps = np.angle(z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * np.mod(f * lc / fs, 1.0)))
+    cum = np.vstack([np.zeros(f.size), np.cumsum(steps, axis=0)])  # (parts, K), unwrapped
+    common = (cum * sl) @ w_ / np.sum(w_)  # (parts,) rad
+    k = np.arange(parts, dtype=float)
+    res = common - np.polyval(np.polyfit(k, common, 1), k)
+    dof = parts - 2
+    scatter = float(np.sum(res**2)) / dof
+    if scatter <= white * float(chi2_dist.ppf(1 - COMMON_MODE_SIGNIFICANCE, dof)) / dof:
+        return 0.0
+    per_segment = (scatter - white) * lc / length  # a segment averages length/lc parts' phase noise
+    var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
+    return common_mode_margin(dof) * math.sqrt(var_hz)
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],

@@ -20,7 +20,7 @@ from scipy import signal as sps
 from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
-from .doppler import DopplerEstimate, doppler_families
+from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
 from .spectrum import Spectrum
 from .tones import exact_dft, fit_lines, fit_lines_segments
 
@@ -191,7 +191,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
         # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([x.mean()]))
-        zs[0, "S"] = zs[0, "S"] - self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
+        pred = self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
+        zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
     out = []
     for target, name, freqs, conj, bad in fams:
         z = zs[target, name]
@@ -201,6 +202,35 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
     return out
+
+
+#: a fitted self-beat scale is taken when it leaves this part of the static lines' power at scale 1
+SELF_BEAT_FIT_GAIN = 0.1
+
+
+def self_beat_scale(s_lines: np.ndarray, pred: np.ndarray) -> float:
+    """How much of the predicted self-beat ``pred`` to take from the static lines ``s_lines``: 1,
+    or more where the carrier's coherence explains the rest.
+
+    The prediction rests on a mover's LO beats, each of which carries the laser's phase noise over
+    the echo's delay: their fitted amplitudes keep ``exp(-pi*linewidth*|dtau|)`` of the line, the
+    self-beat (the echo with itself) all of it. So the prediction is low by ``1/coherence``, up to
+    ``1/``:data:`~mtcw_core.dsp.doppler.MIN_CARRIER_COHERENCE` for a mover whose Doppler line was
+    found at all. The scale is fitted (least squares, real, clipped to that interval) and taken
+    only when the static lines are then mostly the self-beat: what is left of them at scale 1 falls
+    by :data:`SELF_BEAT_FIT_GAIN` or more. A static target beside the mover keeps the scale 1 (a
+    fitted scale would take part of its lines with it).
+
+    Parameters
+    ----------
+    s_lines, pred : ndarray, shape (S, T), complex, V: the static lines and the prediction
+    """
+    den = float(np.sum(np.abs(pred) ** 2))
+    if den <= 0:
+        return 1.0
+    fit = float(np.clip(np.sum((s_lines * np.conj(pred)).real) / den, 1.0, 1.0 / MIN_CARRIER_COHERENCE))
+    left = float(np.sum(np.abs(s_lines - fit * pred) ** 2))
+    return fit if left <= SELF_BEAT_FIT_GAIN * float(np.sum(np.abs(s_lines - pred) ** 2)) else 1.0
 
 
 def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray) -> np.ndarray:

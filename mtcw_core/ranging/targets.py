@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import DopplerEstimate, fd_max
+from ..dsp.doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
 from ..frame import Frame
 from ..phase import C
@@ -48,8 +48,6 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
     return math.exp(-2 * math.pi * settings.laser_linewidth_hz * dtau)
 
 
-#: below this part of the carrier beat in one line, a mover's Doppler line is not there to find
-MIN_CARRIER_COHERENCE = 0.5
 
 
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
@@ -181,12 +179,57 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     )
 
 
+#: a candidate this much weaker than a mover (amplitude) may be a copy of its lines
+COPY_MAX_RATIO = 0.1
+#: ... and is one when its lines miss a scaled copy by less than this chi-square quantile
+COPY_QUANTILE = 0.999
+
+
+def is_scaled_copy(fams: list[LineFamily], parent: list[LineFamily]) -> bool:
+    """Are the lines of a Doppler candidate ``fams`` one complex multiple of a stronger mover's?
+
+    A mover's LO beats all carry the laser's phase noise over its delay, ``exp(j*dphi(t))``, whose
+    spectrum is a line and a pedestal around it: at an offset ``delta`` every line of the mover
+    (baseband, ``f_i + f_d``, ``|f_i - f_d|``) has the same pedestal value beside it, and the search
+    finds a "mover" at ``f_d + delta`` whose U lines are the mover's times ``P(delta)`` and whose L
+    lines its times ``P*(delta)``. A second target at another range (modulo the unambiguous range)
+    has U lines whose ratio to the mover's turns with ``f_i``. The test: per family, the
+    least-squares complex ratio, at most :data:`COPY_MAX_RATIO`, and the chi-square of the
+    candidate's lines about the scaled copy (their own noise, ``2 * phase_var * |z|^2`` per line)
+    within its :data:`COPY_QUANTILE` quantile, with ``2*(T - 1)`` degrees of freedom per family.
+
+    Parameters
+    ----------
+    fams, parent : the candidate's and the mover's line families (U and L)
+    """
+    by_name = {f.name: f for f in parent}
+    chi2, dof = 0.0, 0
+    for f in fams:
+        p = by_name.get(f.name)
+        if p is None:
+            continue
+        ok = np.isfinite(f.phase_var) & np.isfinite(p.phase_var) & (np.abs(p.z).min(axis=0) > 0)
+        if ok.sum() < 2:
+            continue
+        zc, zp = f.z[:, ok].ravel(), p.z[:, ok].ravel()
+        ratio = np.sum(zc * np.conj(zp)) / np.sum(np.abs(zp) ** 2)
+        if not abs(ratio) <= COPY_MAX_RATIO:
+            return False
+        noise = 2 * np.repeat(f.phase_var[ok][None, :], f.z.shape[0], axis=0).ravel() * np.abs(zc) ** 2
+        noise = np.maximum(noise, np.finfo(float).tiny)
+        chi2 += float(np.sum(np.abs(zc - ratio * zp) ** 2 / (noise / 2)))
+        dof += 2 * (zc.size - 1)
+    return dof > 0 and chi2 <= float(chi2_dist.ppf(COPY_QUANTILE, dof))
+
+
 def resolve_targets(families: list[LineFamily], observations: dict[int, Observations], dops: list[DopplerEstimate],
                     frame: Frame, settings: ChainSettings, ref: Reference, coarse: tuple[float, float] | None
                     ) -> tuple[list[tuple[int, TargetPoint]], float | None]:
     """The stage: a point per candidate that has observations, and the largest unambiguous range (m).
 
-    Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line.
+    Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line. A Doppler
+    candidate whose lines are a scaled copy of a stronger mover's (:func:`is_scaled_copy`: that
+    mover's phase-noise pedestal) gets no point.
     """
     static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, dops[0].min_detectable_hz)
     moving = [d for d in dops if d.detected]
@@ -194,6 +237,8 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     l_unamb = None
     for k, obs in sorted(observations.items()):
         fam_k = [f for f in families if f.target == k]
+        if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
+            continue  # the phase-noise pedestal of a stronger mover, not a target
         lu = unambiguous_range(obs.df_hz)
         points.append((k, solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)))
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
