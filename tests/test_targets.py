@@ -263,3 +263,18 @@ class TestScaledCopy:
         from mtcw_core.ranging.targets import is_scaled_copy
         p = self.parent()
         assert not is_scaled_copy([self.noisy(f, 0.5, (1e-4,) * 3, 1) for f in p], p)
+
+
+class TestIncoherentMover:
+    def test_no_doppler_line_where_the_carrier_beat_is_no_line(self):
+        """Issue 12's quasi-CW target at 930 m with a 100 kHz laser: the carrier beat keeps
+        exp(-2*pi*1e5*2*930/c) = 2 % of its power in a line, so a "mover" found at that range is a
+        bump of the static lines' Lorentzian wings; declared coherent (linewidth 0), the twin rule
+        decides as before."""
+        static, ghost = point(930.0, (26.0, 26.1, 22.0)), point(930.0, (28.4, 29.3, 25.7))
+        declared = ChainSettings(laser_linewidth_hz=1e5)
+        assert select_targets([(0, static), (1, ghost)], declared) == [static]
+        assert select_targets([(0, static), (1, ghost)], ChainSettings()) == [ghost]
+        # a mover at 3 m keeps 99.6 % of its carrier beat: it stays
+        near = point(3.0, (28.4, 29.3, 25.7))
+        assert near in select_targets([(0, static), (1, near)], declared)

@@ -258,6 +258,9 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
 
     - A candidate without a finite range, speed and sigmas is no measurement: never reported.
+    - A "mover" at a range where the declared laser keeps less than
+      :data:`~mtcw_core.dsp.doppler.MIN_CARRIER_COHERENCE` of the carrier beat in one line has no
+      Doppler line to be found: it is the Lorentzian wings of the static lines, never reported.
 
     - A "moving target" whose line phases are random at high SNR is the wings of the static
       lines (a laser incoherent at the echo's delay), not a target: dropped when a static
@@ -269,6 +272,9 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       (they carry its tone phases): of two candidates at one range, the stronger is the target.
     """
     points = [(k, p) for k, p in points if is_finite(p)]
+    # no Doppler line where the carrier beat is no line: a "mover" there is the wings of the
+    # static lines (a laser declared incoherent at that range; issue 12's quasi-CW target at 930 m)
+    points = [(k, p) for k, p in points if k == 0 or carrier_coherence(settings, p.range_m) >= MIN_CARRIER_COHERENCE]
     if any(k == 0 for k, _ in points):
         points = [(k, p) for k, p in points if k == 0 or not (
             p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0)]
