@@ -23,8 +23,10 @@ class Spectrum:
 
     Attributes
     ----------
-    power : ndarray, shape (B,)
-        ``|X|^2`` of the windowed record (rfft for real, fftshifted fft for complex input), V^2.
+    power : ndarray or PackedPower, shape (B,)
+        ``|X|^2`` of the windowed record (rfft for real, fftshifted fft for complex input), V^2;
+        of an even-length real record a :class:`PackedPower`, which unpacks the bins it is asked
+        for (index it, or ``np.asarray`` it for the whole array).
     df_hz : float
         Bin spacing (Hz).
     f0_hz : float
@@ -36,7 +38,7 @@ class Spectrum:
         Samples transformed.
     """
 
-    power: np.ndarray
+    power: np.ndarray | PackedPower
     df_hz: float
     f0_hz: float
     window_power: float
@@ -112,47 +114,176 @@ def _half_twiddle(m: int, dtype: str) -> np.ndarray:
     return w
 
 
-def real_power(y: np.ndarray) -> np.ndarray:
-    """``|rfft(y)|^2``, shape ``(m//2 + 1,)``, of a real record of even length ``m``, by one
-    complex FFT of half the length.
+class PackedPower:
+    """``|rfft(y)|^2`` of a real record of even length ``m``, shape ``(m//2 + 1,)``, held as the
+    complex FFT of half the length and unpacked only in the bins that are read.
 
-    The pairs ``(y[2k], y[2k+1])`` are taken as one complex sample (a view, no copy); with ``Z``
-    its FFT and ``Zr[k] = conj(Z[-k mod m/2])``, ``X[k] = ((Z + Zr) - j*W^k*(Z - Zr))/2`` with
-    ``W = exp(-2j*pi/m)``, and ``X[m/2] = Re Z[0] - Im Z[0]``. scipy's ``rfft`` computes the same
-    transform, but pocketfft's real kernels run at about half the speed of its complex ones at
-    these lengths (1e6 samples: 7.4 ms against 3.3 ms for the complex FFT of half the length on
-    the bench machine), hence this route to the same numbers.
+    The pairs ``(y[2k], y[2k+1])`` taken as one complex sample have the FFT ``Z`` (length
+    ``h = m/2``); with ``Zr[k] = conj(Z[-k mod h])`` and ``W = exp(-2j*pi/m)``,
+    ``X[k] = ((Z + Zr) - j*W^k*(Z - Zr))/2`` and ``X[h] = Re Z[0] - Im Z[0]``. scipy's ``rfft``
+    computes the same transform, but pocketfft's real kernels run at about half the speed of its
+    complex ones at these lengths (1e6 samples: 7.4 ms against 3.3 ms for the complex FFT of half
+    the length on the bench machine), hence this route to the same numbers.
+
+    The unpacking costs about two thirds of that FFT again over the whole spectrum, and the
+    chain reads a few bands of it (the Doppler search: +-its largest shift around 0 Hz and each
+    tone; the noise floors: +-256 bins around each line), so it is done per block of
+    :attr:`BLOCK` bins on the first read and kept: indexing (an integer, a slice, an integer
+    array of any shape) returns exactly what indexing the whole ``|X|^2`` would, every block
+    unpacked by the same arithmetic wherever the read starts. ``np.asarray`` (and any attribute
+    of an ndarray, e.g. ``.max()``) gives the whole array, unpacking what is missing.
+
+    Parameters
+    ----------
+    packed : ndarray, shape (h,), complex64 or complex128: the FFT of the record's pairs; kept
+        (not copied) and never written
+    """
+
+    #: bins unpacked together on the first read of any of them
+    BLOCK = 1024
+
+    def __init__(self, packed: np.ndarray):
+        self._z = packed
+        self._h = h = packed.size
+        self.dtype = packed.real.dtype
+        self.shape = (h + 1,)
+        self.size = h + 1
+        self.ndim = 1
+        self._out = np.empty(h + 1, dtype=self.dtype)
+        self._done = np.zeros(-(-(h + 1) // self.BLOCK), dtype=bool)
+        self._tw = _half_twiddle(2 * h, str(packed.dtype))
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _unpack(self, a: int, b: int) -> None:
+        """Write bins ``[a, b)`` of ``|X|^2`` into the store."""
+        z, h, out = self._z, self._h, self._out
+        if b > h:  # the Nyquist bin, from Z[0] alone
+            nyquist = float(z[0].real) - float(z[0].imag)
+            out[h] = nyquist * nyquist
+            b = h
+        if b <= a:
+            return
+        # conj(Z[-k]) for k in [a, b): Z[h-k], walking down (Z[0] for k = 0)
+        even = np.empty(b - a, dtype=z.dtype)
+        if a == 0:
+            even[0] = z[0]
+            even[1:] = z[h - b + 1:h][::-1]
+        else:
+            even[:] = z[h - b + 1:h - a + 1][::-1]
+        np.conjugate(even, out=even)
+        even += z[a:b]  # Z + conj(Z[-k])
+        odd = z[a:b] * 2
+        odd -= even  # Z - conj(Z[-k])
+        odd *= self._tw[a:b]  # 2j * W^k * (DFT of the odd samples)
+        # X = (even - j*odd)/2 = ((even.re + odd.im) + j*(even.im - odd.re))/2
+        body = out[a:b]
+        np.add(even.real, odd.imag, out=body)
+        body *= body
+        scratch = even.real  # spent once the real part is summed: hold the imaginary part there
+        np.subtract(even.imag, odd.real, out=scratch)
+        scratch *= scratch
+        body += scratch
+        body *= 0.25
+
+    def _ensure(self, a: int, b: int) -> None:
+        """Unpack every block that bins ``[a, b)`` touch and that is not unpacked yet."""
+        if b <= a:
+            return
+        blk = self.BLOCK
+        first, last = a // blk, (b - 1) // blk + 1
+        todo = ~self._done[first:last]
+        if not todo.any():
+            return
+        # runs of blocks still packed, each unpacked in one go
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], todo, [False]]).astype(np.int8)))
+        for r0, r1 in zip(edges[::2], edges[1::2]):
+            self._unpack((first + r0) * blk, min((first + r1) * blk, self.size))
+        self._done[first:last] = True
+
+    def _ensure_indices(self, idx: np.ndarray) -> None:
+        if idx.size == 0:
+            return
+        lo, hi = int(idx.min()), int(idx.max())
+        if hi - lo < 2 * idx.size + 2 * self.BLOCK:  # compact (a band, a few windows): one range
+            self._ensure(lo, hi + 1)
+            return
+        u = np.unique(idx)
+        cut = np.flatnonzero(np.diff(u) > self.BLOCK) + 1
+        for grp in np.split(u, cut):
+            self._ensure(int(grp[0]), int(grp[-1]) + 1)
+
+    def __getitem__(self, key):
+        if isinstance(key, (int, np.integer)):
+            k = int(key)
+            k = k + self.size if k < 0 else k
+            if not 0 <= k < self.size:
+                raise IndexError(f"bin {int(key)} is outside a spectrum of {self.size} bins")
+            self._ensure(k, k + 1)
+            return self._out[k]
+        if isinstance(key, slice):
+            a, b, _ = key.indices(self.size)
+            if key.step is None or key.step == 1:
+                self._ensure(a, b)
+            else:
+                self._ensure(0, self.size)
+            view = self._out[key]
+            view.flags.writeable = False
+            return view
+        idx = np.asarray(key)
+        if idx.dtype.kind == "b":
+            idx = np.flatnonzero(idx)
+        if idx.dtype.kind not in "iu":
+            raise IndexError(f"spectrum bins are indexed by integers, slices or masks, not {idx.dtype}")
+        idx = np.where(idx < 0, idx + self.size, idx)
+        if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= self.size):
+            raise IndexError(f"bins outside a spectrum of {self.size} bins")
+        self._ensure_indices(idx)
+        return self._out[idx]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        self._ensure(0, self.size)
+        full = self._out.view()
+        full.flags.writeable = False
+        if dtype is not None and np.dtype(dtype) != full.dtype:
+            return full.astype(dtype)
+        return full.copy() if copy else full
+
+    def __getattr__(self, name: str):
+        # any other ndarray attribute (max, argmax, sum, ...) on the whole spectrum
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self.__array__(), name)
+
+    @property
+    def unpacked_fraction(self) -> float:
+        """Part of the spectrum unpacked so far (diagnostics)."""
+        return float(np.mean(self._done))
+
+
+def real_power(y: np.ndarray) -> np.ndarray:
+    """``|rfft(y)|^2``, shape ``(m//2 + 1,)``, of a real record of even length ``m``: every bin
+    of :func:`real_power_packed` unpacked.
 
     Parameters
     ----------
     y : ndarray, shape (m,), float32 or float64, C-contiguous, m even; overwritten
     """
-    m = y.size
-    half = m // 2
-    # in place: the FFT's output shares y's buffer; two more half-length complex buffers and the
-    # output are all the memory it takes (a 1e6-sample float64 record: 8 + 8 + 4 MB)
-    packed = scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128), overwrite_x=True)
-    nyquist = float(packed[0].real) - float(packed[0].imag)
-    even = np.empty_like(packed)  # conj(Z[-k]), then Z + conj(Z[-k])
-    even[0] = packed[0]
-    even[1:] = packed[:0:-1]
-    np.conjugate(even, out=even)
-    even += packed
-    packed *= 2
-    packed -= even  # Z - conj(Z[-k])
-    packed *= _half_twiddle(m, str(packed.dtype))  # 2j * W^k * (DFT of the odd samples)
-    # X = (even - j*b)/2 = ((even.re + b.im) + j*(even.im - b.re))/2
-    out = np.empty(half + 1, dtype=y.dtype)
-    body = out[:half]
-    np.add(even.real, packed.imag, out=body)
-    body *= body
-    scratch = even.real  # even.real is spent once the real part is summed: hold the imaginary part there
-    np.subtract(even.imag, packed.real, out=scratch)
-    scratch *= scratch
-    body += scratch
-    body *= 0.25
-    out[half] = nyquist * nyquist
-    return out
+    return np.array(real_power_packed(y))
+
+
+def real_power_packed(y: np.ndarray) -> PackedPower:
+    """``|rfft(y)|^2`` of a real record of even length ``m`` as a :class:`PackedPower`: one complex
+    FFT of half the length, unpacked where read.
+
+    Parameters
+    ----------
+    y : ndarray, shape (m,), float32 or float64, C-contiguous, m even; overwritten (the pairs
+        ``(y[2k], y[2k+1])`` are taken as one complex sample, a view, and transformed in place)
+    """
+    return PackedPower(scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128),
+                                     overwrite_x=True))
 
 
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None,
@@ -186,7 +317,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
         return Spectrum(p, fs_hz / m, f0, wp, m, True)
     if m % 2 == 0:
-        p = real_power(y)
+        p = real_power_packed(y)
     else:
         X = scipy.fft.rfft(y, overwrite_x=True)
         p = X.real**2 + X.imag**2
