@@ -105,17 +105,24 @@ class Frame:
         """One channel in volts, float64, shape (n,)."""
         idx = self.channels.index(name)
         x = self.samples[idx]
-        if x.dtype.kind == "f" and self.scale == 1.0 and self.offset == 0.0:
-            return x.astype(np.float64, copy=False)
-        v = x.astype(np.float64)  # one buffer, scaled in place
-        v *= self.scale
-        v += self.offset
+        if self.scale == 1.0 and self.offset == 0.0:
+            return x.astype(np.float64, copy=x.dtype.kind != "f")
+        # one buffer: the codes are cast inside the multiply's loop (exactly: every int16 and
+        # float32 is a float64), then the offset added in place -- two passes, not three
+        v = np.multiply(x, np.float64(self.scale), dtype=np.float64)
+        if self.offset != 0.0:
+            v += self.offset
         return v
 
     def signal(self) -> np.ndarray:
         """The detector signal in volts: real float64 (single/balanced) or complex128 (iq), shape (n,)."""
         if self.receiver == "iq":
-            return self.volts("i") + 1j * self.volts("q")
+            # i + 1j*q, written into one complex buffer (the same numbers: 1j*q has real part 0)
+            z = np.empty(self.n, dtype=np.complex128)
+            plain = self.scale == 1.0 and self.offset == 0.0
+            z.real = self.samples[self.channels.index("i")] if plain else self.volts("i")
+            z.imag = self.samples[self.channels.index("q")] if plain else self.volts("q")
+            return z
         return self.volts("pd")
 
     def with_(self, **kw) -> "Frame":

@@ -33,3 +33,32 @@ def test_mapping_round_trip_is_exact():
     assert back == fr
     minimal = frame_from_dict({"fs_hz": 1.0, "tones_hz": [0.25], "wavelength_m": 1e-6}, fr.samples[:1])
     assert (minimal.receiver, minimal.channels, minimal.pulse, minimal.run) == ("single", ("pd",), None, None)
+
+
+class TestVolts:
+    """``Frame.volts``/``signal``: ``code*scale + offset`` in float64, written out plainly here."""
+
+    @staticmethod
+    def _frame(samples, **kw):
+        return Frame(samples=samples, fs_hz=1e9, tones_hz=(1e8, 2e8), wavelength_m=1.55e-6, **kw)
+
+    @pytest.mark.parametrize("dtype", ["<i2", "<i1", "<f4", "<f8", ">i2", ">f4"])
+    @pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (3.1e-4, 0.0), (1.0, -0.25), (2.5e-3, 0.125)])
+    def test_codes_to_volts(self, dtype, scale, offset):
+        codes = np.random.default_rng(1).integers(-120, 120, size=(1, 1000)).astype(dtype)
+        v = self._frame(codes, scale=scale, offset=offset).signal()
+        want = np.array([float(c) * scale + offset for c in codes[0]])  # one sample at a time
+        assert v.dtype == np.float64 and v.shape == (1000,)
+        np.testing.assert_array_equal(v, want)
+
+    @pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (1e-3, 0.5)])
+    def test_iq_is_i_plus_jq(self, scale, offset):
+        codes = np.random.default_rng(2).integers(-3000, 3000, size=(2, 500)).astype(np.int16)
+        v = self._frame(codes, receiver="iq", channels=("i", "q"), scale=scale, offset=offset).signal()
+        want = np.array([complex(float(i) * scale + offset, float(q) * scale + offset) for i, q in codes.T])
+        assert v.dtype == np.complex128
+        np.testing.assert_array_equal(v, want)
+
+    def test_float64_without_scale_is_not_copied(self):
+        x = np.random.default_rng(3).standard_normal((1, 64))
+        assert np.shares_memory(self._frame(x).signal(), x)

@@ -53,6 +53,16 @@ class TestPairObservations:
         obs = pair_observations([fam], PHI)
         np.testing.assert_allclose(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * TAU), 0.0, atol=1e-9)
 
+    def test_tones_in_any_order(self):
+        """Lines listed highest tone first: every pair still has df > 0 and its phase -2*pi*df*tau."""
+        fam = family(seed=5)
+        rev = LineFamily("S", fam.tone_hz[::-1].copy(), fam.line_hz[::-1].copy(), fam.z[:, ::-1].copy(),
+                         fam.seg_centre_s, fam.phase_var[::-1].copy())
+        obs = pair_observations([rev], PHI)
+        assert np.all(obs.df_hz > 0) and obs.df_hz.size == 3
+        np.testing.assert_allclose(wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * TAU), 0.0, atol=1e-9)
+        np.testing.assert_allclose(sorted(obs.weight), sorted(pair_observations([fam], PHI).weight), rtol=1e-15)
+
     def test_families_concatenate(self):
         obs = pair_observations([family(name="U", seed=1), family(name="L", seed=2)], PHI)
         assert obs.df_hz.size == 6
@@ -125,3 +135,23 @@ class TestMix:
 
     def test_nothing_above_threshold(self):
         assert mix([family(var=(1.0, 1.0, 1.0))], PHI, 10.0) == {}
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_chi2_is_the_quadratic_form_of_the_pair_covariance(seed):
+    """chi2 against a plain solve of the covariance diag(v_i) + v_r (the shared reference line)."""
+    rng = np.random.default_rng(seed)
+    var = tuple(rng.uniform(1e-4, 1e-2, 3))
+    fam = family(var=var, extra_phase=tuple(rng.normal(0, 0.1, 3)), seed=seed)
+    chi2, dof = consistency([fam], PHI, TAU)
+    r = int(np.argmax(fam.snr_db))
+    others = [i for i in range(3) if i != r]
+    res = []
+    for i in others:
+        d = fam.tone_hz[i] - fam.tone_hz[r]
+        prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, r]) * np.exp(-2j * np.pi * d * fam.seg_centre_s))
+        res.append(wrap_pi(np.angle(prod) + 2 * np.pi * d * TAU - (PHI[fam.tone_hz[i]] - PHI[fam.tone_hz[r]])))
+    res = np.array(res)
+    cov = np.diag(fam.phase_var[others]) + fam.phase_var[r]
+    assert dof == 1
+    assert chi2 == pytest.approx(float(res @ np.linalg.solve(cov, res)), rel=1e-12)

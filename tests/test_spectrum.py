@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.fft
 from scipy.signal import get_window
 
-from mtcw_core.dsp.spectrum import (Spectrum, line_width_bins, local_floor, power_spectrum, real_power, search_spectrum,
-                                    widths_at)
+from mtcw_core.dsp.spectrum import (PackedPower, Spectrum, line_width_bins, local_floor, power_spectrum, real_power,
+                                    real_power_packed, search_spectrum, widths_at)
 
 FS = 1.0e9
 
@@ -263,6 +264,78 @@ class TestPackedRealFFT:
         x = np.random.default_rng(3).standard_normal(1001)
         sp = power_spectrum(x, FS, "boxcar")
         np.testing.assert_allclose(sp.power, np.abs(np.fft.rfft(x - x.mean())) ** 2, rtol=1e-10)
+
+
+class TestPackedPower:
+    """The spectrum unpacked where read: every read gives the numbers of ``|rfft|^2`` there, the
+    same whatever was read before, and the search reads a part of it only."""
+
+    @staticmethod
+    def _record(m, seed=0):
+        k = np.arange(m)
+        return np.random.default_rng(seed).standard_normal(m) + 5 * np.cos(2 * np.pi * 0.123 * k)
+
+    @pytest.mark.parametrize("m", [4096, 2 * 3 * 5 * 7 * 11 * 13, 100_000])
+    @pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-12), (np.float32, 1e-5)])
+    def test_reads_are_the_rfft_power(self, m, dtype, rtol):
+        y = self._record(m)
+        ref = np.abs(scipy.fft.rfft(y)) ** 2  # float64, scipy's own real transform
+        p = real_power_packed(y.astype(dtype))
+        assert isinstance(p, PackedPower) and p.shape == ref.shape and p.size == ref.size and p.dtype == dtype
+        atol = rtol * ref.mean()
+        h = m // 2
+        np.testing.assert_allclose(p[h - 50:], ref[h - 50:], rtol=rtol, atol=atol)  # the top, Nyquist included
+        np.testing.assert_allclose(p[:37], ref[:37], rtol=rtol, atol=atol)  # DC and the first bins
+        idx = np.random.default_rng(1).integers(0, h + 1, size=(7, 33))  # any shape of indices
+        np.testing.assert_allclose(p[idx], ref[idx], rtol=rtol, atol=atol)
+        assert p[idx].shape == (7, 33)
+        assert p[h] == pytest.approx(ref[h], rel=rtol, abs=atol) and p[-1] == p[h]
+        np.testing.assert_allclose(np.asarray(p), ref, rtol=rtol, atol=atol)
+
+    @pytest.mark.parametrize("dtype", [np.float32, np.float64])
+    def test_read_order_does_not_change_a_number(self, dtype):
+        """Bands read in any order (overlapping, across block edges, single bins, strided, masks)
+        are bit for bit the whole spectrum's; nothing read is writable."""
+        y = self._record(50_000, 3).astype(dtype)
+        whole = np.asarray(real_power_packed(y.copy()))
+        p = real_power_packed(y.copy())
+        rng = np.random.default_rng(4)
+        for _ in range(40):
+            a = int(rng.integers(0, p.size))
+            b = int(rng.integers(a, min(a + 3000, p.size) + 1))
+            np.testing.assert_array_equal(p[a:b], whole[a:b])
+            assert p[a] == whole[a]
+        np.testing.assert_array_equal(p[::7], whole[::7])
+        mask = rng.random(p.size) < 0.01
+        np.testing.assert_array_equal(p[mask], whole[mask])
+        np.testing.assert_array_equal(np.asarray(p), whole)
+        with pytest.raises(ValueError):
+            p[10:20][0] = 1.0
+
+    def test_only_what_is_read_is_unpacked(self):
+        p = real_power_packed(self._record(1 << 18).astype(np.float32))
+        assert p.unpacked_fraction == 0.0
+        p[1000:1100]
+        assert 0 < p.unpacked_fraction <= 2 * PackedPower.BLOCK / p.size
+        assert p.max() == np.asarray(p).max() and p.unpacked_fraction == 1.0
+
+    def test_out_of_range_is_an_index_error(self):
+        p = real_power_packed(self._record(1024))
+        with pytest.raises(IndexError):
+            p[513]
+        with pytest.raises(IndexError):
+            p[np.array([3, 600])]
+
+    def test_chain_reads_a_part_of_the_search_spectrum(self):
+        """A 2^18-sample six-tone frame: the Doppler search and the floors read the bands around
+        0 Hz and the tones, not the whole spectrum (measured: 8-15 %)."""
+        from mtcw_core.chain import run_stages
+        from mtcw_core.scene import load_scene, scene_variant
+        from mtcw_core.simulate import Simulator
+        sc = scene_variant(load_scene("six-tone"), digitizer={"samples": 1 << 18})
+        st = run_stages(Simulator(sc, seed=1).frame(0), "balanced")
+        assert isinstance(st.spectrum.power, PackedPower)
+        assert st.spectrum.power.unpacked_fraction < 0.5
 
 
 @pytest.mark.parametrize("mirror_dc", [True, False])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from mtcw_core.phase import C, wrap_pi
-from mtcw_core.ranging.triangulation import (Observations, cost, fisher_sigma, resolve_ml, resolve_seed,
-                                             unambiguous_range)
+from mtcw_core.ranging.triangulation import (Observations, _newton_polish, cost, fisher_sigma, grid_cost, resolve_ml,
+                                             resolve_seed, unambiguous_range)
 
 TONES = np.array([100e6, 170e6, 260e6])
 PAIRS = [(i, j) for i, j in itertools.combinations(range(3), 2)]
@@ -155,3 +155,33 @@ def test_ml_peak_and_runners_up_are_the_costs_own_maxima(seed):
     for alt in sol.alternatives_m:
         ja, jl, jr = cost(obs, [alt, alt - 1e-6 * lam, alt + 1e-6 * lam])
         assert ja >= jl and ja >= jr
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grid_cost_is_the_cost_on_the_grid(seed):
+    """The factorised grid evaluation of J against the cosines written out plainly, on grids of
+    10^2-10^5 points (far from their start too: the phases there are thousands of cycles)."""
+    rng = np.random.default_rng(seed)
+    p = int(rng.integers(1, 16))
+    df = rng.uniform(1e6, 2e9, p)
+    phase, w = rng.uniform(-np.pi, np.pi, p), rng.uniform(0.1, 3.0, p)
+    obs = Observations(df, phase, w)
+    tau0, lo = float(rng.uniform(0, 1e-8)), float(rng.uniform(-1, 1))
+    step = float(np.min(obs.synthetic_wavelengths_m)) / 16
+    count = int(10 ** rng.uniform(2, 5))
+    got = grid_cost(obs, tau0, lo, step, count)
+    lm = lo + step * np.arange(count)
+    want = np.array([np.sum(w * np.cos(phase + 2 * np.pi * df * (tau0 + 2 * l / C))) / np.sum(w) for l in lm[::97]])
+    assert got.shape == (count,)
+    np.testing.assert_allclose(got[::97], want, rtol=0, atol=1e-9)
+
+
+def test_newton_from_many_starts_is_each_start_alone():
+    """Newton steps from several starts at once walk each start exactly as it would alone."""
+    rng = np.random.default_rng(7)
+    obs = Observations(DF.copy(), wrap_pi(-2 * np.pi * DF * (2 * 2.3 / C) + rng.normal(0, 0.3, 3)), np.ones(3))
+    lam = float(np.min(obs.synthetic_wavelengths_m))
+    starts = rng.uniform(0, 6, 40)
+    together = _newton_polish(obs, 0.0, starts, iterations=8, limit_m=lam / 16)
+    alone = [float(_newton_polish(obs, 0.0, s, iterations=8, limit_m=lam / 16)[0]) for s in starts]
+    np.testing.assert_array_equal(together, alone)

@@ -156,6 +156,17 @@ class TestValidate:
         q[3] = np.nan
         assert reason(make(np.stack([i, q]), receiver="iq", channels=("i", "q"))) == "non_finite"
 
+    def test_non_finite_in_q_beats_a_flat_i(self):
+        i, q = np.full(N, 0.5), signal()  # every channel's finiteness is checked before flatness
+        q[3] = -np.inf
+        assert reason(make(np.stack([i, q]), receiver="iq", channels=("i", "q"))) == "non_finite"
+
+    def test_non_finite_message_counts_the_samples(self):
+        x = signal().astype(np.float32)
+        x[[1, 5, 9]] = [np.nan, np.inf, np.nan]
+        with pytest.raises(Rejected, match=r"^non_finite: 3 NaN/inf samples"):
+            validate(make(x), ChainSettings(), None)
+
     def test_flat(self):
         assert reason(make(np.full(N, 0.5))) == "flat"
 

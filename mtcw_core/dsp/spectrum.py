@@ -23,8 +23,10 @@ class Spectrum:
 
     Attributes
     ----------
-    power : ndarray, shape (B,)
-        ``|X|^2`` of the windowed record (rfft for real, fftshifted fft for complex input), V^2.
+    power : ndarray or PackedPower, shape (B,)
+        ``|X|^2`` of the windowed record (rfft for real, fftshifted fft for complex input), V^2;
+        of an even-length real record a :class:`PackedPower`, which unpacks the bins it is asked
+        for (index it, or ``np.asarray`` it for the whole array).
     df_hz : float
         Bin spacing (Hz).
     f0_hz : float
@@ -36,7 +38,7 @@ class Spectrum:
         Samples transformed.
     """
 
-    power: np.ndarray
+    power: np.ndarray | PackedPower
     df_hz: float
     f0_hz: float
     window_power: float
@@ -112,47 +114,214 @@ def _half_twiddle(m: int, dtype: str) -> np.ndarray:
     return w
 
 
-def real_power(y: np.ndarray) -> np.ndarray:
-    """``|rfft(y)|^2``, shape ``(m//2 + 1,)``, of a real record of even length ``m``, by one
-    complex FFT of half the length.
+class PackedPower:
+    """``|rfft(y)|^2`` of a real record of even length ``m``, shape ``(m//2 + 1,)``, held as the
+    complex FFT of half the length and unpacked only in the bins that are read.
 
-    The pairs ``(y[2k], y[2k+1])`` are taken as one complex sample (a view, no copy); with ``Z``
-    its FFT and ``Zr[k] = conj(Z[-k mod m/2])``, ``X[k] = ((Z + Zr) - j*W^k*(Z - Zr))/2`` with
-    ``W = exp(-2j*pi/m)``, and ``X[m/2] = Re Z[0] - Im Z[0]``. scipy's ``rfft`` computes the same
-    transform, but pocketfft's real kernels run at about half the speed of its complex ones at
-    these lengths (1e6 samples: 7.4 ms against 3.3 ms for the complex FFT of half the length on
-    the bench machine), hence this route to the same numbers.
+    The pairs ``(y[2k], y[2k+1])`` taken as one complex sample have the FFT ``Z`` (length
+    ``h = m/2``); with ``Zr[k] = conj(Z[-k mod h])`` and ``W = exp(-2j*pi/m)``,
+    ``X[k] = ((Z + Zr) - j*W^k*(Z - Zr))/2`` and ``X[h] = Re Z[0] - Im Z[0]``. scipy's ``rfft``
+    computes the same transform, but pocketfft's real kernels run at about half the speed of its
+    complex ones at these lengths (1e6 samples: 7.4 ms against 3.3 ms for the complex FFT of half
+    the length on the bench machine), hence this route to the same numbers.
+
+    The unpacking costs about two thirds of that FFT again over the whole spectrum, and the
+    chain reads a few bands of it (the Doppler search: +-its largest shift around 0 Hz and each
+    tone; the noise floors: +-256 bins around each line), so it is done per block of
+    :attr:`BLOCK` bins on the first read and kept: indexing (an integer, a slice, an integer
+    array of any shape) returns exactly what indexing the whole ``|X|^2`` would, every block
+    unpacked by the same arithmetic wherever the read starts. ``np.asarray`` (and any attribute
+    of an ndarray, e.g. ``.max()``) gives the whole array, unpacking what is missing.
+
+    Parameters
+    ----------
+    packed : ndarray, shape (h,), complex64 or complex128: the FFT of the record's pairs; kept
+        (not copied) and never written
+    """
+
+    #: bins unpacked together on the first read of any of them
+    BLOCK = 1024
+
+    def __init__(self, packed: np.ndarray):
+        self._z = packed
+        self._h = h = packed.size
+        self.dtype = packed.real.dtype
+        self.shape = (h + 1,)
+        self.size = h + 1
+        self.ndim = 1
+        self._out = np.empty(h + 1, dtype=self.dtype)
+        self._done = np.zeros(-(-(h + 1) // self.BLOCK), dtype=bool)
+        self._tw = _half_twiddle(2 * h, str(packed.dtype))
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _unpack(self, runs: list[tuple[int, int]]) -> None:
+        """Write bins ``[a, b)`` of ``|X|^2`` into the store for every ``(a, b)`` of ``runs``, all in
+        one pass over their concatenated inputs (each numpy call costs microseconds: one call per
+        step for all runs, not one per run)."""
+        z, h, out = self._z, self._h, self._out
+        parts = []
+        for a, b in runs:
+            if b > h:  # the Nyquist bin, from Z[0] alone
+                nyquist = float(z[0].real) - float(z[0].imag)
+                out[h] = nyquist * nyquist
+                b = h
+            if b > a:
+                parts.append((a, b))
+        if not parts:
+            return
+        n = sum(b - a for a, b in parts)
+        # conj(Z[-k]) for every k of the runs: Z[h-k], walking down (Z[0] for k = 0)
+        even = np.empty(n, dtype=z.dtype)
+        zk = np.empty(n, dtype=z.dtype) if len(parts) > 1 else z[parts[0][0]:parts[0][1]]
+        tw = np.empty(n, dtype=z.dtype) if len(parts) > 1 else self._tw[parts[0][0]:parts[0][1]]
+        o = 0
+        for a, b in parts:
+            if a == 0:
+                even[o] = z[0]
+                even[o + 1:o + b] = z[h - b + 1:h][::-1]
+            else:
+                even[o:o + b - a] = z[h - b + 1:h - a + 1][::-1]
+            if len(parts) > 1:
+                zk[o:o + b - a] = z[a:b]
+                tw[o:o + b - a] = self._tw[a:b]
+            o += b - a
+        np.conjugate(even, out=even)
+        even += zk  # Z + conj(Z[-k])
+        odd = zk * 2
+        odd -= even  # Z - conj(Z[-k])
+        odd *= tw  # 2j * W^k * (DFT of the odd samples)
+        # X = (even - j*odd)/2 = ((even.re + odd.im) + j*(even.im - odd.re))/2
+        body = np.add(even.real, odd.imag) if len(parts) > 1 else out[parts[0][0]:parts[0][1]]
+        if len(parts) == 1:
+            np.add(even.real, odd.imag, out=body)
+        body *= body
+        scratch = even.real  # spent once the real part is summed: hold the imaginary part there
+        np.subtract(even.imag, odd.real, out=scratch)
+        scratch *= scratch
+        body += scratch
+        body *= 0.25
+        if len(parts) > 1:
+            o = 0
+            for a, b in parts:
+                out[a:b] = body[o:o + b - a]
+                o += b - a
+
+    def _ensure_blocks(self, need: np.ndarray) -> None:
+        """Unpack the blocks marked in ``need`` (bool, one per block) that are not unpacked yet."""
+        todo = need & ~self._done
+        if not todo.any():
+            return
+        # runs of blocks still packed, unpacked together
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], todo, [False]]).astype(np.int8)))
+        blk = self.BLOCK
+        self._unpack([(int(r0) * blk, min(int(r1) * blk, self.size)) for r0, r1 in zip(edges[::2], edges[1::2])])
+        self._done |= todo
+
+    def _ensure(self, a: int, b: int) -> None:
+        """Unpack every block that bins ``[a, b)`` touch."""
+        if b <= a:
+            return
+        first, last = a // self.BLOCK, (b - 1) // self.BLOCK + 1
+        if self._done[first:last].all():
+            return
+        need = np.zeros(self._done.size, bool)
+        need[first:last] = True
+        self._ensure_blocks(need)
+
+    def prefetch(self, ranges: list[tuple[int, int]]) -> None:
+        """Unpack the bins of every ``[a, b)`` of ``ranges`` (clipped to the spectrum) in one go:
+        what a reader about to read several bands calls first."""
+        need = np.zeros(self._done.size, bool)
+        for a, b in ranges:
+            a, b = max(int(a), 0), min(int(b), self.size)
+            if b > a:
+                need[a // self.BLOCK:(b - 1) // self.BLOCK + 1] = True
+        self._ensure_blocks(need)
+
+    def _ensure_indices(self, idx: np.ndarray) -> None:
+        if idx.size == 0:
+            return
+        if idx.ndim == 1 and idx.size > 1 and idx[0] <= idx[-1] and idx[-1] - idx[0] < 2 * idx.size:
+            # the common read: a band, ascending (any bins outside [first, last] are caught below)
+            lo, hi = int(idx[0]), int(idx[-1])
+            if self._done[lo // self.BLOCK:hi // self.BLOCK + 1].all() and idx.min() >= lo and idx.max() <= hi:
+                return
+        need = np.zeros(self._done.size, bool)
+        need[idx.ravel() // self.BLOCK] = True
+        self._ensure_blocks(need)
+
+    def __getitem__(self, key):
+        if isinstance(key, (int, np.integer)):
+            k = int(key)
+            k = k + self.size if k < 0 else k
+            if not 0 <= k < self.size:
+                raise IndexError(f"bin {int(key)} is outside a spectrum of {self.size} bins")
+            self._ensure(k, k + 1)
+            return self._out[k]
+        if isinstance(key, slice):
+            a, b, _ = key.indices(self.size)
+            if key.step is None or key.step == 1:
+                self._ensure(a, b)
+            else:
+                self._ensure(0, self.size)
+            view = self._out[key]
+            view.flags.writeable = False
+            return view
+        idx = np.asarray(key)
+        if idx.dtype.kind == "b":
+            idx = np.flatnonzero(idx)
+        if idx.dtype.kind not in "iu":
+            raise IndexError(f"spectrum bins are indexed by integers, slices or masks, not {idx.dtype}")
+        idx = np.where(idx < 0, idx + self.size, idx)
+        if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= self.size):
+            raise IndexError(f"bins outside a spectrum of {self.size} bins")
+        self._ensure_indices(idx)
+        return self._out[idx]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        self._ensure(0, self.size)
+        full = self._out.view()
+        full.flags.writeable = False
+        if dtype is not None and np.dtype(dtype) != full.dtype:
+            return full.astype(dtype)
+        return full.copy() if copy else full
+
+    def __getattr__(self, name: str):
+        # any other ndarray attribute (max, argmax, sum, ...) on the whole spectrum
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self.__array__(), name)
+
+    @property
+    def unpacked_fraction(self) -> float:
+        """Part of the spectrum unpacked so far (diagnostics)."""
+        return float(np.mean(self._done))
+
+
+def real_power(y: np.ndarray) -> np.ndarray:
+    """``|rfft(y)|^2``, shape ``(m//2 + 1,)``, of a real record of even length ``m``: every bin
+    of :func:`real_power_packed` unpacked.
 
     Parameters
     ----------
     y : ndarray, shape (m,), float32 or float64, C-contiguous, m even; overwritten
     """
-    m = y.size
-    half = m // 2
-    # in place: the FFT's output shares y's buffer; two more half-length complex buffers and the
-    # output are all the memory it takes (a 1e6-sample float64 record: 8 + 8 + 4 MB)
-    packed = scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128), overwrite_x=True)
-    nyquist = float(packed[0].real) - float(packed[0].imag)
-    even = np.empty_like(packed)  # conj(Z[-k]), then Z + conj(Z[-k])
-    even[0] = packed[0]
-    even[1:] = packed[:0:-1]
-    np.conjugate(even, out=even)
-    even += packed
-    packed *= 2
-    packed -= even  # Z - conj(Z[-k])
-    packed *= _half_twiddle(m, str(packed.dtype))  # 2j * W^k * (DFT of the odd samples)
-    # X = (even - j*b)/2 = ((even.re + b.im) + j*(even.im - b.re))/2
-    out = np.empty(half + 1, dtype=y.dtype)
-    body = out[:half]
-    np.add(even.real, packed.imag, out=body)
-    body *= body
-    scratch = even.real  # even.real is spent once the real part is summed: hold the imaginary part there
-    np.subtract(even.imag, packed.real, out=scratch)
-    scratch *= scratch
-    body += scratch
-    body *= 0.25
-    out[half] = nyquist * nyquist
-    return out
+    return np.array(real_power_packed(y))
+
+
+def real_power_packed(y: np.ndarray) -> PackedPower:
+    """``|rfft(y)|^2`` of a real record of even length ``m`` as a :class:`PackedPower`: one complex
+    FFT of half the length, unpacked where read.
+
+    Parameters
+    ----------
+    y : ndarray, shape (m,), float32 or float64, C-contiguous, m even; overwritten (the pairs
+        ``(y[2k], y[2k+1])`` are taken as one complex sample, a view, and transformed in place)
+    """
+    return PackedPower(scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128),
+                                     overwrite_x=True))
 
 
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None,
@@ -186,7 +355,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
         return Spectrum(p, fs_hz / m, f0, wp, m, True)
     if m % 2 == 0:
-        p = real_power(y)
+        p = real_power_packed(y)
     else:
         X = scipy.fft.rfft(y, overwrite_x=True)
         p = X.real**2 + X.imag**2
@@ -224,7 +393,17 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
     # a real signal's spectrum is even about 0 Hz and about fs/2: at both ends the ring continues
     # on the mirror side (one-sided, it would see only the falling side of a pedestal around
     # 0 Hz); an fftshifted complex spectrum is periodic: the ring wraps around +-fs/2
-    for lo, hi in _merged(ranges, nb):
+    merged = _merged(ranges, nb)
+    if hasattr(power, "prefetch"):  # a PackedPower: unpack every band the rings reach at once
+        reach = [(max(lo - outer, 0), min(hi + outer, nb)) for lo, hi in merged]
+        if mirror_dc:
+            reach += [(0, outer + 1)] if merged and merged[0][0] < outer else []
+            reach += [(nb - outer - 1, nb)] if merged and merged[-1][1] > nb - outer else []
+        else:
+            reach += [(0, outer)] if merged and merged[-1][1] > nb - outer else []
+            reach += [(nb - outer, nb)] if merged and merged[0][0] < outer else []
+        power.prefetch(reach)
+    for lo, hi in merged:
         idx = np.arange(lo - outer, hi + outer)
         if mirror_dc:
             idx = np.abs(idx)  # numpy's "reflect" padding, about bin 0 and bin B-1

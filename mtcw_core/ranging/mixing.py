@@ -36,19 +36,27 @@ def pair_observations(
     df, ph, w = [], [], []
     for fam in families:
         ok = np.flatnonzero(fam.snr_db >= min_snr_db)
-        for a in range(ok.size):
-            for b in range(a):
-                i, j = ok[a], ok[b]
-                fi, fj = fam.tone_hz[i], fam.tone_hz[j]
-                if fi < fj:
-                    i, j, fi, fj = j, i, fj, fi
-                d = fi - fj
-                prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, j]) * np.exp(-2j * np.pi * d * fam.seg_centre_s))
-                phase = np.angle(prod) - (tone_phases_rad[fi] - tone_phases_rad[fj])
-                df.append(d)
-                ph.append(float(wrap_pi(phase)))
-                w.append(1.0 / (fam.phase_var[i] * fam.phase_var[j]))
-    return Observations(np.asarray(df, float), np.asarray(ph, float), np.asarray(w, float))
+        if ok.size < 2:
+            continue
+        # every pair (a, b), b < a, in the order of a double loop over a then b
+        a_, b_ = np.tril_indices(ok.size, -1)
+        i, j = ok[a_], ok[b_]
+        swap = fam.tone_hz[i] < fam.tone_hz[j]  # the higher tone first
+        i, j = np.where(swap, j, i), np.where(swap, i, j)
+        fi, fj = fam.tone_hz[i], fam.tone_hz[j]
+        d = fi - fj
+        # (S, pairs): z_i * conj(z_j) * exp(-2j*pi*d*t_s), summed over the segments
+        prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, j]) * np.exp((-2j * np.pi * d)[None, :] * fam.seg_centre_s[:, None]),
+                      axis=0)
+        rf = np.array([tone_phases_rad[f] for f in fam.tone_hz])
+        phase = np.angle(prod) - (rf[i] - rf[j])
+        df.append(d)
+        ph.append(wrap_pi(phase))
+        w.append(1.0 / (fam.phase_var[i] * fam.phase_var[j]))
+    if not df:
+        return Observations(np.empty(0), np.empty(0), np.empty(0))
+    return Observations(np.concatenate(df).astype(float), np.concatenate(ph).astype(float),
+                        np.concatenate(w).astype(float))
 
 
 def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float], tau_s: float,
@@ -76,15 +84,19 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
             continue
         r = ok[np.argmax(fam.snr_db[ok])]
         others = ok[ok != r]
-        res = []
-        for i in others:
-            d = fam.tone_hz[i] - fam.tone_hz[r]
-            prod = np.sum(fam.z[:, i] * np.conj(fam.z[:, r]) * np.exp(-2j * np.pi * d * fam.seg_centre_s))
-            model = -2 * np.pi * d * tau_s + (tone_phases_rad[fam.tone_hz[i]] - tone_phases_rad[fam.tone_hz[r]])
-            res.append(np.angle(prod * np.exp(-1j * model)))
-        res = np.asarray(res)
-        cov = np.diag(fam.phase_var[others]) + fam.phase_var[r]
-        chi2 += float(res @ np.linalg.solve(cov, res))
+        d = fam.tone_hz[others] - fam.tone_hz[r]  # (O,)
+        prod = np.sum(fam.z[:, others] * np.conj(fam.z[:, r])[:, None]
+                      * np.exp((-2j * np.pi * d)[None, :] * fam.seg_centre_s[:, None]), axis=0)
+        rf = np.array([tone_phases_rad[f] for f in fam.tone_hz])
+        model = -2 * np.pi * d * tau_s + (rf[others] - rf[r])
+        res = np.angle(prod * np.exp(-1j * model))
+        v, vr = fam.phase_var[others], float(fam.phase_var[r])
+        if np.all(v > 0):
+            # res' (diag(v) + vr*1 1')^-1 res in closed form (Sherman-Morrison): no solve per call
+            u = res / v
+            chi2 += float(res @ u - vr * np.sum(u) ** 2 / (1.0 + vr * np.sum(1.0 / v)))
+        else:
+            chi2 += float(res @ np.linalg.solve(np.diag(v) + vr, res))
         dof += others.size
     return chi2, dof
 

@@ -77,6 +77,31 @@ def cost(obs: Observations, l_m, tau0_s: float = 0.0) -> np.ndarray:
     return _cost(obs, tau0_s)(l_m)
 
 
+def grid_cost(obs: Observations, tau0_s: float, lo_m: float, step_m: float, count: int) -> np.ndarray:
+    """J(L) on the uniform grid ``L_g = lo_m + g*step_m``, ``g < count``, shape (count,).
+
+    The same cost as :func:`cost`, as one complex matrix product: with ``g = a*B + b``,
+    ``cos(theta_l + g*delta_l) = Re(exp(j*theta_l) * exp(j*a*B*delta_l) * exp(j*b*delta_l))``, so
+    ``J`` reshaped to (A, B) is ``Re(C @ F.T)`` with ``C[a, l] = w_l*exp(j*(theta_l + a*B*delta_l))``
+    and ``F[b, l] = exp(j*b*delta_l)``: ``(A + B)*P`` exponentials instead of ``count*P`` cosines
+    (P pairs). Every factor's phase is taken in cycles reduced modulo 1 in float64 first; J
+    agrees with :func:`cost` to ~1e-12 (the rounding of the argument at thousands of cycles, in
+    either form).
+    """
+    if count <= 0:
+        return np.empty(0)
+    w = obs.weight / float(np.sum(obs.weight))
+    # cycles: theta_l/(2*pi) at L = lo, and the advance per grid point
+    theta = np.mod(obs.phase_rad / (2 * np.pi) + obs.df_hz * (tau0_s + 2 * lo_m / C), 1.0)  # (P,)
+    delta = obs.df_hz * (2 * step_m / C)  # (P,)
+    b_count = int(math.ceil(math.sqrt(count)))
+    a_count = -(-count // b_count)
+    a = np.arange(a_count, dtype=np.float64)[:, None] * b_count
+    rows = w * np.exp(2j * np.pi * np.mod(theta + np.mod(a * delta, 1.0), 1.0))  # (A, P)
+    fine = np.exp(2j * np.pi * np.mod(np.arange(b_count, dtype=np.float64)[:, None] * delta, 1.0))  # (B, P)
+    return (rows @ fine.T).real.reshape(-1)[:count]
+
+
 def _newton_polish(obs: Observations, tau0_s: float, l_m, iterations: int = 4, limit_m: float | None = None
                    ) -> np.ndarray:
     """Newton steps on dJ/dL = 0 with analytic derivatives, from each start in ``l_m`` at once.
@@ -104,21 +129,25 @@ def _newton_polish(obs: Observations, tau0_s: float, l_m, iterations: int = 4, l
         step = -d1 / np.where(concave, d2, -1.0)
         active &= concave & (np.abs(step) <= limit)
         l_m[active] += step[active]
-        if not np.any(active & (np.abs(step) > 1e-15 * np.abs(l_m) + 1e-18)):
+        # a start stops once its step is below float precision: each start walks as it would alone
+        active &= np.abs(step) > 1e-15 * np.abs(l_m) + 1e-18
+        if not active.any():
             break  # converged (or stopped) everywhere
     return l_m
 
 
-def _peak(obs: Observations, tau0_s: float, j, start_m: float, step_m: float, xatol_m: float) -> tuple[float, float]:
-    """The local maximum of J near a grid point ``start_m`` and its value: Newton's method from the
-    grid point (:func:`_newton_polish`), or, where that does not stay within the point's grid
-    cell, the bounded scalar search over it (then polished)."""
-    best = float(_newton_polish(obs, tau0_s, start_m, iterations=8, limit_m=step_m)[0])
-    if abs(best - start_m) > step_m:
-        res = minimize_scalar(lambda l: -j(l)[0], bounds=(start_m - step_m, start_m + step_m), method="bounded",
+def _peaks(obs: Observations, tau0_s: float, j, starts_m: np.ndarray, step_m: float, xatol_m: float) -> np.ndarray:
+    """The local maximum of J near each grid point of ``starts_m`` (shape (S,), m): Newton's method
+    from the grid points, all at once (:func:`_newton_polish`), or, for a start that does not
+    stay within its grid cell, the bounded scalar search over that cell (then polished)."""
+    starts = np.atleast_1d(np.asarray(starts_m, dtype=float))
+    best = _newton_polish(obs, tau0_s, starts, iterations=8, limit_m=step_m)
+    for i in np.flatnonzero(np.abs(best - starts) > step_m):
+        s0 = float(starts[i])
+        res = minimize_scalar(lambda l: -j(l)[0], bounds=(s0 - step_m, s0 + step_m), method="bounded",
                               options={"xatol": xatol_m})
-        best = float(_newton_polish(obs, tau0_s, float(res.x))[0])
-    return best, float(j(best)[0])
+        best[i] = _newton_polish(obs, tau0_s, float(res.x))[0]
+    return best
 
 
 def _residual(obs: Observations, tau0_s: float, l_m: float) -> float:
@@ -139,10 +168,14 @@ def resolve_ml(
     step = float(np.min(obs.synthetic_wavelengths_m)) / points_per_cycle
     grid = np.arange(lo, hi + step, step)
     j = _cost(obs, tau0_s)
-    # evaluate in blocks to bound memory for long intervals
-    vals = np.concatenate([j(grid[i : i + 65536]) for i in range(0, grid.size, 65536)])
+    # evaluate in blocks to bound memory for long intervals; np.arange's points are
+    # grid[0] + g*(grid[1] - grid[0]), which the blocks follow
+    delta = float(grid[1] - grid[0]) if grid.size > 1 else step
+    vals = np.concatenate([grid_cost(obs, tau0_s, float(grid[i]), delta, min(65536, grid.size - i))
+                           for i in range(0, grid.size, 65536)])
     ib = int(np.argmax(vals))
-    best, jbest = _peak(obs, tau0_s, j, float(grid[ib]), step, 1e-9)
+    best = float(_peaks(obs, tau0_s, j, grid[ib:ib + 1], step, 1e-9)[0])
+    jbest = float(j(best)[0])
     # J is periodic in the unambiguous range: a peak refined across an end of the interval is
     # the same solution, reported inside it (never a jump of one synthetic wavelength)
     period = unambiguous_range(obs.df_hz)
@@ -152,7 +185,8 @@ def resolve_ml(
         best -= period
     # second-best local maximum at least half the finest synthetic wavelength away
     half = 0.5 * float(np.min(obs.synthetic_wavelengths_m))
-    is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
+    is_max = np.zeros(vals.size, bool)
+    is_max[1:-1] = (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:])
     far = np.abs(grid - best) > half
     cand = vals[is_max & far]
     j2 = float(cand.max()) if cand.size else -1.0
@@ -160,10 +194,9 @@ def resolve_ml(
     edge = min(best - lo, hi - best) < half
     # the runners-up, each refined to its own peak
     idx = np.flatnonzero(is_max & far)
-    alts = []
-    for i in idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES]]:
-        alts.append(_peak(obs, tau0_s, j, float(grid[i]), step, 1e-6 * step)[0])
-    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), alternatives_m=tuple(alts))
+    top = idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES]]
+    alts = tuple(float(a) for a in _peaks(obs, tau0_s, j, grid[top], step, 1e-6 * step)) if top.size else ()
+    return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), alternatives_m=alts)
 
 
 def candidate_matrix(obs: Observations, tau0_s: float, max_range_m: float, min_range_m: float = 0.0
