@@ -355,6 +355,47 @@ def _other_lines(tones, fd: float, others: list[float], iq: bool) -> np.ndarray:
     return np.concatenate([target_lines(tones, o, iq)[0] for o in [0.0, *others] if o != fd])
 
 
+def _separable(freqs: np.ndarray, own: np.ndarray, near: np.ndarray, sep_hz: float, iq: bool) -> np.ndarray:
+    """Which of ``freqs`` (Hz) lie more than ``sep_hz`` from every line in ``near``, from every other
+    line of ``own`` (the target's lines, ``freqs`` among them) and, for a real record, from their
+    own image at ``-f``: shape (K,), bool."""
+    return np.array([np.all(np.abs(near - f) > sep_hz) and np.sum(np.abs(own - f) < sep_hz) == 1
+                     and (iq or 2 * abs(f) > sep_hz) for f in freqs], dtype=bool)
+
+
+def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The lines ``freqs`` (Hz) on ``parts`` consecutive parts of ``length`` samples, and their
+    phase steps from part to part less the expected advance.
+
+    Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed, by
+    linearity ``DFT(part * w) - mean * DFT(w)`` (every part is referred to its own centre, so the
+    window's DFT is one row for all).
+
+    Returns
+    -------
+    z : ndarray, shape (parts, K), complex
+    prod : ndarray, shape (parts - 1, K), complex: ``z[s+1] * conj(z[s]) * exp(-2j*pi*f*length/fs)``
+    """
+    w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
+    seg = x[:parts * length].reshape(parts, length)
+    z = exact_dft_parts(seg * w, freqs, fs) - seg.mean(axis=1)[:, None] * exact_dft(w, freqs, fs)
+    advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
+    return z, z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
+
+
+def _common_residual(steps: np.ndarray, slope: np.ndarray, wt: np.ndarray) -> np.ndarray:
+    """The lines' common phase across the parts about a straight line (rad), shape (S,).
+
+    ``steps`` (S - 1, K): each line's phase step between parts (rad), summed into its unwrapped
+    phase, signed by how the line moves with ``f_d`` (``slope``), averaged with weights ``wt``.
+    """
+    cum = np.vstack([np.zeros(steps.shape[1]), np.cumsum(steps, axis=0)])  # (S, K), unwrapped
+    common = (cum * slope) @ wt / np.sum(wt)
+    k = np.arange(common.size, dtype=float)
+    return common - np.polyval(np.polyfit(k, common, 1), k)
+
+
 #: a refinement's parts are short enough that its start lies within this fraction of the phase
 #: advance's unambiguous interval +-fs/(2L) (in start sigmas: 0.1 bin of a parabola plus the wander)
 WRAP_SIGMAS = 4.0
@@ -420,22 +461,14 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         return est
     freqs, slope = target_lines(frame.tones_hz, fd, iq)
     near = _other_lines(frame.tones_hz, fd, others, iq)
-    sep = PHASE_SEPARATION_BINS * fs / length
-    use = np.array([np.all(np.abs(near - f) > sep) and np.sum(np.abs(freqs - f) < sep) == 1
-                    and (iq or 2 * abs(f) > sep) for f in freqs])
+    use = _separable(freqs, freqs, near, PHASE_SEPARATION_BINS * fs / length, iq)
     if not use.any():
         return est
     freqs, slope = freqs[use], slope[use]
     if max_lines is not None and freqs.size > max_lines:
         top = np.argsort(spec.power[np.clip(spec.bin_of(freqs), 0, spec.power.size - 1)])[::-1][:max_lines]
         freqs, slope = freqs[top], slope[top]
-    w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
-    parts = x[:segments * length].reshape(segments, length)
-    # the DFT of (part - its mean) * w, by linearity: DFT(part * w) - mean * DFT(w) (every part
-    # is referred to its own centre, so the window's DFT is one row for all)
-    z = exact_dft_parts(parts * w, freqs, fs) - parts.mean(axis=1)[:, None] * exact_dft(w, freqs, fs)  # (S, K)
-    advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
-    prod = z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
+    z, prod = _part_steps(x, segments, length, freqs, fs)
     if not np.any(np.abs(prod) > 0):
         return est
     d_line = np.angle(prod.sum(axis=0)) / (2 * np.pi * length / fs)  # Hz, per line
@@ -465,10 +498,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         else:
             # the parts themselves: segments - 2 degrees of freedom (2 for quarters), so few that
             # a low draw would make a confident answer, hence COMMON_MODE_MARGIN on the whole scatter
-            cum = np.vstack([np.zeros(len(wt)), np.cumsum(np.angle(prod), axis=0)])  # (S, K), unwrapped
-            common = (cum * slope) @ wt / np.sum(wt)  # (S,) rad
-            k = np.arange(segments, dtype=float)
-            res = common - np.polyval(np.polyfit(k, common, 1), k)
+            res = _common_residual(np.angle(prod), slope, wt)
             var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
             spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread)
@@ -531,9 +561,7 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
         lc = x.size // parts
         if lc < 64:
             continue
-        sep = PHASE_SEPARATION_BINS * fs / lc
-        use = np.array([np.all(np.abs(near - f) > sep) and np.sum(np.abs(all_freqs - f) < sep) == 1
-                        and (iq or 2 * abs(f) > sep) for f in freqs])
+        use = _separable(freqs, all_freqs, near, PHASE_SEPARATION_BINS * fs / lc, iq)
         if not use.any():
             continue
         # white noise on a part's combined phase: a line's phase variance grows as its part shortens
@@ -544,15 +572,8 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     if choice is None:
         return None
     parts, lc, use, white = choice
-    f, sl, w_ = freqs[use], slope[use], wt[use]
-    win = cached_window(("kaiser", PHASE_WINDOW_BETA), lc)
-    seg = x[:parts * lc].reshape(parts, lc)
-    z = exact_dft_parts(seg * win, f, fs) - seg.mean(axis=1)[:, None] * exact_dft(win, f, fs)  # (parts, K)
-    steps = np.angle(z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * np.mod(f * lc / fs, 1.0)))
-    cum = np.vstack([np.zeros(f.size), np.cumsum(steps, axis=0)])  # (parts, K), unwrapped
-    common = (cum * sl) @ w_ / np.sum(w_)  # (parts,) rad
-    k = np.arange(parts, dtype=float)
-    res = common - np.polyval(np.polyfit(k, common, 1), k)
+    _, prod = _part_steps(x, parts, lc, freqs[use], fs)
+    res = _common_residual(np.angle(prod), slope[use], wt[use])
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof
     if scatter <= white * float(chi2_dist.ppf(1 - COMMON_MODE_SIGNIFICANCE, dof)) / dof:
