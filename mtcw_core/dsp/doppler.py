@@ -93,14 +93,14 @@ def fd_max(tones: tuple[float, ...], settings: ChainSettings) -> float:
     return 0.5 * min(b - a for a, b in zip(t, t[1:]))
 
 
-def _l1_ball(dims: int, radius: int):
+def l1_ball(dims: int, radius: int):
     """Every integer vector of length ``dims`` with ``sum|n_i| <= radius`` (a few thousand for 10
     tones at radius 4, where the cube ``(2*radius + 1)**dims`` holds 3.5e9)."""
     if dims == 0:
         yield ()
         return
     for n0 in range(-radius, radius + 1):
-        for rest in _l1_ball(dims - 1, radius - abs(n0)):
+        for rest in l1_ball(dims - 1, radius - abs(n0)):
             yield (n0, *rest)
 
 
@@ -119,7 +119,7 @@ def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: in
     if order is None:
         order = 5 if t.size <= 4 else 4
     out = set()
-    for n in _l1_ball(t.size, order):
+    for n in l1_ball(t.size, order):
         if any(n):
             f = abs(float(np.dot(n, t)))
             if 0 < f <= f_max_hz:

@@ -65,7 +65,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import DopplerEstimate
+from ..dsp.doppler import DopplerEstimate, l1_ball
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import Spectrum
 from ..dsp.tones import fit_lines
@@ -181,21 +181,10 @@ def _unit(size: int, i: int) -> tuple[int, ...]:
     return tuple(1 if k == i else 0 for k in range(size))
 
 
-def _ball(size: int, radius: int):
-    """Every integer vector of length ``size`` with ``sum|n_i| <= radius`` (written here rather than
-    imported: :mod:`mtcw_core.dsp.doppler` keeps its own private)."""
-    if size == 0:
-        yield ()
-        return
-    for n0 in range(-radius, radius + 1):
-        for rest in _ball(size - 1, radius - abs(n0)):
-            yield (n0, *rest)
-
-
 @lru_cache(maxsize=64)
 def _canonical_vectors(size: int, order: int) -> tuple[tuple[int, ...], ...]:
     """Integer vectors n with ``1 <= sum|n_i| <= order``, one of each pair ``+-n`` (first nonzero > 0)."""
-    return tuple(n for n in _ball(size, order) if any(n) and next(x for x in n if x != 0) > 0)
+    return tuple(n for n in l1_ball(size, order) if any(n) and next(x for x in n if x != 0) > 0)
 
 
 def _pair_ids(size: int) -> list[tuple[tuple[int, ...], float]]:
