@@ -228,8 +228,23 @@ class SimulatedMdo3:
         rest = [a for a in out if not isinstance(a, str)]
         return ([";".join(texts)] if texts else []) + rest
 
+    #: settings that take one of a few mnemonics: the attribute that holds it, and the values
+    _CHOICES = {"ROSC:SOURCE": ("reference", ("EXTERNAL", "INTERNAL")),
+                "ACQUIRE:MODE": ("acquire_mode", ("SAMPLE", "HIRES")),
+                "ACQUIRE:STOPAFTER": ("stop_after", ("SEQUENCE", "RUNSTOP")),
+                "DATA:ENCDG": ("data_encoding", ("RIBINARY", "SRIBINARY"))}
+
     def _dispatch(self, n: list[str], q: bool, arg: str):
         key = ":".join(n)
+        if key in self._CHOICES:
+            attr, values = self._CHOICES[key]
+            if q:
+                return getattr(self, attr)
+            value = _canon(arg)
+            if value not in values:
+                raise KeyError(arg)  # answered as a command error, as every bad argument
+            setattr(self, attr, value)
+            return None
         ch = n[0] if n[0].startswith("CH") and len(n[0]) == 3 else None
         if key == "*IDN":
             return IDN
@@ -251,11 +266,6 @@ class SimulatedMdo3:
             return None
         if key == "VERBOSE":
             return "1" if q else None
-        if key == "ROSC:SOURCE":
-            if q:
-                return self.reference
-            self.reference = {"EXTERNAL": "EXTERNAL", "INTERNAL": "INTERNAL"}[_canon(arg)]
-            return None
         if key == "ROSC:STATE" and q:
             if self.reference == "INTERNAL":
                 return "LOCKED"
@@ -326,16 +336,6 @@ class SimulatedMdo3:
                 return f"{self.trigger_level_v.get(n[3], 0.0):.6E}"
             self.trigger_level_v[n[3]] = _float(arg)
             return None
-        if key == "ACQUIRE:MODE":
-            if q:
-                return self.acquire_mode
-            self.acquire_mode = {"SAMPLE": "SAMPLE", "HIRES": "HIRES"}[_canon(arg)]
-            return None
-        if key == "ACQUIRE:STOPAFTER":
-            if q:
-                return self.stop_after
-            self.stop_after = {"SEQUENCE": "SEQUENCE", "RUNSTOP": "RUNSTOP"}[_canon(arg)]
-            return None
         if key == "ACQUIRE:STATE":
             if q:
                 return "0"
@@ -353,11 +353,6 @@ class SimulatedMdo3:
             if a not in self.channels:
                 raise ValueError(arg)
             self.data_source = a
-            return None
-        if key == "DATA:ENCDG":
-            if q:
-                return self.data_encoding
-            self.data_encoding = {"RIBINARY": "RIBINARY", "SRIBINARY": "SRIBINARY"}[_canon(arg)]
             return None
         if key == "DATA:WIDTH":
             if q:
