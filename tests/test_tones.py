@@ -111,6 +111,15 @@ class TestFitLines:
         d = exact_dft(x, self.F, FS)
         np.testing.assert_array_equal(fit_lines(x, self.F, FS, dft=d), fit_lines(x, self.F, FS))
 
+    def test_total_argument_reused(self):
+        """The record's sum handed in (as the extract stage does, sharing it with the record's
+        mean) gives the fit of the sum computed inside, and a wrong sum moves the fit."""
+        x = np.random.default_rng(11).standard_normal(5000) + 0.3
+        f = [1.4 * FS / 5000, 0.23 * FS]  # a line 1.4 bins from DC: the DC column matters to it
+        ref = fit_lines(x, f, FS)
+        np.testing.assert_array_equal(fit_lines(x, f, FS, total=float(np.sum(x))), ref)
+        assert abs(fit_lines(x, f, FS, total=float(np.sum(x)) + 500.0)[0] - ref[0]) > 1e-3
+
     def test_phase_referred_to_the_centre(self):
         """A tone with phase p at sample 0 has phase p + 2*pi*f*(N-1)/(2*fs) at the centre."""
         f, p0 = self.F[0], 0.3

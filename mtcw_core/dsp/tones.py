@@ -120,7 +120,8 @@ def _dirichlet(w: np.ndarray, n: int) -> np.ndarray:
     return np.where(small, n * (-1.0) ** (np.round(half / np.pi) * (n - 1)), out)
 
 
-def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = None) -> np.ndarray:
+def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = None,
+              total: float | None = None) -> np.ndarray:
     """Joint least-squares complex amplitudes of lines at known frequencies.
 
     Model (real x): ``x[k] = d + sum_l Re(c_l * exp(j*2*pi*f_l*(k - (N-1)/2)/fs))`` with a DC term
@@ -133,6 +134,8 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
     freqs_hz : array_like, shape (K,), Hz (positive for real x)
     dft : ndarray, shape (K,), optional
         ``exact_dft(x, freqs_hz)`` if already computed.
+    total : float, optional
+        ``np.sum(x)`` (V) if already computed (real x: the DC column's projection).
 
     Returns
     -------
@@ -150,7 +153,7 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
     wc = np.concatenate([[0.0], w])
     gc = 0.5 * (_dirichlet(wc[:, None] - wc[None, :], n) + _dirichlet(wc[:, None] + wc[None, :], n))
     gs = 0.5 * (_dirichlet(w[:, None] - w[None, :], n) - _dirichlet(w[:, None] + w[None, :], n))
-    pc = np.concatenate([[float(np.sum(x))], dft.real])
+    pc = np.concatenate([[float(np.sum(x) if total is None else total)], dft.real])
     ps = -dft.imag
     alpha = linalg.solve(gc, pc, assume_a="sym")[1:]
     beta = linalg.solve(gs, ps, assume_a="sym")
