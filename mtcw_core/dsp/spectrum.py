@@ -404,15 +404,20 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
             reach += [(nb - outer, nb)] if merged and merged[0][0] < outer else []
         power.prefetch(reach)
     for lo, hi in merged:
-        idx = np.arange(lo - outer, hi + outer)
-        if mirror_dc:
-            idx = np.abs(idx)  # numpy's "reflect" padding, about bin 0 and bin B-1
-            idx = np.where(idx > nb - 1, 2 * (nb - 1) - idx, idx)
+        if lo - outer >= 0 and hi + outer <= nb:  # the ring stays inside: a slice
+            seg = power[lo - outer:hi + outer]
         else:
-            idx %= nb
-        inside = lo - outer >= 0 and hi + outer <= nb
-        lp = np.log(np.maximum(power[lo - outer:hi + outer] if inside else power[idx], tiny))
-        c = np.concatenate([[0.0], np.cumsum(lp, dtype=np.float64)])
+            idx = np.arange(lo - outer, hi + outer)
+            if mirror_dc:
+                idx = np.abs(idx)  # numpy's "reflect" padding, about bin 0 and bin B-1
+                idx = np.where(idx > nb - 1, 2 * (nb - 1) - idx, idx)
+            else:
+                idx %= nb
+            seg = power[idx]
+        lp = np.log(np.maximum(seg, tiny))
+        c = np.empty(lp.size + 1)  # the running sum of lp, from 0
+        c[0] = 0.0
+        np.cumsum(lp, dtype=np.float64, out=c[1:])
         n = hi - lo
 
         def window_sum(a: int, b: int) -> np.ndarray:
