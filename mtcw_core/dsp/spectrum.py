@@ -240,18 +240,6 @@ class PackedPower:
                 need[a // self.BLOCK:(b - 1) // self.BLOCK + 1] = True
         self._ensure_blocks(need)
 
-    def _ensure_indices(self, idx: np.ndarray) -> None:
-        if idx.size == 0:
-            return
-        if idx.ndim == 1 and idx.size > 1 and idx[0] <= idx[-1] and idx[-1] - idx[0] < 2 * idx.size:
-            # the common read: a band, ascending (any bins outside [first, last] are caught below)
-            lo, hi = int(idx[0]), int(idx[-1])
-            if self._done[lo // self.BLOCK:hi // self.BLOCK + 1].all() and idx.min() >= lo and idx.max() <= hi:
-                return
-        need = np.zeros(self._done.size, bool)
-        need[idx.ravel() // self.BLOCK] = True
-        self._ensure_blocks(need)
-
     def __getitem__(self, key):
         if isinstance(key, (int, np.integer)):
             k = int(key)
@@ -261,8 +249,8 @@ class PackedPower:
             self._ensure(k, k + 1)
             return self._out[k]
         if isinstance(key, slice):
-            a, b, _ = key.indices(self.size)
-            if key.step is None or key.step == 1:
+            a, b, step = key.indices(self.size)
+            if step == 1:
                 self._ensure(a, b)
             else:
                 self._ensure(0, self.size)
@@ -274,10 +262,21 @@ class PackedPower:
             idx = np.flatnonzero(idx)
         if idx.dtype.kind not in "iu":
             raise IndexError(f"spectrum bins are indexed by integers, slices or masks, not {idx.dtype}")
-        idx = np.where(idx < 0, idx + self.size, idx)
-        if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= self.size):
-            raise IndexError(f"bins outside a spectrum of {self.size} bins")
-        self._ensure_indices(idx)
+        if idx.size == 0:
+            return self._out[idx]
+        # two passes over the indices, then the gather: the search reads bands of ~10^4 bins at once
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0:
+            idx = np.where(idx < 0, idx + self.size, idx)
+            lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0 or hi >= self.size:
+            raise IndexError(f"bins {lo}..{hi} reach outside a spectrum of {self.size} bins")
+        if hi - lo < 4 * idx.size + 4 * self.BLOCK:  # compact (a band, nearby windows): unpack the span
+            self._ensure(lo, hi + 1)
+        else:
+            need = np.zeros(self._done.size, bool)
+            need[idx.ravel() // self.BLOCK] = True
+            self._ensure_blocks(need)
         return self._out[idx]
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
@@ -460,6 +459,9 @@ def widths_at(spec: Spectrum, centres, half_span: int = 64) -> float:
     """Median equivalent width (bins) of the strongest line near each of ``centres`` (Hz)."""
     p = spec.power
     dc = int(spec.bin_of(0.0))
+    if hasattr(p, "prefetch"):  # a PackedPower: every window unpacked in one go
+        ks = [int(k) for k in spec.bin_of(np.asarray(centres, dtype=float))]
+        p.prefetch([(k - half_span, k + half_span + 1) for k in ks])
     widths = []
     for f in centres:
         k0 = int(spec.bin_of(f))
