@@ -413,19 +413,40 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
             else:
                 idx %= nb
             seg = power[idx]
-        lp = np.log(np.maximum(seg, tiny))
-        c = np.empty(lp.size + 1)  # the running sum of lp, from 0
-        c[0] = 0.0
-        np.cumsum(lp, dtype=np.float64, out=c[1:])
+        lp = np.log(np.maximum(seg, tiny)).astype(np.float64)  # lp[j]: bin lo - outer + j
         n = hi - lo
-
-        def window_sum(a: int, b: int) -> np.ndarray:
-            """sum(lp[k + a : k + b]) for every bin k: differences of shifted slices of the running sum."""
-            return c[outer + b: outer + b + n] - c[outer + a: outer + a + n]
-
-        total = window_sum(-outer, -inner + 1) + window_sum(inner, outer + 1)
+        ring = sliding_sums(lp, outer - inner + 1)  # ring[j] = sum(lp[j : j + outer - inner + 1])
+        # bin lo + i: the left ring starts at lp[i] (bin - outer), the right one at lp[i + outer + inner]
+        total = ring[:n] + ring[outer + inner: outer + inner + n]
         out[lo:hi] = np.exp(total / (2.0 * (outer - inner + 1)) + EULER_GAMMA)
     return out
+
+
+def sliding_sums(v: np.ndarray, width: int) -> np.ndarray:
+    """``sum(v[i : i + width])`` for every ``i <= v.size - width``, shape ``(v.size - width + 1,)``.
+
+    By doubling: sums over 1, 2, 4, ... samples, each from the one before in one vector add, and
+    the window as the sum of those its binary digits name -- ``log2(width) + popcount(width)``
+    passes, vectorised (numpy's running sum is a scalar loop, and its differences lose the digits
+    of the running total: this sums each window's own terms only).
+
+    Parameters
+    ----------
+    v : ndarray, shape (L,), float64
+    width : int, 1 <= width <= L
+    """
+    count = v.size - width + 1
+    acc = np.zeros(count)
+    part, span, offset = v, 1, 0  # part[i] = sum(v[i : i + span])
+    while True:
+        if width & 1:
+            acc += part[offset:offset + count]
+            offset += span
+        width >>= 1
+        if not width:
+            return acc
+        part = part[:-span] + part[span:]
+        span *= 2
 
 
 def _merged(ranges: list[tuple[int, int]], nb: int) -> list[tuple[int, int]]:
