@@ -244,3 +244,18 @@ def test_dirichlet_kernel_is_scipys():
                         2 * np.pi * np.arange(-3, 4) + 1e-9, [0.0, 1e-12]])
     for n in (1, 2, 7, 1000, 999_999):
         np.testing.assert_allclose(_dirichlet(w, n), n * diric(w, n), rtol=0, atol=1e-12 * n)
+
+
+@pytest.mark.parametrize("n", [64, 257])
+def test_real_gram_blocks_are_the_sums_of_products(n):
+    """The real fit's Gram blocks against the sums written out over the centred index: cosines
+    (with the DC column) and sines, lines near DC and near each other included."""
+    from mtcw_core.dsp.tones import _gram_real
+
+    w = 2 * np.pi * np.array([1.3, 2.1, 17.77, 0.43 * n]) / n
+    k = np.arange(n) - (n - 1) / 2
+    cos = np.cos(np.outer(k, np.concatenate([[0.0], w])))  # (n, K+1): DC, then the cosines
+    sin = np.sin(np.outer(k, w))
+    gc, gs = _gram_real(w, n)
+    np.testing.assert_allclose(gc, cos.T @ cos, rtol=0, atol=1e-9 * n)
+    np.testing.assert_allclose(gs, sin.T @ sin, rtol=0, atol=1e-9 * n)
