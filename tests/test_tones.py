@@ -259,3 +259,23 @@ def test_real_gram_blocks_are_the_sums_of_products(n):
     gc, gs = _gram_real(w, n)
     np.testing.assert_allclose(gc, cos.T @ cos, rtol=0, atol=1e-9 * n)
     np.testing.assert_allclose(gs, sin.T @ sin, rtol=0, atol=1e-9 * n)
+
+
+def test_cached_tables_serve_repeated_frequencies_only():
+    """A second transform at the same frequencies (a stream's static lines) reuses the tables and
+    gives the same numbers; other frequencies get their own (checked against the direct sum)."""
+    from mtcw_core.dsp.tones import _tables
+
+    x = np.random.default_rng(12).standard_normal(10_007)
+    k = np.arange(x.size) - (x.size - 1) / 2
+    f1, f2 = np.array([0.1, 0.2]) * FS, np.array([0.1, 0.2 + 1e-9]) * FS
+    a = exact_dft(x, f1, FS)
+    hits = _tables.cache_info().hits
+    np.testing.assert_array_equal(exact_dft(x, f1, FS), a)
+    assert _tables.cache_info().hits == hits + 1
+    b = exact_dft(x, f2, FS)
+    direct = np.array([np.sum(x * np.exp(-2j * np.pi * f / FS * k)) for f in f2])
+    np.testing.assert_allclose(b, direct, rtol=0, atol=1e-9 * np.abs(direct).max())
+    eb, _, _ = _tables(x.size, (f1 / FS).tobytes())
+    with pytest.raises(ValueError):
+        eb[0, 0] = 0

@@ -15,6 +15,7 @@ frequency errors.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy import linalg
@@ -72,9 +73,7 @@ def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     a_count = n // m
     c = (n - 1) / 2.0
     r = freqs / fs_hz  # cycles per sample, float64
-    # sample a*M + b: exp(-j*w*a*M) * exp(-j*w*(b - c)), each factor's cycles reduced modulo 1
-    eb = phasors(-c, m, r)  # (M, K)
-    ea = phasors(0.0, a_count, np.mod(r * m, 1.0))  # (A, K)
+    eb, ea, et = _tables(n, r.tobytes())
     body = parts[:, :a_count * m].reshape(s_count, a_count, m)  # a view: rows keep their stride
     if np.iscomplexobj(parts):
         y = body @ eb  # (S, A, K)
@@ -83,10 +82,33 @@ def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
         # the product's rows are then the complex sums themselves (no table copy, no recombining)
         y = (body @ eb.view(np.float64)).view(np.complex128)  # (S, A, K)
     out = np.einsum("sak,ak->sk", y, ea)
-    tail = n - a_count * m
-    if tail:
-        out += parts[:, a_count * m:] @ phasors(a_count * m - c, tail, r)
+    if et is not None:
+        out += parts[:, a_count * m:] @ et
     return out
+
+
+@lru_cache(maxsize=4)
+def _tables(n: int, r_bytes: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The phasor tables of :func:`exact_dft_parts` for rows of ``n`` samples at the frequencies
+    ``r`` (cycles per sample, float64, as bytes): (M, K), (A, K) and the tail's (n mod M, K) or
+    None. Cached (read-only): a stream's static lines, and the Doppler refinement's two
+    transforms of one line set, ask for the same tables frame after frame.
+
+    Sample ``a*M + b`` is ``exp(-j*w*a*M) * exp(-j*w*(b - c))``, each factor's cycles reduced
+    modulo 1 in float64 (``c = (n - 1)/2``, the centre).
+    """
+    r = np.frombuffer(r_bytes, dtype=np.float64)
+    m = min(_block(n), n)
+    a_count = n // m
+    c = (n - 1) / 2.0
+    eb = phasors(-c, m, r)  # (M, K)
+    ea = phasors(0.0, a_count, np.mod(r * m, 1.0))  # (A, K)
+    tail = n - a_count * m
+    et = phasors(a_count * m - c, tail, r) if tail else None
+    for t in (eb, ea, et):
+        if t is not None:
+            t.setflags(write=False)
+    return eb, ea, et
 
 
 def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
