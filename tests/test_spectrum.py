@@ -314,12 +314,33 @@ class TestPackedPower:
         with pytest.raises(ValueError):
             p[10:20][0] = 1.0
 
+    def test_block_aligned_top_and_nyquist_read_last(self):
+        """h a multiple of the block: everything below Nyquist read first, Nyquist after."""
+        m = 8 * PackedPower.BLOCK
+        y = self._record(m, 7)
+        whole = np.asarray(real_power_packed(y.copy()))
+        p = real_power_packed(y.copy())
+        np.testing.assert_array_equal(p[:m // 2], whole[:m // 2])
+        assert p[m // 2] == whole[m // 2]
+        np.testing.assert_array_equal(np.asarray(p), whole)
+
     def test_only_what_is_read_is_unpacked(self):
         p = real_power_packed(self._record(1 << 18).astype(np.float32))
         assert p.unpacked_fraction == 0.0
         p[1000:1100]
         assert 0 < p.unpacked_fraction <= 2 * PackedPower.BLOCK / p.size
         assert p.max() == np.asarray(p).max() and p.unpacked_fraction == 1.0
+
+    def test_short_records_are_unpacked_at_once(self):
+        """Below LAZY_MIN_SAMPLES the spectrum is a plain array, with the packed one's numbers."""
+        from mtcw_core.dsp.spectrum import LAZY_MIN_SAMPLES
+
+        for m in (LAZY_MIN_SAMPLES // 2, LAZY_MIN_SAMPLES):
+            x = self._record(m, 6)
+            sp = power_spectrum(x, FS, single=True)
+            assert isinstance(sp.power, np.ndarray) == (m < LAZY_MIN_SAMPLES)
+            y = ((x - x.mean()).astype(np.float32) * get_window(("kaiser", 14.0), m, fftbins=False).astype(np.float32))
+            np.testing.assert_array_equal(np.asarray(sp.power), np.asarray(real_power_packed(y)))
 
     def test_out_of_range_is_an_index_error(self):
         p = real_power_packed(self._record(1024))
