@@ -173,8 +173,9 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        total = np.sum(x)  # the fit's DC projection, and the record's mean below: one pass
-        z_all, centres = fit_lines(x, uniq, fs, total=float(total))[None, :], np.array([(n - 1) / (2 * fs)])
+        # a real record's sum: the fit's DC projection, and the record's mean below, in one pass
+        total = None if iq else float(np.sum(x))
+        z_all, centres = fit_lines(x, uniq, fs, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
         centres = (starts + (length - 1) / 2) / fs
