@@ -173,8 +173,10 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        # a real record's sum: the fit's DC projection, and the record's mean below, in one pass
-        total = None if iq else float(np.sum(x))
+        # a real record's sum: the fit's DC projection, and the record's mean below, in one pass;
+        # the search spectrum's when it transformed the whole record (the same sum of the same array)
+        total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
+                                 else float(np.sum(x)))
         z_all, centres = fit_lines(x, uniq, fs, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)

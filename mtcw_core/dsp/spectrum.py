@@ -36,6 +36,10 @@ class Spectrum:
         (``2*s2*...`` counted over both quadratures for complex noise of total variance s2).
     n : int
         Samples transformed.
+    total : float or complex or None
+        ``np.sum`` of the samples transformed (the first ``n`` of the record handed in), before
+        the mean is removed, V; the extract stage's DC projection when those are the whole
+        record (one pass over it fewer).
     """
 
     power: np.ndarray | PackedPower
@@ -44,6 +48,7 @@ class Spectrum:
     window_power: float
     n: int
     complex_input: bool
+    total: float | complex | None = None
 
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
@@ -369,7 +374,8 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         np.float32 if single else np.float64)
     # (seg - mean) * w in one buffer of the transform's dtype
     y = np.empty(m, dtype=dtype)
-    np.subtract(seg, seg.mean(), out=y, casting="same_kind")
+    total = np.sum(seg)  # seg.mean() is this over m: the same numbers, and the sum kept
+    np.subtract(seg, total / m, out=y, casting="same_kind")
     y *= cached_window(win, m, "float32" if single else "float64")
     wp = window_power(win, m)
     if np.iscomplexobj(y):
@@ -377,7 +383,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)
         p = (X.real**2 + X.imag**2)
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
-        return Spectrum(p, fs_hz / m, f0, wp, m, True)
+        return Spectrum(p, fs_hz / m, f0, wp, m, True, complex(total))
     if m % 2 == 0:
         p = real_power_packed(y)
         if m < LAZY_MIN_SAMPLES:
@@ -386,7 +392,7 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         X = scipy.fft.rfft(y, overwrite_x=True)
         p = X.real**2 + X.imag**2
     # real noise of variance s2: E|X|^2 = s2 * sum(w^2)
-    return Spectrum(p, fs_hz / m, 0.0, wp, m, False)
+    return Spectrum(p, fs_hz / m, 0.0, wp, m, False, float(total))
 
 
 def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: bool = False,
