@@ -146,6 +146,8 @@ class PackedPower:
 
     #: bins unpacked together on the first read of any of them
     BLOCK = 1024
+    #: runs of at least this many bins are unpacked each on its own, shorter ones batched
+    LONG_RUN = 8 * BLOCK
 
     def __init__(self, packed: np.ndarray):
         self._z = packed
@@ -229,7 +231,14 @@ class PackedPower:
         # runs of blocks still packed, unpacked together
         edges = np.flatnonzero(np.diff(np.concatenate([[False], todo, [False]]).astype(np.int8)))
         blk = self.BLOCK
-        self._unpack([(int(r0) * blk, min(int(r1) * blk, self.size)) for r0, r1 in zip(edges[::2], edges[1::2])])
+        runs = [(int(r0) * blk, min(int(r1) * blk, self.size)) for r0, r1 in zip(edges[::2], edges[1::2])]
+        # a long run is unpacked on its own (slices, no copies); the short ones together (one call each step)
+        short = [r for r in runs if r[1] - r[0] < self.LONG_RUN]
+        for r in runs:
+            if r[1] - r[0] >= self.LONG_RUN:
+                self._unpack([r])
+        if short:
+            self._unpack(short)
         self._done |= todo
 
     def _ensure(self, a: int, b: int) -> None:
