@@ -141,7 +141,11 @@ class PackedPower:
     Parameters
     ----------
     packed : ndarray, shape (h,), complex64 or complex128: the FFT of the record's pairs; kept
-        (not copied) and never written
+        (not copied), and written only when every bin is unpacked in one go (it is then released)
+
+    Memory: the packed FFT (``m/2`` complex) is held with the ``m/2 + 1`` output bins until the
+    spectrum is dropped (a 1e6-sample single-precision spectrum: 4 + 2 MB, where the unpacked
+    spectrum alone held 2 MB).
     """
 
     #: bins unpacked together on the first read of any of them
