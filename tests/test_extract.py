@@ -166,6 +166,22 @@ class TestExtractLines:
             np.testing.assert_allclose(np.angle(fam.z[s] * np.exp(-1j * want)), 0.0, atol=1e-9)
             np.testing.assert_allclose(np.abs(fam.z[s]), [1.0, 0.6, 0.3], rtol=1e-9)
 
+    def test_the_spectrums_sum_serves_only_the_record_it_was_taken_of(self):
+        """The search spectrum's sum is the record's DC projection when it transformed the whole
+        record (the same amplitudes as a spectrum without it), and is not used otherwise (a
+        spectrum of a quarter, or one whose sum is wrong on purpose, leaves the fit alone)."""
+        from dataclasses import replace
+
+        x = static_record(0.77, noise=1e-2, seed=3)
+        fr = frame(x=x)
+        none = [DopplerEstimate(0.0, False, 0.0, 1.0, 1.0)]
+        whole = power_spectrum(x, FS)
+        assert whole.total == pytest.approx(float(np.sum(x)), rel=1e-15)
+        plain = extract_lines(x, fr, none, replace(whole, total=None), ChainSettings())[0].z
+        np.testing.assert_array_equal(extract_lines(x, fr, none, whole, ChainSettings())[0].z, plain)
+        quarter = replace(power_spectrum(x, FS, n=N // 4), total=1e9)  # not the whole record: ignored
+        np.testing.assert_array_equal(extract_lines(x, fr, none, quarter, ChainSettings())[0].z, plain)
+
     def test_phase_variance_from_the_noise_floor(self):
         s = 0.01
         x = static_record(0.5, noise=s)

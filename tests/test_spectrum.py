@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.fft
 from scipy.signal import get_window
 
 from mtcw_core.dsp.spectrum import (PackedPower, Spectrum, line_width_bins, local_floor, power_spectrum, real_power,
-                                    real_power_packed, search_spectrum, widths_at)
+                                    real_power_packed, search_spectrum, sliding_sums, widths_at)
 
 FS = 1.0e9
 
@@ -312,12 +314,33 @@ class TestPackedPower:
         with pytest.raises(ValueError):
             p[10:20][0] = 1.0
 
+    def test_block_aligned_top_and_nyquist_read_last(self):
+        """h a multiple of the block: everything below Nyquist read first, Nyquist after."""
+        m = 8 * PackedPower.BLOCK
+        y = self._record(m, 7)
+        whole = np.asarray(real_power_packed(y.copy()))
+        p = real_power_packed(y.copy())
+        np.testing.assert_array_equal(p[:m // 2], whole[:m // 2])
+        assert p[m // 2] == whole[m // 2]
+        np.testing.assert_array_equal(np.asarray(p), whole)
+
     def test_only_what_is_read_is_unpacked(self):
         p = real_power_packed(self._record(1 << 18).astype(np.float32))
         assert p.unpacked_fraction == 0.0
         p[1000:1100]
         assert 0 < p.unpacked_fraction <= 2 * PackedPower.BLOCK / p.size
         assert p.max() == np.asarray(p).max() and p.unpacked_fraction == 1.0
+
+    def test_short_records_are_unpacked_at_once(self):
+        """Below LAZY_MIN_SAMPLES the spectrum is a plain array, with the packed one's numbers."""
+        from mtcw_core.dsp.spectrum import LAZY_MIN_SAMPLES
+
+        for m in (LAZY_MIN_SAMPLES // 2, LAZY_MIN_SAMPLES):
+            x = self._record(m, 6)
+            sp = power_spectrum(x, FS, single=True)
+            assert isinstance(sp.power, np.ndarray) == (m < LAZY_MIN_SAMPLES)
+            y = ((x - x.mean()).astype(np.float32) * get_window(("kaiser", 14.0), m, fftbins=False).astype(np.float32))
+            np.testing.assert_array_equal(np.asarray(sp.power), np.asarray(real_power_packed(y)))
 
     def test_out_of_range_is_an_index_error(self):
         p = real_power_packed(self._record(1024))
@@ -378,3 +401,22 @@ def _median_floor(sp, f, exclude, half_width=256, guard=12):
     keep = np.all(np.abs(idx[:, None] - ex[None, :]) > guard, axis=1) if ex.size else np.ones(idx.size, bool)
     vals = sp.power[idx[keep]] if keep.any() else sp.power[idx]
     return float(np.median(vals.astype(np.float64))) / np.log(2) / sp.window_power
+
+
+@pytest.mark.parametrize("width", [1, 2, 3, 7, 8, 41, 64, 100])
+def test_sliding_sums_are_the_window_sums(width):
+    v = np.random.default_rng(width).standard_normal(300) * 10
+    want = np.array([math.fsum(v[i:i + width]) for i in range(v.size - width + 1)])  # exactly rounded
+    np.testing.assert_allclose(sliding_sums(v, width), want, rtol=0, atol=1e-12 * width)
+
+
+def test_local_floor_is_the_ring_mean_written_out():
+    """The floor at a few bins against its definition: exp(mean of log power over the bins
+    inner..outer away on both sides (mirrored about 0 Hz) + Euler's gamma)."""
+    p = np.random.default_rng(9).exponential(size=4001) + 0.1
+    fl = local_floor(p, inner=8, outer=48, mirror_dc=True)
+    for k in (0, 3, 60, 2000, 3990, 4000):
+        ring = [j for d in range(8, 49) for j in (k - d, k + d)]
+        ring = [abs(j) if j < 0 else (2 * 4000 - j if j > 4000 else j) for j in ring]
+        want = math.exp(math.fsum(math.log(p[j]) for j in ring) / len(ring) + np.euler_gamma)
+        assert fl[k] == pytest.approx(want, rel=1e-12)

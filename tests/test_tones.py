@@ -111,6 +111,15 @@ class TestFitLines:
         d = exact_dft(x, self.F, FS)
         np.testing.assert_array_equal(fit_lines(x, self.F, FS, dft=d), fit_lines(x, self.F, FS))
 
+    def test_total_argument_reused(self):
+        """The record's sum handed in (as the extract stage does, sharing it with the record's
+        mean) gives the fit of the sum computed inside, and a wrong sum moves the fit."""
+        x = np.random.default_rng(11).standard_normal(5000) + 0.3
+        f = [1.4 * FS / 5000, 0.23 * FS]  # a line 1.4 bins from DC: the DC column matters to it
+        ref = fit_lines(x, f, FS)
+        np.testing.assert_array_equal(fit_lines(x, f, FS, total=float(np.sum(x))), ref)
+        assert abs(fit_lines(x, f, FS, total=float(np.sum(x)) + 500.0)[0] - ref[0]) > 1e-3
+
     def test_phase_referred_to_the_centre(self):
         """A tone with phase p at sample 0 has phase p + 2*pi*f*(N-1)/(2*fs) at the centre."""
         f, p0 = self.F[0], 0.3
@@ -235,3 +244,38 @@ def test_dirichlet_kernel_is_scipys():
                         2 * np.pi * np.arange(-3, 4) + 1e-9, [0.0, 1e-12]])
     for n in (1, 2, 7, 1000, 999_999):
         np.testing.assert_allclose(_dirichlet(w, n), n * diric(w, n), rtol=0, atol=1e-12 * n)
+
+
+@pytest.mark.parametrize("n", [64, 257])
+def test_real_gram_blocks_are_the_sums_of_products(n):
+    """The real fit's Gram blocks against the sums written out over the centred index: cosines
+    (with the DC column) and sines, lines near DC and near each other included."""
+    from mtcw_core.dsp.tones import _gram_real
+
+    w = 2 * np.pi * np.array([1.3, 2.1, 17.77, 0.43 * n]) / n
+    k = np.arange(n) - (n - 1) / 2
+    cos = np.cos(np.outer(k, np.concatenate([[0.0], w])))  # (n, K+1): DC, then the cosines
+    sin = np.sin(np.outer(k, w))
+    gc, gs = _gram_real(w, n)
+    np.testing.assert_allclose(gc, cos.T @ cos, rtol=0, atol=1e-9 * n)
+    np.testing.assert_allclose(gs, sin.T @ sin, rtol=0, atol=1e-9 * n)
+
+
+def test_cached_tables_serve_repeated_frequencies_only():
+    """A second transform at the same frequencies (a stream's static lines) reuses the tables and
+    gives the same numbers; other frequencies get their own (checked against the direct sum)."""
+    from mtcw_core.dsp.tones import _tables
+
+    x = np.random.default_rng(12).standard_normal(10_007)
+    k = np.arange(x.size) - (x.size - 1) / 2
+    f1, f2 = np.array([0.1, 0.2]) * FS, np.array([0.1, 0.2 + 1e-9]) * FS
+    a = exact_dft(x, f1, FS)
+    hits = _tables.cache_info().hits
+    np.testing.assert_array_equal(exact_dft(x, f1, FS), a)
+    assert _tables.cache_info().hits == hits + 1
+    b = exact_dft(x, f2, FS)
+    direct = np.array([np.sum(x * np.exp(-2j * np.pi * f / FS * k)) for f in f2])
+    np.testing.assert_allclose(b, direct, rtol=0, atol=1e-9 * np.abs(direct).max())
+    eb, _, _ = _tables(x.size, (f1 / FS).tobytes())
+    with pytest.raises(ValueError):
+        eb[0, 0] = 0

@@ -111,10 +111,11 @@ def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings
                 [abs(a - b) for i, a in enumerate(t) for b in t[i + 1:]]
         extra += [p for p in prods if p < frame.fs_hz / 2]
     # a product line too close to a used line cannot be told apart: keep the used ones
-    keep = []
-    for f in extra:
-        if np.all(np.abs(used - f) > 1.5 * res) and all(abs(f - k) > 1.5 * res for k in keep) and (
-                abs(f) > 1.5 * res or (iq and f == 0.0)):
+    ex = np.asarray(extra, float)
+    clear = np.abs(ex[:, None] - used[None, :]).min(axis=1, initial=np.inf) > 1.5 * res  # from every used line
+    keep: list[float] = []
+    for f, ok in zip(extra, clear):
+        if ok and all(abs(f - k) > 1.5 * res for k in keep) and (abs(f) > 1.5 * res or (iq and f == 0.0)):
             keep.append(f)
     return fams, np.concatenate([used, np.asarray(keep, float)])
 
@@ -172,7 +173,11 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        z_all, centres = fit_lines(x, uniq, fs)[None, :], np.array([(n - 1) / (2 * fs)])
+        # a real record's sum: the fit's DC projection, and the record's mean below, in one pass;
+        # the search spectrum's when it transformed the whole record (the same sum of the same array)
+        total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
+                                 else float(np.sum(x)))
+        z_all, centres = fit_lines(x, uniq, fs, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
         centres = (starts + (length - 1) / 2) / fs
@@ -190,14 +195,17 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
         # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
         # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
-        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([x.mean()]))
+        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         pred = self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
         zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
+    # every family's local floors in one call (each row is its own line's statistic)
+    s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq)
+    first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
     out = []
-    for target, name, freqs, conj, bad in fams:
+    for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
         amp2 = np.mean(np.abs(z) ** 2, axis=0)
-        s2 = spec.noise_variances(freqs, uniq)
+        s2 = s2_all[first[i]:first[i + 1]]
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))

@@ -36,6 +36,10 @@ class Spectrum:
         (``2*s2*...`` counted over both quadratures for complex noise of total variance s2).
     n : int
         Samples transformed.
+    total : float or complex or None
+        ``np.sum`` of the samples transformed (the first ``n`` of the record handed in), before
+        the mean is removed, V; the extract stage's DC projection when those are the whole
+        record (one pass over it fewer).
     """
 
     power: np.ndarray | PackedPower
@@ -44,6 +48,7 @@ class Spectrum:
     window_power: float
     n: int
     complex_input: bool
+    total: float | complex | None = None
 
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
@@ -136,11 +141,17 @@ class PackedPower:
     Parameters
     ----------
     packed : ndarray, shape (h,), complex64 or complex128: the FFT of the record's pairs; kept
-        (not copied) and never written
+        (not copied), and written only when every bin is unpacked in one go (it is then released)
+
+    Memory: the packed FFT (``m/2`` complex) is held with the ``m/2 + 1`` output bins until the
+    spectrum is dropped (a 1e6-sample single-precision spectrum: 4 + 2 MB, where the unpacked
+    spectrum alone held 2 MB).
     """
 
     #: bins unpacked together on the first read of any of them
     BLOCK = 1024
+    #: runs of at least this many bins are unpacked each on its own, shorter ones batched
+    LONG_RUN = 8 * BLOCK
 
     def __init__(self, packed: np.ndarray):
         self._z = packed
@@ -162,8 +173,10 @@ class PackedPower:
         step for all runs, not one per run)."""
         z, h, out = self._z, self._h, self._out
         parts = []
+        nyquist_too = False
         for a, b in runs:
             if b > h:  # the Nyquist bin, from Z[0] alone
+                nyquist_too = True
                 nyquist = float(z[0].real) - float(z[0].imag)
                 out[h] = nyquist * nyquist
                 b = h
@@ -189,7 +202,13 @@ class PackedPower:
             o += b - a
         np.conjugate(even, out=even)
         even += zk  # Z + conj(Z[-k])
-        odd = zk * 2
+        whole = nyquist_too and len(parts) == 1 and parts[0] == (0, h)
+        if whole:  # every bin at once: Z is not read again, so work in its buffer
+            odd = zk
+            odd *= 2
+            self._z = None
+        else:
+            odd = zk * 2
         odd -= even  # Z - conj(Z[-k])
         odd *= tw  # 2j * W^k * (DFT of the odd samples)
         # X = (even - j*odd)/2 = ((even.re + odd.im) + j*(even.im - odd.re))/2
@@ -216,7 +235,14 @@ class PackedPower:
         # runs of blocks still packed, unpacked together
         edges = np.flatnonzero(np.diff(np.concatenate([[False], todo, [False]]).astype(np.int8)))
         blk = self.BLOCK
-        self._unpack([(int(r0) * blk, min(int(r1) * blk, self.size)) for r0, r1 in zip(edges[::2], edges[1::2])])
+        runs = [(int(r0) * blk, min(int(r1) * blk, self.size)) for r0, r1 in zip(edges[::2], edges[1::2])]
+        # a long run is unpacked on its own (slices, no copies); the short ones together (one call each step)
+        short = [r for r in runs if r[1] - r[0] < self.LONG_RUN]
+        for r in runs:
+            if r[1] - r[0] >= self.LONG_RUN:
+                self._unpack([r])
+        if short:
+            self._unpack(short)
         self._done |= todo
 
     def _ensure(self, a: int, b: int) -> None:
@@ -240,18 +266,6 @@ class PackedPower:
                 need[a // self.BLOCK:(b - 1) // self.BLOCK + 1] = True
         self._ensure_blocks(need)
 
-    def _ensure_indices(self, idx: np.ndarray) -> None:
-        if idx.size == 0:
-            return
-        if idx.ndim == 1 and idx.size > 1 and idx[0] <= idx[-1] and idx[-1] - idx[0] < 2 * idx.size:
-            # the common read: a band, ascending (any bins outside [first, last] are caught below)
-            lo, hi = int(idx[0]), int(idx[-1])
-            if self._done[lo // self.BLOCK:hi // self.BLOCK + 1].all() and idx.min() >= lo and idx.max() <= hi:
-                return
-        need = np.zeros(self._done.size, bool)
-        need[idx.ravel() // self.BLOCK] = True
-        self._ensure_blocks(need)
-
     def __getitem__(self, key):
         if isinstance(key, (int, np.integer)):
             k = int(key)
@@ -261,8 +275,8 @@ class PackedPower:
             self._ensure(k, k + 1)
             return self._out[k]
         if isinstance(key, slice):
-            a, b, _ = key.indices(self.size)
-            if key.step is None or key.step == 1:
+            a, b, step = key.indices(self.size)
+            if step == 1:
                 self._ensure(a, b)
             else:
                 self._ensure(0, self.size)
@@ -274,16 +288,36 @@ class PackedPower:
             idx = np.flatnonzero(idx)
         if idx.dtype.kind not in "iu":
             raise IndexError(f"spectrum bins are indexed by integers, slices or masks, not {idx.dtype}")
-        idx = np.where(idx < 0, idx + self.size, idx)
-        if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= self.size):
-            raise IndexError(f"bins outside a spectrum of {self.size} bins")
-        self._ensure_indices(idx)
+        if idx.size == 0:
+            return self._out[idx]
+        # two passes over the indices, then the gather: the search reads bands of ~10^4 bins at once
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0:
+            idx = np.where(idx < 0, idx + self.size, idx)
+            lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0 or hi >= self.size:
+            raise IndexError(f"bins {lo}..{hi} reach outside a spectrum of {self.size} bins")
+        if hi - lo < 4 * idx.size + 4 * self.BLOCK:  # compact (a band, nearby windows): unpack the span
+            self._ensure(lo, hi + 1)
+        else:
+            need = np.zeros(self._done.size, bool)
+            need[idx.ravel() // self.BLOCK] = True
+            self._ensure_blocks(need)
         return self._out[idx]
 
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        self._ensure(0, self.size)
+    def unpack_all(self) -> np.ndarray:
+        """Every bin, unpacked in one pass in the FFT's own buffer (read-only view of the store)."""
+        if not self._done.any():
+            self._unpack([(0, self.size)])
+            self._done[:] = True
+        else:
+            self._ensure(0, self.size)
         full = self._out.view()
         full.flags.writeable = False
+        return full
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        full = self.unpack_all()
         if dtype is not None and np.dtype(dtype) != full.dtype:
             return full.astype(dtype)
         return full.copy() if copy else full
@@ -324,6 +358,14 @@ def real_power_packed(y: np.ndarray) -> PackedPower:
                                      overwrite_x=True))
 
 
+#: records at least this long keep their spectrum packed (:class:`PackedPower`, unpacked where
+#: read); shorter ones are unpacked at once. Measured on the 2-core bench machine: at 1.25e5
+#: samples (``fast``'s Doppler spectrum) the whole unpacking costs about what reading a third of
+#: it block by block adds; at 1e6, where the search reads 8-30 % of 5e5 bins, the lazy spectrum
+#: saves 0.6-1.3 ms a frame
+LAZY_MIN_SAMPLES = 1 << 18
+
+
 def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser", 14.0), n: int | None = None,
                    single: bool = False) -> Spectrum:
     """Periodogram of the first ``n`` samples (all by default), mean removed.
@@ -345,7 +387,8 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         np.float32 if single else np.float64)
     # (seg - mean) * w in one buffer of the transform's dtype
     y = np.empty(m, dtype=dtype)
-    np.subtract(seg, seg.mean(), out=y, casting="same_kind")
+    total = np.sum(seg)  # seg.mean() is this over m: the same numbers, and the sum kept
+    np.subtract(seg, total / m, out=y, casting="same_kind")
     y *= cached_window(win, m, "float32" if single else "float64")
     wp = window_power(win, m)
     if np.iscomplexobj(y):
@@ -353,14 +396,16 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)
         p = (X.real**2 + X.imag**2)
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
-        return Spectrum(p, fs_hz / m, f0, wp, m, True)
+        return Spectrum(p, fs_hz / m, f0, wp, m, True, complex(total))
     if m % 2 == 0:
         p = real_power_packed(y)
+        if m < LAZY_MIN_SAMPLES:
+            p = p.unpack_all()  # short: unpacking it all costs less than reading it block by block
     else:
         X = scipy.fft.rfft(y, overwrite_x=True)
         p = X.real**2 + X.imag**2
     # real noise of variance s2: E|X|^2 = s2 * sum(w^2)
-    return Spectrum(p, fs_hz / m, 0.0, wp, m, False)
+    return Spectrum(p, fs_hz / m, 0.0, wp, m, False, float(total))
 
 
 def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: bool = False,
@@ -404,24 +449,50 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
             reach += [(nb - outer, nb)] if merged and merged[0][0] < outer else []
         power.prefetch(reach)
     for lo, hi in merged:
-        idx = np.arange(lo - outer, hi + outer)
-        if mirror_dc:
-            idx = np.abs(idx)  # numpy's "reflect" padding, about bin 0 and bin B-1
-            idx = np.where(idx > nb - 1, 2 * (nb - 1) - idx, idx)
+        if lo - outer >= 0 and hi + outer <= nb:  # the ring stays inside: a slice
+            seg = power[lo - outer:hi + outer]
         else:
-            idx %= nb
-        inside = lo - outer >= 0 and hi + outer <= nb
-        lp = np.log(np.maximum(power[lo - outer:hi + outer] if inside else power[idx], tiny))
-        c = np.concatenate([[0.0], np.cumsum(lp, dtype=np.float64)])
+            idx = np.arange(lo - outer, hi + outer)
+            if mirror_dc:
+                idx = np.abs(idx)  # numpy's "reflect" padding, about bin 0 and bin B-1
+                idx = np.where(idx > nb - 1, 2 * (nb - 1) - idx, idx)
+            else:
+                idx %= nb
+            seg = power[idx]
+        lp = np.log(np.maximum(seg, tiny)).astype(np.float64)  # lp[j]: bin lo - outer + j
         n = hi - lo
-
-        def window_sum(a: int, b: int) -> np.ndarray:
-            """sum(lp[k + a : k + b]) for every bin k: differences of shifted slices of the running sum."""
-            return c[outer + b: outer + b + n] - c[outer + a: outer + a + n]
-
-        total = window_sum(-outer, -inner + 1) + window_sum(inner, outer + 1)
+        ring = sliding_sums(lp, outer - inner + 1)  # ring[j] = sum(lp[j : j + outer - inner + 1])
+        # bin lo + i: the left ring starts at lp[i] (bin - outer), the right one at lp[i + outer + inner]
+        total = ring[:n] + ring[outer + inner: outer + inner + n]
         out[lo:hi] = np.exp(total / (2.0 * (outer - inner + 1)) + EULER_GAMMA)
     return out
+
+
+def sliding_sums(v: np.ndarray, width: int) -> np.ndarray:
+    """``sum(v[i : i + width])`` for every ``i <= v.size - width``, shape ``(v.size - width + 1,)``.
+
+    By doubling: sums over 1, 2, 4, ... samples, each from the one before in one vector add, and
+    the window as the sum of those its binary digits name -- ``log2(width) + popcount(width)``
+    passes, vectorised (numpy's running sum is a scalar loop, and its differences lose the digits
+    of the running total: this sums each window's own terms only).
+
+    Parameters
+    ----------
+    v : ndarray, shape (L,), float64
+    width : int, 1 <= width <= L
+    """
+    count = v.size - width + 1
+    acc = np.zeros(count)
+    part, span, offset = v, 1, 0  # part[i] = sum(v[i : i + span])
+    while True:
+        if width & 1:
+            acc += part[offset:offset + count]
+            offset += span
+        width >>= 1
+        if not width:
+            return acc
+        part = part[:-span] + part[span:]
+        span *= 2
 
 
 def _merged(ranges: list[tuple[int, int]], nb: int) -> list[tuple[int, int]]:
@@ -455,6 +526,9 @@ def widths_at(spec: Spectrum, centres, half_span: int = 64) -> float:
     """Median equivalent width (bins) of the strongest line near each of ``centres`` (Hz)."""
     p = spec.power
     dc = int(spec.bin_of(0.0))
+    if hasattr(p, "prefetch"):  # a PackedPower: every window unpacked in one go
+        ks = [int(k) for k in spec.bin_of(np.asarray(centres, dtype=float))]
+        p.prefetch([(k - half_span, k + half_span + 1) for k in ks])
     widths = []
     for f in centres:
         k0 = int(spec.bin_of(f))

@@ -15,6 +15,7 @@ frequency errors.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy import linalg
@@ -72,21 +73,42 @@ def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     a_count = n // m
     c = (n - 1) / 2.0
     r = freqs / fs_hz  # cycles per sample, float64
-    # sample a*M + b: exp(-j*w*a*M) * exp(-j*w*(b - c)), each factor's cycles reduced modulo 1
-    eb = phasors(-c, m, r)  # (M, K)
-    ea = phasors(0.0, a_count, np.mod(r * m, 1.0))  # (A, K)
+    eb, ea, et = _tables(n, r.tobytes())
     body = parts[:, :a_count * m].reshape(s_count, a_count, m)  # a view: rows keep their stride
-    k = freqs.size
     if np.iscomplexobj(parts):
         y = body @ eb  # (S, A, K)
     else:
-        yy = body @ np.concatenate([eb.real, eb.imag], axis=1)  # (S, A, 2K) real
-        y = yy[..., :k] + 1j * yy[..., k:]
+        # the complex table's own memory read as real (M, 2K), cosine and sine columns interleaved:
+        # the product's rows are then the complex sums themselves (no table copy, no recombining)
+        y = (body @ eb.view(np.float64)).view(np.complex128)  # (S, A, K)
     out = np.einsum("sak,ak->sk", y, ea)
-    tail = n - a_count * m
-    if tail:
-        out += parts[:, a_count * m:] @ phasors(a_count * m - c, tail, r)
+    if et is not None:
+        out += parts[:, a_count * m:] @ et
     return out
+
+
+@lru_cache(maxsize=4)
+def _tables(n: int, r_bytes: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The phasor tables of :func:`exact_dft_parts` for rows of ``n`` samples at the frequencies
+    ``r`` (cycles per sample, float64, as bytes): (M, K), (A, K) and the tail's (n mod M, K) or
+    None. Cached (read-only): a stream's static lines, and the Doppler refinement's two
+    transforms of one line set, ask for the same tables frame after frame.
+
+    Sample ``a*M + b`` is ``exp(-j*w*a*M) * exp(-j*w*(b - c))``, each factor's cycles reduced
+    modulo 1 in float64 (``c = (n - 1)/2``, the centre).
+    """
+    r = np.frombuffer(r_bytes, dtype=np.float64)
+    m = min(_block(n), n)
+    a_count = n // m
+    c = (n - 1) / 2.0
+    eb = phasors(-c, m, r)  # (M, K)
+    ea = phasors(0.0, a_count, np.mod(r * m, 1.0))  # (A, K)
+    tail = n - a_count * m
+    et = phasors(a_count * m - c, tail, r) if tail else None
+    for t in (eb, ea, et):
+        if t is not None:
+            t.setflags(write=False)
+    return eb, ea, et
 
 
 def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
@@ -115,12 +137,22 @@ def _dirichlet(w: np.ndarray, n: int) -> np.ndarray:
     half = np.asarray(w, dtype=np.float64) / 2
     denom = np.sin(half)
     small = np.abs(denom) < 1e-7
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.sin(n * half) / denom
+    out = np.sin(n * half) / np.where(small, 1.0, denom)  # no division by ~0 (no errstate: it costs more)
     return np.where(small, n * (-1.0) ** (np.round(half / np.pi) * (n - 1)), out)
 
 
-def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = None) -> np.ndarray:
+def _gram_real(w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cosine block with a DC column (shape (K+1, K+1)) and the sine block (K, K) of the real
+    line fit: ``(D(a - b) +- D(a + b))/2`` over the centred index, the sine block's kernels being
+    the cosine block's without the DC row and column (two kernel evaluations, not four)."""
+    wc = np.concatenate([[0.0], w])
+    dm = _dirichlet(wc[:, None] - wc[None, :], n)
+    dp = _dirichlet(wc[:, None] + wc[None, :], n)
+    return 0.5 * (dm + dp), 0.5 * (dm[1:, 1:] - dp[1:, 1:])
+
+
+def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = None,
+              total: float | None = None) -> np.ndarray:
     """Joint least-squares complex amplitudes of lines at known frequencies.
 
     Model (real x): ``x[k] = d + sum_l Re(c_l * exp(j*2*pi*f_l*(k - (N-1)/2)/fs))`` with a DC term
@@ -133,6 +165,8 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
     freqs_hz : array_like, shape (K,), Hz (positive for real x)
     dft : ndarray, shape (K,), optional
         ``exact_dft(x, freqs_hz)`` if already computed.
+    total : float, optional
+        ``np.sum(x)`` (V) if already computed (real x: the DC column's projection).
 
     Returns
     -------
@@ -147,10 +181,8 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
         g = _dirichlet(w[:, None] - w[None, :], n)
         return linalg.solve(g, dft, assume_a="sym")
     # cosine block with a DC column, sine block without
-    wc = np.concatenate([[0.0], w])
-    gc = 0.5 * (_dirichlet(wc[:, None] - wc[None, :], n) + _dirichlet(wc[:, None] + wc[None, :], n))
-    gs = 0.5 * (_dirichlet(w[:, None] - w[None, :], n) - _dirichlet(w[:, None] + w[None, :], n))
-    pc = np.concatenate([[float(np.sum(x))], dft.real])
+    gc, gs = _gram_real(w, n)
+    pc = np.concatenate([[float(np.sum(x) if total is None else total)], dft.real])
     ps = -dft.imag
     alpha = linalg.solve(gc, pc, assume_a="sym")[1:]
     beta = linalg.solve(gs, ps, assume_a="sym")
@@ -183,9 +215,7 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
     if np.iscomplexobj(seg):
         g = _dirichlet(w[:, None] - w[None, :], length)
         return linalg.solve(g, dft.T, assume_a="sym").T
-    wc = np.concatenate([[0.0], w])
-    gc = 0.5 * (_dirichlet(wc[:, None] - wc[None, :], length) + _dirichlet(wc[:, None] + wc[None, :], length))
-    gs = 0.5 * (_dirichlet(w[:, None] - w[None, :], length) - _dirichlet(w[:, None] + w[None, :], length))
+    gc, gs = _gram_real(w, length)
     pc = np.concatenate([seg.sum(axis=1)[:, None], dft.real], axis=1)  # (S, K+1)
     alpha = linalg.solve(gc, pc.T, assume_a="sym").T[:, 1:]
     beta = linalg.solve(gs, (-dft.imag).T, assume_a="sym").T

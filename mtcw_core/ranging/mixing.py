@@ -14,11 +14,22 @@ laser phase noise, the sign of ``cos(psi)``), leaving ``(phi_i - phi_j) - 2*pi*(
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from ..dsp.extract import LineFamily
 from ..phase import wrap_pi
 from .triangulation import Observations
+
+
+@lru_cache(maxsize=32)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (a, b) with b < a < n, in the order of a double loop over a then b (read-only)."""
+    a, b = np.tril_indices(n, -1)
+    a.setflags(write=False)
+    b.setflags(write=False)
+    return a, b
 
 
 def pair_observations(
@@ -39,7 +50,7 @@ def pair_observations(
         if ok.size < 2:
             continue
         # every pair (a, b), b < a, in the order of a double loop over a then b
-        a_, b_ = np.tril_indices(ok.size, -1)
+        a_, b_ = _pairs(ok.size)
         i, j = ok[a_], ok[b_]
         swap = fam.tone_hz[i] < fam.tone_hz[j]  # the higher tone first
         i, j = np.where(swap, j, i), np.where(swap, i, j)
