@@ -163,7 +163,9 @@ class PointVerdict:
 
     ``truth_index`` is the truth target it answers (None: a false target). Errors are in m and
     m/s; z-scores are error over the point's own sigma. ``speed_measured`` is False for a point
-    that reports ``static`` (speed 0 with the smallest detectable speed as its sigma).
+    that reports ``static`` (speed 0 with the smallest detectable speed as its sigma) and for one
+    whose speed could not be measured (``unknown``, 0 with the search's largest speed as its sigma:
+    :func:`speed_measured`).
     """
 
     truth_index: int | None
@@ -256,7 +258,7 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
     verdicts = []
     for i, p in enumerate(points):
         j = owner.get(i)
-        measured = p.direction != "static"
+        measured = speed_measured(p)
         if j is None:
             verdicts.append(PointVerdict(None, None, None, None, None, measured, flags_of(p)))
             continue
@@ -264,6 +266,15 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
         verdicts.append(PointVerdict(j, er, _z(er, p.range_sigma_m), ev, _z(ev, p.velocity_sigma_mps), measured,
                                      flags_of(p)))
     return FrameVerdict(res.status, tuple(verdicts), tuple(j for j in range(len(truths)) if j not in taken), z_wrong)
+
+
+def speed_measured(p: TargetPoint) -> bool:
+    """Whether the point's speed is an estimate, not a bound: not ``static``, and not the 0 of a
+    speed that could not be measured (direction ``unknown``, its sigma the smallest speed the frame
+    could have measured, which is then the search's largest: the laser incoherent at its range)."""
+    if p.direction == "static":
+        return False
+    return not (p.direction == "unknown" and p.velocity_mps == 0.0 and p.velocity_sigma_mps >= p.speed_min_mps > 0)
 
 
 #: a point agrees with a truth on speed within the larger of 5 of its sigmas, a quarter of the

@@ -73,6 +73,15 @@ class TestJudgeFrame:
         v = judge_frame(res(pt(1.0, 0.0, v_sigma=0.04, direction="static")), [TruthTarget(1.0, 0.035)])
         assert not v.confident_wrong
 
+    def test_a_speed_that_could_not_be_measured_is_a_bound_not_an_estimate(self):
+        # laser incoherent at the range: 0 with the search's largest speed as sigma and speed_min
+        v = judge_frame(res(pt(1.0, 0.0, v_sigma=5.0, speed_min_mps=5.0)), [TruthTarget(1.0, 0.10)])
+        assert not v.points[0].speed_measured and not v.confident_wrong
+        assert summarise([v], 1)["speed_z_n"] == 0
+        # a real detector's measured |v| also says `unknown`: an estimate
+        v = judge_frame(res(pt(1.0, 0.1001, v_sigma=1e-3, speed_min_mps=0.05)), [TruthTarget(1.0, 0.10)])
+        assert v.points[0].speed_measured and summarise([v], 1)["speed_z_n"] == 1
+
     def test_a_real_detector_compares_speeds_an_iq_one_velocities(self):
         truth = [TruthTarget(1.0, -0.5)]  # approaching
         assert not judge_frame(res(pt(1.0, 0.5)), truth).confident_wrong  # |v| right, direction unknown
