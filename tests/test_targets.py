@@ -13,9 +13,14 @@ from mtcw_core.frame import Frame
 from mtcw_core.phase import C
 from mtcw_core.profiles import ChainSettings, get_profile
 from mtcw_core.ranging.mixing import mix
-from mtcw_core.ranging.targets import Reference, median_snr, resolve_targets, select_targets, solve_target, velocity
+from mtcw_core.chain import process_frame
+from mtcw_core.ranging.targets import (SPEED_FLOOR_BINS, Reference, median_snr, resolve_targets, select_targets,
+                                       solve_target, velocity)
 from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
 from mtcw_core.results import TargetPoint
+from mtcw_core.simulate import Simulator
+
+from .conftest import make_scene
 
 LAM = 1.064e-6
 FS = 1e9
@@ -30,8 +35,8 @@ def frame(receiver="single"):
     return Frame(np.zeros((1, N)), FS, tuple(TONES), LAM)
 
 
-def dop(fd, detected=True, refine=0.0, wander=0.0):
-    return DopplerEstimate(fd, detected, 100.0 if detected else 0.0, 50.0, 4 * FS / N, refine, wander)
+def dop(fd, detected=True, refine=0.0, wander=0.0, refined=False):
+    return DopplerEstimate(fd, detected, 100.0 if detected else 0.0, 50.0, 4 * FS / N, refine, wander, refined)
 
 
 def fam(name="S", target=0, var=(1e-4, 2e-4, 4e-4), range_m=3.7, fd=0.0, extra=(0.0, 0.0, 0.0), tau0=0.0):
@@ -87,9 +92,35 @@ class TestVelocity:
         s = velocity(d, frame(), [fam("U", 1, var=var)], False)[1]
         assert s == pytest.approx(math.hypot(sig_f, 3e3, 4e3) * LAM / 2, rel=1e-12)
 
+    def test_a_refined_doppler_carries_its_own_error(self):
+        """The refinement's stated error covers every line it used (the carrier's baseband line
+        among them) and the shared phase's wander: neither the sidebands' bound nor the width's
+        wander guess is added."""
+        var = np.full(3, 1e-4)
+        d = dop(7.5e6, refine=30.0, wander=4e3, refined=True)
+        s = velocity(d, frame(), [fam("U", 1, var=var), fam("L", 1, var=var)], False)[1]
+        assert s == pytest.approx(30.0 * LAM / 2, rel=1e-12)
+
     def test_sigma_floor(self):
         _, s, _, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)
-        assert s == pytest.approx(1e-3 * FS / N * LAM / 2)
+        assert s == pytest.approx(SPEED_FLOOR_BINS * FS / N * LAM / 2)
+        assert SPEED_FLOOR_BINS <= 1e-4  # far below the phase refinement's errors (4e-5 bin at 40 dB)
+
+    def test_speed_sigma_covers_the_error_and_no_more(self):
+        """Against truth: a coherent mover's speed over 8 frames (2^15 samples, balanced). Each
+        error within 5 of its sigma, and the z-scores' rms not far below 1 -- a sigma 10x too
+        large (the sidebands' bound on a refined Doppler) gives an rms of ~0.1."""
+        sc = make_scene(targets=[{"range_m": 1.7, "velocity_mps": 1.62, "loss_db": 55.0}],
+                        digitizer={"samples": 2**15}, noise={"shot": True, "thermal": True})
+        z = []
+        for fr in Simulator(sc, seed=11).frames(8):
+            res = process_frame(fr, get_profile("balanced"))
+            movers = [t for t in res.targets if t.direction != "static"]
+            assert res.status == "ok" and len(movers) == 1
+            z.append((movers[0].velocity_mps - abs(fr.truth[0].velocity_mps)) / movers[0].velocity_sigma_mps)
+        z = np.array(z)
+        assert np.max(np.abs(z)) < 5
+        assert 0.35 < np.sqrt(np.mean(z**2)) < 2.5
 
 
 class TestMedianSnr:

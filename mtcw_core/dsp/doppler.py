@@ -46,6 +46,10 @@ class DopplerEstimate:
     #: a Lorentzian of FWHM ``G``, whose centre over ``T`` seconds wanders by ``sqrt(G/(2*pi*T))``
     #: (the phase random walk's end-to-end change over ``2*pi*T``); 0 for a coherent line
     wander_hz: float = 0.0
+    #: refined past the search's parabola (phase advance or exact power): ``refine_error_hz`` is
+    #: then the refinement's whole white-noise error over every line it used (the carrier's
+    #: baseband line among them), their scatter and the shared carrier phase
+    refined: bool = False
 
 
 #: below this part of the carrier beat in one line, a mover's Doppler line is not there to find
@@ -627,7 +631,9 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
         return ests
     iq = np.iscomplexobj(x)
+    others = [e.fd_hz for e in ests]
     if settings.doppler_refine == "phase":
-        return [refine_by_phase(x, frame, est, iq, [e.fd_hz for e in ests], spec, settings.doppler_phase_lines)
-                for est in ests]
-    return [refine_exact(x, frame, est, iq, [e.fd_hz for e in ests], spec) for est in ests]
+        out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
+    else:
+        out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
+    return [new if new is old else replace(new, refined=True) for new, old in zip(out, ests)]

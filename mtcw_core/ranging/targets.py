@@ -50,13 +50,20 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
 
 
 
+#: the smallest speed sigma, in record bins (fs/N): far below any error the map has seen (the phase
+#: refinement's 3 Hz at 2^16 samples is 4e-5 bin), a guard against a zero stated error only
+SPEED_FLOOR_BINS = 1e-5
+
+
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
              fd_max_hz: float | None = None) -> tuple[float, float, str, float]:
     """Radial speed (m/s), its sigma (m/s), direction and the smallest measurable speed (m/s).
 
     The sigma combines the frequency Cramér–Rao bound of the target's Doppler-shifted lines, the
     refinement's own error (which includes the carrier phase all lines share: the laser's phase
-    noise over the echo delay) and the line's wander (incoherent laser), with a floor of 0.001 bin.
+    noise over the echo delay) and the line's wander (incoherent laser), with a floor of
+    :data:`SPEED_FLOOR_BINS`. A refined Doppler (``dop.refined``) carries its whole error itself,
+    the shared carrier phase's wander measured by the refinement.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
@@ -70,17 +77,25 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             v_max = fd_max_hz * lam / 2
             return 0.0, v_max, "unknown", v_max
         return 0.0, v_min, "static", v_min
-    inv_var = 0.0
-    for fam in families:
-        if fam.name == "S":
-            continue
-        # CRB of a sinusoid's frequency: var_f = 3*s2*fs^2/(pi^2*A^2*N^3) (real), 1.5 (complex)
-        # expressed with the phase variance 2*s2/(N*A^2) (real) or s2/(2*N*A^2) (complex)
-        c = 1.5 if not iq else 3.0
-        var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
-        inv_var += float(np.sum(1 / var_f))
-    sig_f = 1 / math.sqrt(inv_var) if inv_var > 0 else math.inf
-    sig_f = max(math.hypot(sig_f, dop.refine_error_hz, dop.wander_hz), 1e-3 * fs / n)
+    if dop.refined:
+        # the refinement states the white-noise error of every line it used -- the carrier's
+        # baseband line, far stronger than the sidebands, among them -- with their scatter and
+        # the shared carrier phase measured across the record, which is the line's wander: the
+        # sidebands' bound below would overstate it ~10x, the wander guessed from the line's width
+        # (noise widens a weak line) up to 100x
+        sig_f = dop.refine_error_hz
+    else:
+        inv_var = 0.0
+        for fam in families:
+            if fam.name == "S":
+                continue
+            # CRB of a sinusoid's frequency: var_f = 3*s2*fs^2/(pi^2*A^2*N^3) (real), 1.5 (complex)
+            # expressed with the phase variance 2*s2/(N*A^2) (real) or s2/(2*N*A^2) (complex)
+            c = 1.5 if not iq else 3.0
+            var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
+            inv_var += float(np.sum(1 / var_f))
+        sig_f = math.hypot(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, dop.refine_error_hz, dop.wander_hz)
+    sig_f = max(sig_f, SPEED_FLOOR_BINS * fs / n)
     if iq:
         v = -dop.fd_hz * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching", v_min
