@@ -23,7 +23,7 @@ from scipy.stats import t as student_t
 from ..frame import Frame
 from ..profiles import ChainSettings
 from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
-from .tones import exact_dft, exact_dft_parts
+from .tones import exact_dft
 
 
 @dataclass(frozen=True)
@@ -368,9 +368,10 @@ def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: f
     """The lines ``freqs`` (Hz) on ``parts`` consecutive parts of ``length`` samples, and their
     phase steps from part to part less the expected advance.
 
-    Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed, by
-    linearity ``DFT(part * w) - mean * DFT(w)`` (every part is referred to its own centre, so the
-    window's DFT is one row for all).
+    Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed,
+    ``DFT((part - mean) * w)``, each part referred to its own centre. One part at a time through
+    one reused buffer: the part (at most a quarter of the record) stays in cache from its mean to
+    its product, and neither a windowed copy of the whole record nor the window's own DFT is made.
 
     Returns
     -------
@@ -378,8 +379,13 @@ def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: f
     prod : ndarray, shape (parts - 1, K), complex: ``z[s+1] * conj(z[s]) * exp(-2j*pi*f*length/fs)``
     """
     w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
-    seg = x[:parts * length].reshape(parts, length)
-    z = exact_dft_parts(seg * w, freqs, fs) - seg.mean(axis=1)[:, None] * exact_dft(w, freqs, fs)
+    z = np.empty((parts, freqs.size), dtype=np.complex128)
+    buf = np.empty(length, dtype=x.dtype)
+    for s in range(parts):
+        seg = x[s * length:(s + 1) * length]
+        np.subtract(seg, seg.mean(), out=buf)
+        buf *= w
+        z[s] = exact_dft(buf, freqs, fs)
     advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
     return z, z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
 
