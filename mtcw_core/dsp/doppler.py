@@ -359,8 +359,10 @@ def _separable(freqs: np.ndarray, own: np.ndarray, near: np.ndarray, sep_hz: flo
     """Which of ``freqs`` (Hz) lie more than ``sep_hz`` from every line in ``near``, from every other
     line of ``own`` (the target's lines, ``freqs`` among them) and, for a real record, from their
     own image at ``-f``: shape (K,), bool."""
-    return np.array([np.all(np.abs(near - f) > sep_hz) and np.sum(np.abs(own - f) < sep_hz) == 1
-                     and (iq or 2 * abs(f) > sep_hz) for f in freqs], dtype=bool)
+    f = np.asarray(freqs, dtype=float)[:, None]
+    ok = np.all(np.abs(np.asarray(near, dtype=float)[None, :] - f) > sep_hz, axis=1)
+    ok &= np.sum(np.abs(np.asarray(own, dtype=float)[None, :] - f) < sep_hz, axis=1) == 1
+    return ok if iq else ok & (2 * np.abs(f[:, 0]) > sep_hz)
 
 
 def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: float
@@ -524,6 +526,13 @@ COMMON_MODE_TAIL = 1e-5
 COMMON_MODE_SIGNIFICANCE = 0.01
 
 
+@lru_cache(maxsize=64)
+def _chi2_quantile(q: float, dof: int) -> float:
+    """``chi2.ppf(q, dof)``, cached (scipy's ppf costs ~0.1 ms a call; a few dof recur every frame)."""
+    return float(chi2_dist.ppf(q, dof))
+
+
+@lru_cache(maxsize=64)
 def common_mode_margin(dof: int) -> float:
     """The factor on a phase-noise sigma estimated with ``dof`` degrees of freedom that keeps the
     chance of a 5-sigma error at :data:`COMMON_MODE_TAIL`: the error over the estimate is
@@ -582,7 +591,7 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     res = _common_residual(np.angle(prod), slope[use], wt[use])
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof
-    if scatter <= white * float(chi2_dist.ppf(1 - COMMON_MODE_SIGNIFICANCE, dof)) / dof:
+    if scatter <= white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof:
         return 0.0
     per_segment = (scatter - white) * lc / length  # a segment averages length/lc parts' phase noise
     var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
