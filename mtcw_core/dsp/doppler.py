@@ -23,7 +23,7 @@ from scipy.stats import t as student_t
 from ..frame import Frame
 from ..profiles import ChainSettings
 from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
-from .tones import exact_dft, exact_dft_parts
+from .tones import exact_dft
 
 
 @dataclass(frozen=True)
@@ -363,8 +363,10 @@ def _separable(freqs: np.ndarray, own: np.ndarray, near: np.ndarray, sep_hz: flo
     """Which of ``freqs`` (Hz) lie more than ``sep_hz`` from every line in ``near``, from every other
     line of ``own`` (the target's lines, ``freqs`` among them) and, for a real record, from their
     own image at ``-f``: shape (K,), bool."""
-    return np.array([np.all(np.abs(near - f) > sep_hz) and np.sum(np.abs(own - f) < sep_hz) == 1
-                     and (iq or 2 * abs(f) > sep_hz) for f in freqs], dtype=bool)
+    f = np.asarray(freqs, dtype=float)[:, None]
+    ok = np.all(np.abs(np.asarray(near, dtype=float)[None, :] - f) > sep_hz, axis=1)
+    ok &= np.sum(np.abs(np.asarray(own, dtype=float)[None, :] - f) < sep_hz, axis=1) == 1
+    return ok if iq else ok & (2 * np.abs(f[:, 0]) > sep_hz)
 
 
 def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: float
@@ -372,9 +374,10 @@ def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: f
     """The lines ``freqs`` (Hz) on ``parts`` consecutive parts of ``length`` samples, and their
     phase steps from part to part less the expected advance.
 
-    Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed, by
-    linearity ``DFT(part * w) - mean * DFT(w)`` (every part is referred to its own centre, so the
-    window's DFT is one row for all).
+    Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed,
+    ``DFT((part - mean) * w)``, each part referred to its own centre. One part at a time through
+    one reused buffer: the part (at most a quarter of the record) stays in cache from its mean to
+    its product, and neither a windowed copy of the whole record nor the window's own DFT is made.
 
     Returns
     -------
@@ -382,8 +385,13 @@ def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: f
     prod : ndarray, shape (parts - 1, K), complex: ``z[s+1] * conj(z[s]) * exp(-2j*pi*f*length/fs)``
     """
     w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
-    seg = x[:parts * length].reshape(parts, length)
-    z = exact_dft_parts(seg * w, freqs, fs) - seg.mean(axis=1)[:, None] * exact_dft(w, freqs, fs)
+    z = np.empty((parts, freqs.size), dtype=np.complex128)
+    buf = np.empty(length, dtype=x.dtype)
+    for s in range(parts):
+        seg = x[s * length:(s + 1) * length]
+        np.subtract(seg, seg.mean(), out=buf)
+        buf *= w
+        z[s] = exact_dft(buf, freqs, fs)
     advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
     return z, z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
 
@@ -522,6 +530,13 @@ COMMON_MODE_TAIL = 1e-5
 COMMON_MODE_SIGNIFICANCE = 0.01
 
 
+@lru_cache(maxsize=64)
+def _chi2_quantile(q: float, dof: int) -> float:
+    """``chi2.ppf(q, dof)``, cached (scipy's ppf costs ~0.1 ms a call; a few dof recur every frame)."""
+    return float(chi2_dist.ppf(q, dof))
+
+
+@lru_cache(maxsize=64)
 def common_mode_margin(dof: int) -> float:
     """The factor on a phase-noise sigma estimated with ``dof`` degrees of freedom that keeps the
     chance of a 5-sigma error at :data:`COMMON_MODE_TAIL`: the error over the estimate is
@@ -580,7 +595,7 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     res = _common_residual(np.angle(prod), slope[use], wt[use])
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof
-    if scatter <= white * float(chi2_dist.ppf(1 - COMMON_MODE_SIGNIFICANCE, dof)) / dof:
+    if scatter <= white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof:
         return 0.0
     per_segment = (scatter - white) * lc / length  # a segment averages length/lc parts' phase noise
     var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
