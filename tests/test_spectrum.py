@@ -236,6 +236,31 @@ class TestSearchSpectrum:
         assert sp.n == 3000
         np.testing.assert_array_equal(sp.power, ref.power)
 
+    def test_a_fraction_measures_the_floor_over_the_same_band_in_hz(self):
+        """Noise 5x denser within +-5 MHz of a line than elsewhere (known by construction): the
+        floor at the line is that density whether the spectrum is of the whole record or of its
+        eighth (`fast`), whose bins are 8x wider -- a ring of 256 of *its* bins (+-31 MHz) would
+        have measured mostly the thinner noise outside."""
+        n, f0 = 2**16, 200e6
+        rng = np.random.default_rng(21)
+        white = rng.standard_normal(n)
+        f = scipy.fft.rfftfreq(n, 1 / FS)
+        band = np.abs(f - f0) < 5e6
+        spec = np.zeros(f.size, complex)
+        spec[band] = rng.standard_normal(band.sum()) + 1j * rng.standard_normal(band.sum())
+        extra = scipy.fft.irfft(spec, n)
+        # per-sample variance the band's density stands for, over the whole band 0..fs/2
+        extra *= math.sqrt(4.0 * band.sum() / f.size / np.var(extra))
+        x = white + extra + tone(n, f0, 3.0)
+        want = 1.0 + 4.0
+        whole = search_spectrum(x, FS, 14.0, 1.0, False)
+        eighth = search_spectrum(x, FS, 14.0, 1 / 8, False)
+        assert whole.record_n is None and eighth.record_n == n
+        assert whole.floor_half_width() == 256 and eighth.floor_half_width() == 32
+        for sp in (whole, eighth):
+            assert sp.noise_variance(f0, [f0]) == pytest.approx(want, rel=0.3)
+        assert eighth.noise_variance(f0, [f0], half_width=256) < 0.5 * want  # the old ring
+
     def test_beta_sets_the_window(self):
         x = np.random.default_rng(16).standard_normal(1024)
         sp = search_spectrum(x, FS, 0.0, 1.0, False)  # Kaiser(0) is the rectangular window

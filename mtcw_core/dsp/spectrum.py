@@ -6,7 +6,7 @@ no phase is ever taken from it (the line fits are float64 exact DFTs, :mod:`.ton
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -15,6 +15,10 @@ from scipy.signal import get_window
 
 LN2 = float(np.log(2.0))
 EULER_GAMMA = float(np.euler_gamma)
+
+
+#: the noise floor's ring around a line, in bins of the whole record (:meth:`Spectrum.floor_half_width`)
+FLOOR_HALF_WIDTH_RECORD_BINS = 256
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,10 @@ class Spectrum:
         ``np.sum`` of the samples transformed (the first ``n`` of the record handed in), before
         the mean is removed, V; the extract stage's DC projection when those are the whole
         record (one pass over it fewer).
+    record_n : int or None
+        Samples of the record this spectrum is the first part of (``fast`` transforms an eighth);
+        None: the spectrum is of the whole record. The noise floor's ring is set in the record's
+        bins (:data:`FLOOR_HALF_WIDTH_RECORD_BINS`), so it spans the same band in Hz either way.
     """
 
     power: np.ndarray | PackedPower
@@ -49,17 +57,28 @@ class Spectrum:
     n: int
     complex_input: bool
     total: float | complex | None = None
+    record_n: int | None = None
 
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
 
-    def noise_variances(self, f_hz, exclude_hz, half_width: int = 256, guard: int = 12) -> np.ndarray:
+    def floor_half_width(self, guard: int = 12) -> int:
+        """The noise floor ring's half width in this spectrum's bins: :data:`FLOOR_HALF_WIDTH_RECORD_BINS`
+        bins of the whole record (the same band in Hz for a spectrum of part of the record, whose
+        bins are wider: a ring 8x wider in Hz measured ``fast``'s floors up to ~2x low in variance
+        where the noise is not white far from the lines), at least ``2*guard + 8``."""
+        scale = self.n / self.record_n if self.record_n else 1.0
+        return max(int(round(FLOOR_HALF_WIDTH_RECORD_BINS * scale)), 2 * guard + 8)
+
+    def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int = 12) -> np.ndarray:
         """:meth:`noise_variance` at every frequency of ``f_hz`` (shape (L,)) at once, V^2.
 
-        The same statistic, row by row: each line's ``+-half_width`` bins less those within
-        ``guard`` of an excluded frequency (all of them kept when that leaves none), median of
-        the rest.
+        The same statistic, row by row: each line's ``+-half_width`` bins (default
+        :meth:`floor_half_width`) less those within ``guard`` of an excluded frequency (all of
+        them kept when that leaves none), median of the rest.
         """
+        if half_width is None:
+            half_width = self.floor_half_width(guard)
         f = np.atleast_1d(np.asarray(f_hz, dtype=float))
         if f.size == 0:
             return np.empty(0)
@@ -85,10 +104,11 @@ class Spectrum:
         med = ((lo + hi) / 2).astype(np.float64)  # as np.median does it, in the spectrum's precision
         return np.where(count > 0, med, np.nan) / LN2 / self.window_power
 
-    def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int = 256, guard: int = 12) -> float:
+    def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int | None = None,
+                       guard: int = 12) -> float:
         """Per-sample noise variance (V^2) equivalent to the local noise density around f.
 
-        Median of the periodogram over ``+-half_width`` bins, excluding ``+-guard`` bins around
+        Median of the periodogram over ``+-half_width`` bins (default :meth:`floor_half_width`), excluding ``+-guard`` bins around
         every frequency in ``exclude_hz`` (the lines); the median of an exponential variable is
         ``ln 2`` times its mean. One line of :meth:`noise_variances`.
         """
@@ -566,5 +586,6 @@ def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, s
         a, b = max(windows, key=lambda w: w[1] - w[0])
         xs = x[a:b]
     n = max(256, int(xs.size * fraction))
-    return power_spectrum(xs, fs_hz, ("kaiser", beta), n, single)
+    spec = power_spectrum(xs, fs_hz, ("kaiser", beta), n, single)
+    return replace(spec, record_n=xs.size) if n < xs.size else spec
 
