@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from mtcw_core.dsp.doppler import (DopplerEstimate, doppler_families, estimate_doppler, fd_max,
-                                   intermod_frequencies, refine_by_phase, refine_exact, search_doppler,
-                                   sideband_freqs, target_lines)
+                                   intermod_frequencies, refine_by_phase, refine_exact, refine_reassigned,
+                                   search_doppler, sideband_freqs, target_lines)
 from mtcw_core.dsp.spectrum import power_spectrum
 from mtcw_core.frame import Frame
 from mtcw_core.profiles import ChainSettings, get_profile
@@ -251,6 +251,64 @@ class TestRefine:
             out = refine(x, frame_of(x), self.est(fd + 0.2 * DF), False, [], spec)
             z.append((out.fd_hz - fd) / out.refine_error_hz)
         assert np.max(np.abs(z)) < 4 and 0.3 < np.std(z) < 2, np.round(z, 2)
+
+
+class TestReassigned:
+    """A mover a few record bins from the static lines: too close for the phase advance's parts,
+    refined over the whole record by frequency reassignment."""
+
+    FD = 7 * DF + 0.31 * DF  # 7.3 bins: 1.8 bins of a quarter
+
+    def est(self, fd):
+        return DopplerEstimate(fd, True, 100.0, 56.0, 4 * DF, 0.1 * DF)
+
+    @pytest.mark.parametrize("iq", [False, True])
+    def test_noiseless_lines_give_their_frequency(self, iq):
+        fd = -self.FD if iq else self.FD
+        x = iq_record(fd, noise=0.0) if iq else real_record(((fd, 1.0, 0.3),), noise=0.0) + 2.0
+        spec = power_spectrum(x, FS)
+        e = self.est(fd + 0.3 * DF)
+        assert refine_by_phase(x, frame_of(x), e, iq, [], spec) is e  # the parts cannot separate them
+        out = refine_reassigned(x, frame_of(x), e, iq, [], spec)
+        assert out.method == "reassigned" and out.refined
+        assert abs(out.fd_hz - fd) < 2e-4 * DF  # a strong DC 7 bins away and the line's image: ~1e-5 bin
+
+    def test_stated_error_covers_the_noise(self):
+        """z-scores over noise draws: rms within 0.6-1.5, none beyond 4 (white noise only, so the
+        stated error is the whole error; the shared-phase gain is for the target stage)."""
+        z = []
+        for seed in range(24):
+            x = real_record(((self.FD, 0.02, 0.01),), static=0.3, noise=0.05, seed=seed) + 1.0
+            spec = power_spectrum(x, FS)
+            out = refine_reassigned(x, frame_of(x), self.est(self.FD - 0.25 * DF), False, [], spec)
+            assert out.method == "reassigned" and out.shared_phase_gain > 0
+            z.append((out.fd_hz - self.FD) / out.refine_error_hz)
+        z = np.array(z)
+        assert np.max(np.abs(z)) < 4 and 0.6 < np.sqrt(np.mean(z**2)) < 1.5, np.round(z, 2)
+
+    def test_shared_phase_gain_is_the_window_s(self):
+        """var(fd) per unit PSD of a phase every line shares: 1.5 fs^3*sum(w'^2)/(4 pi^2 (sum w)^2)
+        for a real record (the image's share: half the line's own), against a Lorentzian laser's
+        phase difference over a delay applied to the record (Monte Carlo)."""
+        x0 = real_record(((self.FD, 1.0, 0.0),), static=0.0, noise=0.0)
+        e = self.est(self.FD)
+        gain = refine_reassigned(x0, frame_of(x0), e, False, [], power_spectrum(x0, FS)).shared_phase_gain
+        rng = np.random.default_rng(3)
+        lw, lag = 2e5, 40  # laser linewidth (Hz) and delay (samples)
+        psd = 2 * np.pi * lw * (lag / FS) ** 2  # two-sided, flat for f << fs/lag
+        err = []
+        for _ in range(80):
+            phi = np.cumsum(rng.standard_normal(N + lag) * np.sqrt(2 * np.pi * lw / FS))
+            dphi = phi[lag:] - phi[:-lag]
+            x = np.cos(2 * np.pi * cyc(self.FD) + 0.3 + dphi)
+            out = refine_reassigned(x, frame_of(x), e, False, [], power_spectrum(x, FS))
+            err.append(out.fd_hz - self.FD)
+        assert np.var(err) == pytest.approx(gain * psd, rel=0.35)
+
+    def test_estimate_doppler_falls_back_to_it(self):
+        x = real_record(((self.FD, 1.0, 0.3),), noise=1e-3) + 2.0
+        (e,) = estimate_doppler(x, frame_of(x), power_spectrum(x, FS), get_profile("balanced", max_targets=1))
+        assert e.detected and e.method == "reassigned" and abs(e.fd_hz - self.FD) < 1e-3 * DF
 
 
 class TestCommonMode:

@@ -15,7 +15,7 @@ from mtcw_core.profiles import ChainSettings, get_profile
 from mtcw_core.ranging.mixing import mix
 from mtcw_core.chain import process_frame
 from mtcw_core.ranging.targets import (SPEED_FLOOR_BINS, Reference, median_snr, resolve_targets, select_targets,
-                                       solve_target, velocity)
+                                       shared_phase_psd, solve_target, velocity)
 from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
 from mtcw_core.results import TargetPoint
 from mtcw_core.simulate import Simulator
@@ -35,8 +35,8 @@ def frame(receiver="single"):
     return Frame(np.zeros((1, N)), FS, tuple(TONES), LAM)
 
 
-def dop(fd, detected=True, refine=0.0, wander=0.0, refined=False):
-    return DopplerEstimate(fd, detected, 100.0 if detected else 0.0, 50.0, 4 * FS / N, refine, wander, refined)
+def dop(fd, detected=True, refine=0.0, wander=0.0, method="", gain=0.0):
+    return DopplerEstimate(fd, detected, 100.0 if detected else 0.0, 50.0, 4 * FS / N, refine, wander, method, gain)
 
 
 def fam(name="S", target=0, var=(1e-4, 2e-4, 4e-4), range_m=3.7, fd=0.0, extra=(0.0, 0.0, 0.0), tau0=0.0):
@@ -97,9 +97,21 @@ class TestVelocity:
         among them) and the shared phase's wander: neither the sidebands' bound nor the width's
         wander guess is added."""
         var = np.full(3, 1e-4)
-        d = dop(7.5e6, refine=30.0, wander=4e3, refined=True)
+        d = dop(7.5e6, refine=30.0, wander=4e3, method="phase")
         s = velocity(d, frame(), [fam("U", 1, var=var), fam("L", 1, var=var)], False)[1]
         assert s == pytest.approx(30.0 * LAM / 2, rel=1e-12)
+
+    def test_a_reassigned_doppler_adds_the_shared_phase_and_the_wander(self):
+        """Reassigned over one window: its white-noise error, the declared laser's phase noise over
+        the echo delay (which it cannot see) through its gain, and the width's wander."""
+        var = np.full(3, 1e-4)
+        d = dop(7.5e6, refine=30.0, wander=40.0, method="reassigned", gain=2e10)
+        st = ChainSettings(laser_linewidth_hz=1e5, lo_path_difference_m=0.5)
+        psd = shared_phase_psd(st, 3.0)
+        assert psd == pytest.approx(2 * math.pi * 1e5 * ((6.0 - 0.5) / C) ** 2, rel=1e-12)
+        s = velocity(d, frame(), [fam("U", 1, var=var)], False, phase_psd=psd)[1]
+        assert s == pytest.approx(math.sqrt(30.0**2 + 2e10 * psd + 40.0**2) * LAM / 2, rel=1e-12)
+        assert shared_phase_psd(ChainSettings(), 3.0) == 0.0  # a laser declared coherent
 
     def test_sigma_floor(self):
         _, s, _, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)

@@ -55,15 +55,30 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
 SPEED_FLOOR_BINS = 1e-5
 
 
+def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
+    """Low-frequency two-sided PSD (rad^2/Hz) of the phase a target's lines share: the declared
+    laser's phase noise over the echo's delay relative to the LO, ``2*pi*linewidth*dtau^2``.
+
+    A Lorentzian laser's phase is a Wiener process (``S_phi(f) = linewidth/(2*pi*f^2)``); its
+    difference over ``dtau`` has ``S(f) = 4*sin^2(pi*f*dtau)*S_phi(f)``, flat at
+    ``2*pi*linewidth*dtau^2`` for ``f << 1/dtau`` (its integral is the familiar
+    ``2*pi*linewidth*dtau``). 0 for a laser declared coherent (linewidth 0).
+    """
+    dtau = abs(2 * range_m - settings.lo_path_difference_m) / C
+    return 2 * math.pi * settings.laser_linewidth_hz * dtau**2
+
+
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
-             fd_max_hz: float | None = None) -> tuple[float, float, str, float]:
+             fd_max_hz: float | None = None, phase_psd: float = 0.0) -> tuple[float, float, str, float]:
     """Radial speed (m/s), its sigma (m/s), direction and the smallest measurable speed (m/s).
 
     The sigma combines the frequency Cramér–Rao bound of the target's Doppler-shifted lines, the
     refinement's own error (which includes the carrier phase all lines share: the laser's phase
     noise over the echo delay) and the line's wander (incoherent laser), with a floor of
-    :data:`SPEED_FLOOR_BINS`. A refined Doppler (``dop.refined``) carries its whole error itself,
-    the shared carrier phase's wander measured by the refinement.
+    :data:`SPEED_FLOOR_BINS`. A Doppler refined by phase advance carries its whole error itself,
+    the shared carrier phase's wander measured by the refinement; one reassigned over the whole
+    record adds what the shared phase's PSD ``phase_psd`` (:func:`shared_phase_psd`) does to
+    it, and the wander.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
@@ -77,7 +92,12 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             v_max = fd_max_hz * lam / 2
             return 0.0, v_max, "unknown", v_max
         return 0.0, v_min, "static", v_min
-    if dop.refined:
+    if dop.method == "reassigned":
+        # one window over the whole record: its own white-noise error and scatter, plus what the
+        # phase the lines share (laser phase noise over the echo delay) does to it, from physics
+        # (it cannot be measured there), and the wander the lines' width shows
+        sig_f = math.sqrt(dop.refine_error_hz**2 + dop.shared_phase_gain * phase_psd + dop.wander_hz**2)
+    elif dop.refined:
         # the refinement states the white-noise error of every line it used -- the carrier's
         # baseband line, far stronger than the sidebands, among them -- with their scatter and
         # the shared carrier phase measured across the record, which is the line's wander: the
@@ -183,7 +203,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
-                                       carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings))
+                                       carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
+                                       shared_phase_psd(settings, sol.range_m))
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
