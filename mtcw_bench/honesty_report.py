@@ -22,6 +22,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from scipy.stats import chi2, norm  # noqa: E402
 
 from .honesty import MUST_FIND_SNR_DB, Z_MEAN_MAX, Z_STD_RANGE, Z_WRONG, _rung_order  # noqa: E402
 
@@ -196,6 +197,26 @@ def _z_cell(c: dict, k: str) -> str:
     return f"{_fmt(c[f'{k}_z_mean'])} / {_fmt(c[f'{k}_z_std'])} / {_fmt(c[f'{k}_z_max'], '.1f')}"
 
 
+def z_band_probability(n: int) -> float:
+    """The chance that ``n`` z-values drawn from N(0, 1) -- a sigma exactly right -- meet the
+    cell target: ``|mean| < Z_MEAN_MAX`` and sample std (ddof 1) within ``Z_STD_RANGE`` (mean and
+    std of normal samples are independent: ``mean ~ N(0, 1/n)``, ``(n-1) s^2 ~ chi2(n-1)``)."""
+    if n < 2:
+        return 0.0
+    p_mean = 2 * norm.cdf(Z_MEAN_MAX * np.sqrt(n)) - 1
+    lo, hi = ((n - 1) * Z_STD_RANGE[0] ** 2, (n - 1) * Z_STD_RANGE[1] ** 2)
+    return float(p_mean * (chi2.cdf(hi, n - 1) - chi2.cdf(lo, n - 1)))
+
+
+def z_scatter_inconsistent(n: int, mean: float, std: float | None, alpha: float = 0.01) -> bool:
+    """Whether ``n`` z-values with this mean and std (ddof 1) are unlikely under N(0, 1): their
+    ``sum(z^2) = (n-1) std^2 + n mean^2 ~ chi2(n)``, two-sided at ``alpha``."""
+    if n < 2 or std is None:
+        return False
+    q = (n - 1) * std**2 + n * mean**2
+    return bool(chi2.cdf(q, n) < alpha / 2 or chi2.sf(q, n) < alpha / 2)
+
+
 def write_honesty_report(result: dict, out: Path) -> Path:
     """Tables, heat maps and ``report.md`` under ``out``; returns the report's path."""
     write_tables(result, out)
@@ -264,9 +285,14 @@ def write_honesty_report(result: dict, out: Path) -> Path:
     for k, name in (("range_z", "range"), ("speed_z", "speed")):
         judged = [c for c in above if c[f"{k}_n"] >= 5 and c[f"{k}_std"] is not None]
         bad = [c for c in judged if k in c["misses"]]
+        chance = sum(1 - z_band_probability(c[f"{k}_n"]) for c in judged)
+        odd = [c for c in judged if z_scatter_inconsistent(c[f"{k}_n"], c[f"{k}_mean"], c[f"{k}_std"])]
         L.append(f"| {name}: abs(mean z) < {Z_MEAN_MAX} and z std {Z_STD_RANGE[0]}–{Z_STD_RANGE[1]} in every cell "
                  f"above threshold | {len(judged) - len(bad)} of {len(judged)} cells within (median z std "
-                 f"{_fmt(float(np.median([c[f'{k}_std'] for c in judged])) if judged else None)}) | "
+                 f"{_fmt(float(np.median([c[f'{k}_std'] for c in judged])) if judged else None)}); a sigma exactly "
+                 f"right would leave {chance:.0f} outside by chance (few z-values per cell); "
+                 f"{len(odd)} cells' z scatter is inconsistent with 1 at 1 % "
+                 f"({sum(1 for c in odd if c[f'{k}_std'] < 1)} too small: sigma conservative) | "
                  f"{'met' if not bad else f'missed in {len(bad)} cells'} |")
     mm = [c for c in above if "missed" in c["misses"]]
     L.append(f"| no missed target at line SNR ≥ {MUST_FIND_SNR_DB:g} dB | {sum(c['missed'] for c in mm)} targets "

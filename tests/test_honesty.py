@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from mtcw_bench.honesty import (MapSpec, case_scenes, check_targets, grid, plan, predicted_bound, run_map,
                                 self_beat_amplitude_v, summarise)
-from mtcw_bench.honesty_report import monotonic_violations, write_honesty_report
+from mtcw_bench.honesty_report import (monotonic_violations, write_honesty_report, z_band_probability,
+                                       z_scatter_inconsistent)
 from mtcw_core.chain import process_frame
 from mtcw_core.evaluate import judge_frame, range_bound
 from mtcw_core.frame import TruthTarget
@@ -294,3 +295,26 @@ class TestWhatAnswersATruth:
     def test_wrong_on_both_is_a_ghost_and_the_truth_is_missed(self):
         v = judge_frame(res(pt(1.7, 62.0)), [TruthTarget(0.81, 0.0)])
         assert v.points[0].truth_index is None and v.missed == (0,) and v.confident_false
+
+
+class TestZStatistics:
+    """What a cell's few z-values can say: the chance an exactly right sigma misses the z band,
+    and a two-sided chi2 test of their scatter."""
+
+    @pytest.mark.parametrize("n", [5, 16])
+    def test_band_probability_against_draws(self, n):
+        z = np.random.default_rng(5).standard_normal((40000, n))
+        m, sd = z.mean(axis=1), z.std(axis=1, ddof=1)
+        frac = np.mean((np.abs(m) < 0.3) & (sd >= 0.8) & (sd <= 1.25))
+        assert z_band_probability(n) == pytest.approx(frac, abs=0.01)
+        assert z_band_probability(16) < 0.8  # 16 frames: a right sigma misses the band often
+
+    def test_scatter_test(self):
+        assert not z_scatter_inconsistent(16, 0.0, 1.0)
+        assert z_scatter_inconsistent(16, 0.0, 0.3)  # sigma ~3x too large
+        assert z_scatter_inconsistent(16, 0.0, 2.5)  # ~2.5x too small
+        assert not z_scatter_inconsistent(1, 0.0, None)
+        rng = np.random.default_rng(6)
+        hits = sum(z_scatter_inconsistent(16, float(z.mean()), float(z.std(ddof=1)))
+                   for z in rng.standard_normal((4000, 16)))
+        assert hits / 4000 == pytest.approx(0.01, abs=0.006)
