@@ -28,9 +28,9 @@ from .honesty import MUST_FIND_SNR_DB, Z_MEAN_MAX, Z_STD_RANGE, Z_WRONG, _rung_o
 
 CELL_COLS = ["slice", "config", "rung", "profile", "samples", "receiver", "linewidth_hz", "jitter_s", "n_targets",
              "loss_db", "velocity_mps", "predicted_snr_db", "frames", "ok", "no_target", "rejected", "points",
-             "truths", "missed", "false_targets", "flagged_points", "confident_wrong", "confident_false",
-             "confident_any", "flagged_wrong", "range_z_n", "range_z_mean", "range_z_std", "range_z_std_robust",
-             "range_z_max", "speed_z_n", "speed_z_mean", "speed_z_std", "speed_z_std_robust", "speed_z_max",
+             "truths", "missed", "missed_must_find", "false_targets", "flagged_points", "confident_wrong",
+             "confident_false", "confident_any", "flagged_wrong", "range_z_n", "range_z_mean", "range_z_std",
+             "range_z_std_robust", "range_z_max", "speed_z_n", "speed_z_mean", "speed_z_std", "speed_z_std_robust", "speed_z_max",
              "range_std_m", "crb_range_m", "range_std_over_crb", "crb_speed_mps", "chain_ms_median",
              "sim_ms_per_frame", "seed", "misses"]
 
@@ -294,8 +294,9 @@ def write_honesty_report(result: dict, out: Path) -> Path:
                  f"{len(odd)} cells' z scatter is inconsistent with 1 at 1 % "
                  f"({sum(1 for c in odd if c[f'{k}_std'] < 1)} too small: sigma conservative) | "
                  f"{'met' if not bad else f'missed in {len(bad)} cells'} |")
-    mm = [c for c in above if "missed" in c["misses"]]
-    L.append(f"| no missed target at line SNR ≥ {MUST_FIND_SNR_DB:g} dB | {sum(c['missed'] for c in mm)} targets "
+    mm = [c for c in grid_cells if "missed" in c["misses"]]
+    L.append(f"| no missed target at line SNR ≥ {MUST_FIND_SNR_DB:g} dB (each target's own) | "
+             f"{sum(c.get('missed_must_find', c['missed']) for c in mm)} targets "
              f"missed in {len(mm)} of {len(above)} cells | {'met' if not mm else 'missed'} |")
     mv = monotonic_violations(cells)
     L.append(f"| more samples never lose a target | {len(mv)} (record, rung, profile) pairs found fewer frames at "

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mtcw_bench.honesty import (MapSpec, case_scenes, check_targets, grid, plan, predicted_bound, run_map,
-                                self_beat_amplitude_v, summarise)
+from mtcw_bench.honesty import (MapSpec, case_scenes, check_targets, grid, must_find, plan, predicted_bound, run_map,
+                                self_beat_amplitude_v, summarise, with_targets)
 from mtcw_bench.honesty_report import (monotonic_violations, write_honesty_report, z_band_probability,
                                        z_scatter_inconsistent)
 from mtcw_core.chain import process_frame
@@ -148,6 +148,24 @@ class TestSummarise:
         assert s["speed_z_max"] == pytest.approx(10.0) and s["confident_wrong"] == 3
 
 
+class TestMustFind:
+    def test_each_target_against_its_own_bound(self):
+        """Two targets, the second behind 25 dB more loss: the first's lines well above the 13 dB
+        threshold, the second's below it -- only the first must be found, and a frame that misses
+        the second counts no must-find miss."""
+        sc = make_scene(targets=[{"range_m": 1.2, "loss_db": 60.0}, {"range_m": 2.1, "velocity_mps": 0.5, "loss_db": 85.0}],
+                        noise={"shot": True, "thermal": True})
+        first = predicted_bound(with_targets(sc, [sc.targets[0].model_dump()])).line_snr_db
+        second = predicted_bound(with_targets(sc, [sc.targets[1].model_dump()])).line_snr_db
+        assert first - second > 20.0  # 25 dB more loss (a mover's lines: also split into U and L)
+        want = [first >= 13, second >= 13]
+        assert must_find(sc, first, False) == want and want[0] and not want[1]
+        v = judge_frame(res(pt(1.2)), [TruthTarget(1.2, 0.0), TruthTarget(2.1, 0.5)])
+        s = summarise([v], 2, must_find(sc, first, False))
+        assert s["missed"] == 1 and s["missed_must_find"] == 0
+        assert summarise([v], 2)["missed_must_find"] == 1  # no mask: every miss counts
+
+
 def _cell(**over) -> dict:
     base = {"profile": "balanced", "predicted_snr_db": 20.0, "confident_wrong": 0, "confident_false": 0, "missed": 0,
             "range_z_n": 10, "range_z_mean": 0.1, "range_z_std": 1.0, "speed_z_n": 0, "speed_z_mean": None,
@@ -171,6 +189,11 @@ class TestCheckTargets:
         c = _cell(predicted_snr_db=12.0, missed=3, range_z_std=3.0)
         assert check_targets(c) == []
         assert check_targets({**c, "confident_wrong": 1}) == ["confident_wrong"]
+
+    def test_only_targets_that_had_to_be_found_count_as_missed(self):
+        # a weaker second mover below the threshold, missed: not a miss of the target
+        assert check_targets(_cell(missed=3, missed_must_find=0)) == []
+        assert check_targets(_cell(missed=3, missed_must_find=1)) == ["missed"]
 
     def test_too_few_z_values_are_not_judged(self):
         assert check_targets(_cell(range_z_n=4, range_z_std=9.0)) == []
