@@ -502,14 +502,8 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
     var_phi = s2 * window_power(("kaiser", PHASE_WINDOW_BETA), length) / (2 * np.maximum(amp2, 1e-300))
     var_line = 2 * var_phi / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
-    # combined with power weights (the local floors that inverse-variance weights would trust are
-    # rough next to the strongest lines), and that combination's white-noise error
     wt = np.abs(prod).sum(axis=0)
-    delta = float(np.sum(wt * slope * d_line) / np.sum(wt))
-    stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
-    # the lines' scatter about their mean says what white noise does not (leakage, skirts)
-    chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
-    spread = stat * math.sqrt(max(chi2 / max(len(wt) - 1, 1), 1.0))
+    delta, spread = _combine_lines(wt, slope, d_line, var_line)
     # what every line shares -- the laser's phase noise over the echo delay moves the carrier
     # phase of all of them alike, so their agreement cannot show it: the common phase's wander
     # across the record does (common_mode_error)
@@ -525,6 +519,19 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
             var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
             spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread)
+
+
+def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_line: np.ndarray
+                   ) -> tuple[float, float]:
+    """The lines' Doppler corrections combined: the weighted mean of ``slope*d_line`` (Hz; the
+    local floors that inverse-variance weights would trust are rough next to the strongest lines,
+    so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean, scaled
+    by the lines' scatter about it when that exceeds what noise explains (Birge ratio: leakage,
+    skirts). All arrays shape (K,)."""
+    delta = float(np.sum(wt * slope * d_line) / np.sum(wt))
+    stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
+    chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
+    return delta, stat * math.sqrt(max(chi2 / max(len(wt) - 1, 1), 1.0))
 
 
 #: the common phase is measured on up to this many parts of the record, and at least this many
@@ -737,9 +744,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     s2 = spec.noise_variances(f_used, list(f_used) + list(near))
     sdw2 = float(np.sum(dw**2))
     var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
-    stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
-    chi2 = float(np.sum((slope[use] * d_line - delta) ** 2 / var_line))
-    spread = stat * math.sqrt(max(chi2 / max(int(use.sum()) - 1, 1), 1.0))
+    _, spread = _combine_lines(wt, slope[use], d_line, var_line)
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
