@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from mtcw_core.dsp.doppler import (DopplerEstimate, doppler_families, estimate_doppler, fd_max,
-                                   intermod_frequencies, refine_by_phase, refine_exact, refine_reassigned,
+                                   intermod_frequencies, phase_advance, refine_by_phase, refine_exact,
+                                   refine_reassigned,
                                    search_doppler, sideband_freqs, target_lines)
 from mtcw_core.dsp.spectrum import power_spectrum
 from mtcw_core.frame import Frame
@@ -213,6 +214,21 @@ class TestRefine:
         out = refine_by_phase(x, frame_of(x), self.est(self.FD + offset_bins * DF), False, [], spec)
         assert abs(out.fd_hz - self.FD) < 0.02 * DF
         assert out.detected and out.refine_error_hz >= 0
+
+    def test_a_first_step_is_followed_by_the_quarters(self):
+        """`fast`'s start (0.1 of an eighth-record bin = 0.8 record bin) takes a first step on 8
+        parts; the quarters must still follow. The target's own lines at its former estimate are
+        not another target's: counted as such they left no line separable, and the first step's
+        coarser answer stood."""
+        x = real_record(((self.FD, 1.0, 0.3),), noise=1e-3)
+        spec = power_spectrum(x, FS)
+        e = DopplerEstimate(self.FD + 0.3 * DF, True, 100.0, 56.0, 4 * DF, 0.8 * DF)
+        out = refine_by_phase(x, frame_of(x), e, False, [e.fd_hz], spec)
+        first = phase_advance(x, frame_of(x), e, False, [e.fd_hz], spec, None, 8)
+        quarters = phase_advance(x, frame_of(x), first, False, [first.fd_hz], spec, None, 4)
+        assert first is not e and quarters is not first
+        assert out.fd_hz == quarters.fd_hz != first.fd_hz
+        assert abs(out.fd_hz - self.FD) < 1e-3 * DF
 
     def test_refine_by_phase_iq_negative(self):
         fd = -self.FD

@@ -451,6 +451,9 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
         return first
+    # the other targets' lines, not this one's own at its former estimate (which would sit a
+    # fraction of a bin from every line it has and leave none separable)
+    others = [first.fd_hz if o == est.fd_hz else o for o in others]
     return phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
 
 
