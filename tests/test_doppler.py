@@ -230,6 +230,18 @@ class TestRefine:
         assert out.fd_hz == quarters.fd_hz != first.fd_hz
         assert abs(out.fd_hz - self.FD) < 1e-3 * DF
 
+    def test_a_start_further_off_than_stated_is_not_a_confident_answer(self):
+        """A parabola 5 record bins off while it states 0.8: the first step's advance (8 parts,
+        +-4 bins) slips a cycle, and the quarters then move its answer far beyond its stated error
+        -- the answer is known to one cycle of the first step (8 bins), and says so."""
+        x = real_record(((self.FD, 1.0, 0.3),), noise=1e-3)
+        spec = power_spectrum(x, FS)
+        e = DopplerEstimate(self.FD + 5.0 * DF, True, 100.0, 56.0, 4 * DF, 0.8 * DF)
+        out = refine_by_phase(x, frame_of(x), e, False, [e.fd_hz], spec)
+        assert abs(out.fd_hz - self.FD) > DF  # it did slip ...
+        assert abs(out.fd_hz - self.FD) < 5 * out.refine_error_hz  # ... and its sigma covers it
+        assert out.refine_error_hz == pytest.approx(8 * DF)
+
     def test_refine_by_phase_iq_negative(self):
         fd = -self.FD
         x = iq_record(fd, noise=0.0)

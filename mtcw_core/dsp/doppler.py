@@ -437,7 +437,9 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     :data:`WRAP_SIGMAS` times that exceeds the interval of ``segments`` parts, a first step on as
     many more parts as it takes (up to :data:`MAX_FIRST_PARTS`) brings the start close; when even
     that leaves the quarters' interval in doubt, the first step's answer stands (a slipped cycle of
-    the advance would be a confident error of ``fs/L``).
+    the advance would be a confident error of ``fs/L``); when the quarters then move the first
+    step's answer by more than :data:`WRAP_SIGMAS` of its error, the first step may have slipped
+    (its start further off than the parabola said), and the error is one cycle of its advance.
     """
     fs, n = frame.fs_hz, x.size
     start_err = est.refine_error_hz + est.wander_hz
@@ -454,7 +456,13 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # the other targets' lines, not this one's own at its former estimate (which would sit a
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
-    return phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
+    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
+    if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
+        # the quarters moved the first step's answer far beyond its stated error: its advance may
+        # have slipped a cycle (a start further off than the parabola said), so the answer is
+        # known to one cycle of it
+        return replace(out, refine_error_hz=max(out.refine_error_hz, fs * parts / n))
+    return out
 
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
