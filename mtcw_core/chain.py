@@ -16,13 +16,15 @@ extract   complex amplitude of every planned line         :mod:`mtcw_core.dsp.ex
 mix       IF mixing: pair phases per target candidate     :mod:`mtcw_core.ranging.mixing`
 resolve   cycle resolution, sigma, velocity per candidate :mod:`mtcw_core.ranging.targets`
 select    which candidates are targets, strongest first   :mod:`mtcw_core.ranging.targets`
+square    no target from the lines above: range from the  :mod:`mtcw_core.ranging.accumulate`
+          squared record (whole-band digital IF mixing)
 ========  ==============================================  ==================================
 
 Each stage here is a two-line adapter: it reads what earlier stages left in the
 :class:`FrameState` and stores its own output there. ``gate`` runs only for pulsed frames. A
 stage ends a frame early by raising :class:`~mtcw_core.results.Rejected` (a bad frame) or
 :class:`~mtcw_core.results.NoTarget` (nothing to range). The runner does the timing; no stage
-sees a clock.
+sees a clock. ``square`` runs only when ``select`` found no target (beyond the laser's coherence).
 """
 
 from __future__ import annotations
@@ -43,9 +45,10 @@ from .frame import Frame
 from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
-from .ranging import ab, ptof
+from .ranging import ab, pe, ptof
+from .ranging.accumulate import square_point
 from .ranging.mixing import mix
-from .ranging.pe import PeLines, extract_pe, resolve_pe
+from .ranging.pe import PeLines
 from .ranging.targets import Reference, resolve_targets, select_targets
 from .ranging.triangulation import Observations
 from .results import Direction, FrameResult, NoTarget, Rejected, Status, TargetPoint
@@ -68,6 +71,7 @@ class FrameState:
     families: list[LineFamily] = field(default_factory=list)  # extract
     observations: dict[int, Observations] = field(default_factory=dict)  # mix, per candidate
     candidates: list[tuple[int, TargetPoint]] = field(default_factory=list)  # resolve
+    no_target_why: str | None = None  # select: why the chain's own lines gave no target
     pe_lines: list[PeLines] = field(default_factory=list)  # pe_lines (technique pe)
     technique_state: Any = None  # what another technique's stages hand each other (e.g. ranging.ab.ABState)
 
@@ -123,10 +127,19 @@ def _resolve(s: FrameState) -> None:
 def _select(s: FrameState) -> None:
     targets = select_targets(s.candidates, s.settings)
     if not targets:
-        raise NoTarget(f"fewer than two lines above {s.settings.min_line_snr_db} dB")
+        s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
+        if s.settings.technique == "pb" and s.settings.squared_lines and s.gate is None:
+            return  # the square stage has the last word
+        raise NoTarget(s.no_target_why)
     s.result.targets = targets
     s.result.doppler_hz = targets[0].doppler_hz
     s.result.status = "ok"
+
+
+def _square(s: FrameState) -> None:
+    r = s.result
+    r.targets, r.unambiguous_range_m, r.reason = square_point(s.x, s.frame, s.settings, s.reference, s.no_target_why)
+    s.result.doppler_hz, s.result.status = 0.0, "ok"
 
 
 @dataclass(frozen=True)
@@ -148,37 +161,13 @@ STAGES: tuple[Stage, ...] = (
     Stage("mix", _mix),
     Stage("resolve", _resolve),
     Stage("select", _select),
+    Stage("square", _square, lambda s: not s.result.targets),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 
 
-
-# -- PE-MTCW (mtcw_core/ranging/pe.py): the PB stages up to the Doppler search, then its own
-def _pe_doppler(s: FrameState) -> None:
-    # the search and its parabola only: pe_lines refines each line itself (ranging/pe.py says why)
-    s.dopplers = estimate_doppler(s.x, s.frame, s.spectrum, s.settings.model_copy(update={"doppler_refine": "parabolic"}))
-    s.result.doppler_hz = s.dopplers[0].fd_hz
-
-
-def _pe_lines(s: FrameState) -> None:
-    s.pe_lines = extract_pe(s.x, s.frame, s.dopplers, s.spectrum, s.settings)
-
-
-def _pe_resolve(s: FrameState) -> None:
-    s.candidates, s.result.unambiguous_range_m = resolve_pe(s.pe_lines, s.frame, s.settings, s.reference)
-
-
-PE_STAGES: tuple[Stage, ...] = (
-    Stage("validate", _validate),
-    Stage("spectrum", _spectrum),
-    Stage("doppler", _pe_doppler),
-    Stage("pe_lines", _pe_lines),
-    Stage("pe_resolve", _pe_resolve),
-    Stage("select", _select),
-)
-
 #: One stage table per technique (``ChainSettings.technique``); ``pb`` is :data:`STAGES`.
-TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES), "pe": PE_STAGES,
+TECHNIQUES: dict[str, tuple[Stage, ...]] = {"pb": STAGES, "ab": ab.stages(STAGES), "pe": pe.stages(STAGES),
                                             "ptof": ptof.stages(STAGES)}
 
 

@@ -78,8 +78,13 @@ def test_noise_estimate_is_the_scatter_of_the_amplitudes():
 
 def test_one_frame_reaches_60_db_where_the_chain_finds_nothing():
     frames = list(Simulator(low(60.0), 1).frames(3))
-    assert all(process_frame(f, PROFILE).status == "no_target" for f in frames)  # today's chain (case 9)
-    for r, truth in feed(Accumulator(AccumulateSettings(frames=1), PROFILE), frames):
+    own_lines = PROFILE.model_copy(update={"squared_lines": False})
+    assert all(process_frame(f, own_lines).status == "no_target" for f in frames)  # the chain's own lines (case 9)
+    chain = [process_frame(f, PROFILE) for f in frames]  # its square stage: the same squared lines, one frame
+    for (r, truth), c in zip(feed(Accumulator(AccumulateSettings(frames=1), PROFILE), frames), chain):
+        assert c.status == "ok" and c.targets[0].range_m == r.targets[0].range_m, c.reason
+        # its range is given modulo c/(2 gcd) of the pairs used (500/700/950 MHz: 50 MHz, 3 m)
+        assert c.unambiguous_range_m == r.unambiguous_range_m == pytest.approx(C / (2 * 50e6))
         assert r.status == "ok", r.reason
         p = r.targets[0]
         assert p.accumulated_frames == 1 and p.range_sigma_m <= 0.01 and abs(z_of(r, truth)) < 5

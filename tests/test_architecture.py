@@ -105,14 +105,14 @@ def test_stage_vocabulary_is_one():
 
     from .conftest import make_scene, tones
 
-    assert STAGE_NAMES == ("validate", "gate", "spectrum", "doppler", "extract", "mix", "resolve", "select")
+    assert STAGE_NAMES == ("validate", "gate", "spectrum", "doppler", "extract", "mix", "resolve", "select", "square")
     sections = [line.strip()[5:] for line in (CORE / "profiles.py").read_text().splitlines()
                 if line.strip().startswith("# -- ")]
     assert [s.split()[0] for s in sections] == list(STAGE_NAMES)
     fr = simulate_frame(make_scene(modulator=tones(500e6, 700e6, 950e6)), seed=1)
     res = process_frame(fr, "balanced")
     assert res.status == "ok"
-    assert list(res.stage_seconds) == [s for s in STAGE_NAMES if s != "gate"]  # a CW frame has no gate
+    assert list(res.stage_seconds) == [s for s in STAGE_NAMES if s not in ("gate", "square")]  # a CW frame has no gate; a target, no square
     assert all(np.isfinite(v) and v >= 0 for v in res.stage_seconds.values())
 
 

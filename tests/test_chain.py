@@ -13,7 +13,7 @@ from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.frame import Frame
 from mtcw_core.ranging.triangulation import C, Observations, resolve_ml, resolve_seed, unambiguous_range
 from mtcw_core.recording import read_recording
-from mtcw_core.scene import scene_variant
+from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator, simulate_frame
 
 from .conftest import make_scene, tones
@@ -239,6 +239,17 @@ def test_no_target_when_echo_is_lost():
                                    digitizer={"samples": 2**14}))
     res = process_frame(fr, "balanced")
     assert res.status == "no_target"
+    # the square stage tried the squared record too, and says so
+    assert "fewer than two lines" in res.reason and "squared lines" in res.reason and "square" in res.stage_seconds
+
+
+def test_the_square_stage_does_not_run_on_gated_frames():
+    """A quasi-CW frame whose echo windows hold no lines ends at select: squaring the whole record
+    would mix the pulse's off-time in (the accumulator refuses gated frames for the same reason)."""
+    sc = load_scene("quasi-cw-long-range")
+    fr = simulate_frame(scene_variant(sc, targets=[{"loss_db": 200.0}]), seed=1)
+    res = process_frame(fr, "balanced")
+    assert res.status == "no_target" and "square" not in res.stage_seconds, (res.status, res.reason)
 
 
 def _synthetic_obs(L: float, plan, tau0=0.0) -> Observations:

@@ -16,6 +16,7 @@ import pytest
 from mtcw_core.chain import TECHNIQUES, get_profile, process_frame, run_stages
 from mtcw_core.phase import C
 from mtcw_core.ranging import pe
+from mtcw_core.results import NoTarget
 from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator, simulate_frame
 
@@ -40,6 +41,18 @@ def test_pe_is_registered_with_its_own_stages():
     names = [s.name for s in TECHNIQUES["pe"]]
     assert names == ["validate", "spectrum", "doppler", "pe_lines", "pe_resolve", "select"]
     assert TECHNIQUES["pe"][0].run is TECHNIQUES["pb"][0].run  # the PB validate stage, reused
+
+
+def test_a_lost_echo_ends_no_target_without_the_square_stage():
+    """pb's select hands a frame without target to its ``square`` stage; pe has none (the reference
+    arm's intensity would share the squared lines): its select itself ends the frame ``no_target``."""
+    fr = simulate_frame(fast_scene(noise=True, targets=[{"loss_db": 200.0}]), seed=1)
+    res = process_frame(fr, settings())
+    assert res.status == "no_target" and res.reason and "square" not in res.stage_seconds, (res.status, res.reason)
+    state = run_stages(fr, settings(), until="spectrum")  # select with no candidate: the end, not a hand-over
+    select = TECHNIQUES["pe"][-1]
+    with pytest.raises(NoTarget, match="fewer than two lines"):
+        select.run(state)
 
 
 def test_line_products_cancel_the_carrier_and_give_the_path_difference():

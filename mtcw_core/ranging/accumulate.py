@@ -55,12 +55,13 @@ from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.signal import get_window
+import scipy.fft as sfft
 from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import Calibration
 from ..dsp.doppler import DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
+from ..dsp.spectrum import cached_window, window_power
 from ..dsp.tones import fit_lines
 from ..dsp.validate import validate
 from ..frame import Frame, TruthTarget
@@ -187,9 +188,8 @@ def square_lines(x: np.ndarray, fs_hz: float, tones_hz, edge_samples: int = 0,
     t_c = (n - 1) / (2 * fs_hz)
     z_start = z * np.exp(-2j * np.pi * np.mod(t * t_c, 1.0))
     # the local noise floor of the squared record
-    w = get_window(("kaiser", 14.0), n, fftbins=False)
-    spec = np.abs(np.fft.rfft(p * w)) ** 2
-    wpow = float(np.sum(w**2))
+    spec = np.abs(sfft.rfft(p * cached_window(("kaiser", 14.0), n))) ** 2  # the chain's cached window
+    wpow = window_power(("kaiser", 14.0), n)
     lines = np.concatenate([t, prods, [0.0]])
     bins = np.arange(spec.size)
     s2 = np.empty(t.size)
@@ -221,12 +221,16 @@ def family_of(lines: SquaredLines) -> LineFamily:
     return LineFamily("Q", lines.tone_hz, lines.tone_hz.copy(), lines.z_start[None, :].copy(), np.zeros(1), pv, 0)
 
 
-def range_from_lines(lines: SquaredLines, frame: Frame, settings: ChainSettings, ref: Reference) -> TargetPoint:
+def range_from_lines(lines: SquaredLines, frame: Frame, settings: ChainSettings, ref: Reference
+                     ) -> tuple[TargetPoint, float]:
     """One point from (possibly averaged) squared lines: the chain's IF mixing, ``ml``/``seed``
     cycle resolution, Fisher sigma, line-phase consistency, cycle-slip odds and declared timing
     jitter (:func:`~mtcw_core.ranging.targets.solve_target`). The speed is unknown (0 with the
     largest searched speed as its sigma). Raises :class:`~mtcw_core.results.NoTarget` when fewer
-    than two lines clear ``settings.min_line_snr_db``."""
+    than two lines clear ``settings.min_line_snr_db``.
+
+    Returns the point and the unambiguous range (m) of the pairs it rests on (a tone left out
+    widens it: ``c/(2*gcd)`` of the differences used, not of the plan)."""
     fam = family_of(lines)
     obs = pair_observations([fam], ref.tone_phases_rad, settings.min_line_snr_db)
     if obs.df_hz.size == 0:
@@ -234,9 +238,45 @@ def range_from_lines(lines: SquaredLines, frame: Frame, settings: ChainSettings,
         raise NoTarget(f"fewer than two squared lines above {settings.min_line_snr_db} dB (best {best:.1f} dB)")
     v_max = fd_max(frame.tones_hz, settings) * frame.wavelength_m / 2
     static = DopplerEstimate(0.0, False, 0.0, 0.0, 0.0)
-    p = solve_target([fam], obs, static, frame, settings, ref, None, unambiguous_range(obs.df_hz))
+    l_unamb = float(unambiguous_range(obs.df_hz))
+    p = solve_target([fam], obs, static, frame, settings, ref, None, l_unamb)
     # the squared lines carry no Doppler: any speed up to the search's limit fits them
-    return replace(p, velocity_mps=0.0, velocity_sigma_mps=v_max, direction="unknown", speed_min_mps=v_max)
+    return replace(p, velocity_mps=0.0, velocity_sigma_mps=v_max, direction="unknown", speed_min_mps=v_max), l_unamb
+
+
+def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Reference,
+                 why: str | None = None) -> tuple[list[TargetPoint], float, str]:
+    """The chain's ``square`` stage: one frame's point from its squared record, when the chain's
+    own lines gave none (``why``).
+
+    The squared lines carry neither the laser's phase nor the carrier's Doppler: they range a
+    target far beyond the laser's coherence (issue 12 case 9, ``docs/reach.md``), with its speed
+    unknown. A tone plan whose products fall on the tones leaves those tones out.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V: the validated record
+    frame : Frame
+    settings : ChainSettings
+    ref : Reference, the tone phases and ``tau0`` in force
+    why : why the chain's own lines gave no target (for the reasons below)
+
+    Returns
+    -------
+    ([TargetPoint], unambiguous range (m), reason): the point, the period its range is given in
+    (the pairs it rests on), and the result's reason saying where it came from
+
+    Raises
+    ------
+    NoTarget
+        Fewer than two squared lines above ``settings.min_line_snr_db``: ``why`` and that.
+    """
+    why = why or "no target"
+    try:
+        point, l_unamb = range_from_lines(square_lines(x, frame.fs_hz, frame.tones_hz), frame, settings, ref)
+    except NoTarget as sq:
+        raise NoTarget(f"{why}; {sq}") from None
+    return [point], l_unamb, f"squared record (whole-band IF mixing): {why} in the chain's own; speed unknown"
 
 
 # -------------------------------------------------------------------------------------------
@@ -380,11 +420,11 @@ class Accumulator:
             lines = square_lines(x, frame.fs_hz, frame.tones_hz, s.edge_samples, s.noise_half_width)
             self._admit(_key(frame, ref), _Entry(lines, int(frame.seq), int(frame.t_ns)))
             mean = weighted_mean([e.lines for e in self._window])
-            point = range_from_lines(mean, frame, st, ref)
+            point, l_unamb = range_from_lines(mean, frame, st, ref)
             res.stage_seconds["accumulate"] = time.perf_counter() - t1
             k = len(self._window)
             res.targets = [replace(point, accumulated_frames=k)]
-            res.unambiguous_range_m = float(unambiguous_range(np.diff(np.sort(np.asarray(frame.tones_hz)))))
+            res.unambiguous_range_m = l_unamb
             res.doppler_hz = 0.0
             res.status = "ok"
         except NoTarget as why:

@@ -65,7 +65,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import DopplerEstimate, l1_ball
+from ..dsp.doppler import DopplerEstimate, estimate_doppler, l1_ball
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import Spectrum
 from ..dsp.tones import fit_lines
@@ -625,3 +625,30 @@ def resolve_pe(lines: list[PeLines], frame: Frame, settings: ChainSettings, ref:
     if not points:
         raise NoTarget(why or "pe: nothing to range")
     return points, l_unamb
+
+
+# -------------------------------------------------------------------------------------------
+# the stage table
+def _doppler(s) -> None:
+    # the search and its parabola only: pe_lines refines each line itself (see extract_pe)
+    s.dopplers = estimate_doppler(s.x, s.frame, s.spectrum, s.settings.model_copy(update={"doppler_refine": "parabolic"}))
+    s.result.doppler_hz = s.dopplers[0].fd_hz
+
+
+def _lines(s) -> None:
+    s.pe_lines = extract_pe(s.x, s.frame, s.dopplers, s.spectrum, s.settings)
+
+
+def _resolve(s) -> None:
+    s.candidates, s.result.unambiguous_range_m = resolve_pe(s.pe_lines, s.frame, s.settings, s.reference)
+
+
+def stages(pb: tuple) -> tuple:
+    """The PE stage table: pb's ``validate`` and ``spectrum``, then ``doppler`` (the search and its
+    parabola), ``pe_lines`` (every line refined), ``pe_resolve`` (Table 1 relations) and pb's
+    ``select`` (which ends a frame without target as ``no_target``: no ``square`` here, the
+    reference arm's intensity would share the squared lines)."""
+    row = type(pb[0])  # the chain's Stage
+    by = {st.name: st for st in pb}
+    return (by["validate"], by["spectrum"], row("doppler", _doppler), row("pe_lines", _lines),
+            row("pe_resolve", _resolve), by["select"])
