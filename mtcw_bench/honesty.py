@@ -308,6 +308,8 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
         "9 low-coherence 20 dB": ("beyond coherence, 20 dB", low, 8),
         "9 low-coherence 40 dB": ("beyond coherence, 40 dB", scene_variant(low, targets=[{"loss_db": 40.0}]), 8),
         "9 low-coherence 60 dB": ("beyond coherence, 60 dB", scene_variant(low, targets=[{"loss_db": 60.0}]), 8),
+        "9 low-coherence 70 dB": ("beyond coherence, 70 dB (the square stage's one-frame reach)", scene_variant(
+            low, targets=[{"loss_db": 70.0}]), 8),
     }
 
 

@@ -128,8 +128,9 @@ def _select(s: FrameState) -> None:
     targets = select_targets(s.candidates, s.settings)
     if not targets:
         s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
-        if s.settings.technique == "pb" and s.settings.squared_lines and s.gate is None:
-            return  # the square stage has the last word
+        st = s.settings  # beyond a declared laser's coherence, the square stage has the last word
+        if st.technique == "pb" and st.squared_lines and st.laser_linewidth_hz > 0 and s.gate is None:
+            return
         raise NoTarget(s.no_target_why)
     s.result.targets = targets
     s.result.doppler_hz = targets[0].doppler_hz

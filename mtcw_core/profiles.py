@@ -98,11 +98,12 @@ class ChainSettings(BaseModel):
                                                                "lines is taken for their self-beat")
     incoherent_residual_rad: float = Field(0.25, gt=0, description="a moving candidate whose line phases miss one "
                                                                    "range by this much (rms) at > 25 dB is noise")
-    # -- square (only when select found no target; not for quasi-CW frames)
+    # -- square (only when select found no target, the laser is declared and the frame is CW)
     squared_lines: bool = Field(True, description=(
-        "when the chain's own lines give no target, range from the lines of the squared record (whole-band "
-        "digital IF mixing: LO power x echo intensity, no laser phase, no Doppler), which reach beyond the "
-        "laser's coherence; the point's speed is unknown. A calibration taken through the chain's lines holds "
+        "when the chain's own lines give no target and a laser is declared (laser_linewidth_hz > 0), range "
+        "from the lines of the squared record (whole-band digital IF mixing: LO power x echo intensity, no "
+        "laser phase, no Doppler), which reach beyond the laser's coherence, where that laser is incoherent at "
+        "the range they give; the point's speed is unknown. A calibration taken through the chain's lines holds "
         "for these only when the front end is flat over the band (docs/reach.md)"))
 
 

@@ -88,7 +88,8 @@ def _open(recording: Path):
         _fail(str(err))
 
 
-def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0):
+def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0,
+              laser_linewidth_hz: float = 0.0, lo_path_difference_m: float = 0.0):
     from mtcw_core.chain import get_profile
 
     over = {"method": method} if method else {}
@@ -96,6 +97,8 @@ def _settings(profile: str, method: Optional[str], technique: str = "pb", timing
         over["technique"] = technique
     if timing_jitter_s:
         over["timing_jitter_s"] = timing_jitter_s
+    if laser_linewidth_hz or lo_path_difference_m:
+        over.update(laser_linewidth_hz=laser_linewidth_hz, lo_path_difference_m=lo_path_difference_m)
     try:
         return get_profile(profile, **over)
     except ValueError as err:
@@ -149,6 +152,12 @@ def process(
     technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
     timing_jitter_s: float = typer.Option(0.0, "--timing-jitter-s", help="the digitizer's known rms timing jitter "
                                                                          "(s); enters every range sigma"),
+    laser_linewidth_hz: float = typer.Option(0.0, "--laser-linewidth-hz", help="the bench's laser (Lorentzian FWHM, "
+                                             "Hz): where it is incoherent at the echo's delay a speed is unknown, "
+                                             "not 0, and the square stage ranges from the squared record "
+                                             "(docs/reach.md); 0: coherent everywhere"),
+    lo_path_difference_m: float = typer.Option(0.0, "--lo-path-difference-m", help="optical path of the LO minus "
+                                               "the echo's internal path (m), with --laser-linewidth-hz"),
     accumulate: int = typer.Option(0, "--accumulate", help="beyond the laser's coherence (a static target): range "
                                    "from the whole band's digital IF mixing, averaged over the last K frames "
                                    "(1-32; 0: the chain per frame); docs/reach.md"),
@@ -163,7 +172,7 @@ def process(
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
-    settings = _settings(profile, method, technique, timing_jitter_s)
+    settings = _settings(profile, method, technique, timing_jitter_s, laser_linewidth_hz, lo_path_difference_m)
     acc = _accumulator(accumulate, settings, calibration)
     cal = _calibration(calibration)
     if cal is None:
@@ -688,6 +697,10 @@ def worker(
                                                        "default pb]"),
     timing_jitter_s: Optional[float] = typer.Option(None, "--timing-jitter-s", help="the digitizer's known rms "
                                                     "timing jitter (s) [MTCW_TIMING_JITTER_S; default 0]"),
+    laser_linewidth_hz: Optional[float] = typer.Option(None, "--laser-linewidth-hz", help="the bench's laser FWHM "
+                                                       "(Hz) [MTCW_LASER_LINEWIDTH_HZ; default 0: coherent]"),
+    lo_path_difference_m: Optional[float] = typer.Option(None, "--lo-path-difference-m", help="LO minus echo "
+                                                         "internal path (m) [MTCW_LO_PATH_DIFFERENCE_M; default 0]"),
     accumulate: Optional[int] = typer.Option(None, "--accumulate", help="static targets beyond the laser's "
                                              "coherence: whole-band IF mixing averaged over the last K frames of "
                                              "each source (1-32) [MTCW_ACCUMULATE; default 0: off]"),
@@ -699,7 +712,8 @@ def worker(
 
     _logging()
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
-                           timing_jitter_s=timing_jitter_s, accumulate=accumulate)
+                           timing_jitter_s=timing_jitter_s, laser_linewidth_hz=laser_linewidth_hz,
+                           lo_path_difference_m=lo_path_difference_m, accumulate=accumulate)
     try:
         w = Worker(st)
     except CalibrationError as err:

@@ -272,6 +272,11 @@ class WorkerSettings(TransportSettings):
     technique: Literal["pb", "ab", "pe", "ptof"] = Field("pb", description="ranging technique (ChainSettings.technique)")
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description="the digitizer's known rms timing jitter (s); "
                                                                    "enters every range sigma")
+    laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description="the bench's laser (Lorentzian FWHM, Hz): "
+                                      "where it is incoherent at the echo's delay a speed is unknown, not 0, and "
+                                      "the square stage ranges from the squared record; 0: coherent everywhere")
+    lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the echo's "
+                                        "internal path (m)")
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
     accumulate: int = Field(0, ge=0, le=32, description="static targets beyond the laser's coherence: range from "
                             "the whole band's digital IF mixing averaged over the last K frames of each source "

@@ -52,7 +52,9 @@ class Worker:
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
         self.chain = get_profile(settings.profile, technique=settings.technique,
-                                 timing_jitter_s=settings.timing_jitter_s)
+                                 timing_jitter_s=settings.timing_jitter_s,
+                                 laser_linewidth_hz=settings.laser_linewidth_hz,
+                                 lo_path_difference_m=settings.lo_path_difference_m)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
         # --accumulate K: one accumulator per source (mtcw_core.ranging.accumulate); frames shared
         # between several workers are each worker's share of the source

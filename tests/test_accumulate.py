@@ -19,7 +19,9 @@ from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.evaluate import judge_frame
 from mtcw_core.phase import C
 from mtcw_core.ranging.accumulate import (AccumulateSettings, Accumulator, mean_truth, same_phasors_p, square_lines,
-                                          weighted_mean)
+                                          square_point, weighted_mean)
+from mtcw_core.ranging.targets import Reference
+from mtcw_core.results import NoTarget
 from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
@@ -91,6 +93,25 @@ def test_one_frame_reaches_60_db_where_the_chain_finds_nothing():
         # the squared lines carry no Doppler: the speed is unknown, never a claimed "static"
         assert p.direction == "unknown" and p.velocity_sigma_mps >= 0.1
         assert not judge_frame(r, truth).confident_wrong
+
+
+def test_the_square_stage_refuses_a_range_where_the_declared_laser_is_coherent():
+    """The squared lines sum every target's intensity: where the declared laser is coherent, one
+    target would have shown in the chain's own lines, so squared lines there are a blend (the
+    honesty map's two and three movers with ``fast``: 8-137 sigma off, unflagged, before this)."""
+    # a mover (its carrier beat squared sits at 2 f_d, away from the tones) and a coherent laser
+    sc = scene_variant(low(20.0), laser={"linewidth_hz": 1e5}, paths={"lo_path_difference_m": 0.0},
+                       targets=[{"loss_db": 20.0, "velocity_mps": 0.5}])
+    fr = next(Simulator(sc, 1).frames(1))
+    x = fr.volts("pd")
+    ref = Reference(dict(zip(fr.tones_hz, fr.tone_phases_rad)), 0.0)
+    coherent = get_profile("balanced", laser_linewidth_hz=1e5)
+    with pytest.raises(NoTarget, match="coherent"):
+        square_point(x, fr, coherent, ref, "none")
+    (p,), l_unamb, why = square_point(x, fr, PROFILE, ref, "none")  # the same lines, a laser declared incoherent
+    assert abs(p.range_m - fr.truth[0].range_m) < 5 * p.range_sigma_m and why.startswith("squared record")
+    # an undeclared laser (linewidth 0: coherent everywhere) never reaches the square stage
+    assert "square" not in process_frame(next(Simulator(low(60.0), 1).frames(1)), "balanced").stage_seconds
 
 
 def test_accumulation_reaches_where_one_frame_cannot():

@@ -239,8 +239,10 @@ def test_no_target_when_echo_is_lost():
                                    digitizer={"samples": 2**14}))
     res = process_frame(fr, "balanced")
     assert res.status == "no_target"
-    # the square stage tried the squared record too, and says so
-    assert "fewer than two lines" in res.reason and "squared lines" in res.reason and "square" in res.stage_seconds
+    assert "fewer than two lines" in res.reason and "square" not in res.stage_seconds  # no laser declared
+    # with the bench's laser declared, the square stage tries the squared record too, and says so
+    res = process_frame(fr, get_profile("balanced", laser_linewidth_hz=1e5))
+    assert res.status == "no_target" and "squared lines" in res.reason and "square" in res.stage_seconds
 
 
 def test_the_square_stage_does_not_run_on_gated_frames():
@@ -248,7 +250,7 @@ def test_the_square_stage_does_not_run_on_gated_frames():
     would mix the pulse's off-time in (the accumulator refuses gated frames for the same reason)."""
     sc = load_scene("quasi-cw-long-range")
     fr = simulate_frame(scene_variant(sc, targets=[{"loss_db": 200.0}]), seed=1)
-    res = process_frame(fr, "balanced")
+    res = process_frame(fr, get_profile("balanced", laser_linewidth_hz=1e5))
     assert res.status == "no_target" and "square" not in res.stage_seconds, (res.status, res.reason)
 
 

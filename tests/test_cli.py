@@ -140,3 +140,9 @@ def test_process_accumulate_ranges_beyond_coherence_and_names_a_bad_k(tmp_path):
     assert [int(row["accumulated_frames"]) for row in rows] == [1, 2, 3, 4, 4, 4]
     bad = CliRunner().invoke(app, ["process", str(rec), "--accumulate", "40"])
     assert bad.exit_code != 0 and "--accumulate" in bad.output and "Traceback" not in bad.output
+    # the bench's laser declared: the chain's square stage ranges each frame from its squared record
+    r = CliRunner().invoke(app, ["process", str(rec), "--laser-linewidth-hz", "5.3e9", "--lo-path-difference-m", "9"])
+    assert r.exit_code == 0, r.output
+    s = _summary(r.stdout)
+    assert s["status"] == {"ok": 6} and s["matched"] == 6, s
+    assert s["max_abs_range_error_m"] < 5 * s["median_reported_sigma_m"]

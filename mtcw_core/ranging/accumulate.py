@@ -59,7 +59,7 @@ import scipy.fft as sfft
 from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import Calibration
-from ..dsp.doppler import DopplerEstimate, fd_max
+from ..dsp.doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import cached_window, window_power
 from ..dsp.tones import fit_lines
@@ -70,7 +70,7 @@ from ..profiles import ChainSettings
 from ..results import FrameResult, NoTarget, Rejected, TargetPoint
 from .gating import is_gated
 from .mixing import pair_observations
-from .targets import Reference, solve_target
+from .targets import Reference, carrier_coherence, solve_target
 
 #: the largest number of frames a point may rest on (issue 12's target: <= 32)
 MAX_FRAMES = 32
@@ -251,13 +251,17 @@ def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Refe
 
     The squared lines carry neither the laser's phase nor the carrier's Doppler: they range a
     target far beyond the laser's coherence (issue 12 case 9, ``docs/reach.md``), with its speed
-    unknown. A tone plan whose products fall on the tones leaves those tones out.
+    unknown. They hold the *sum* of every target's intensity, so several targets blend into one
+    plausible wrong range (3 tones leave one degree of freedom to see it). Where the declared
+    laser is coherent at the range they give (carrier coherence >= ``MIN_CARRIER_COHERENCE``), a
+    single target there would have shown in the chain's own lines, far stronger: the squared
+    lines are then taken for a blend (or an undeclared laser) and give no point.
 
     Parameters
     ----------
     x : ndarray, shape (N,), float64 or complex128, V: the validated record
     frame : Frame
-    settings : ChainSettings
+    settings : ChainSettings (``laser_linewidth_hz``, ``lo_path_difference_m``: the declared laser)
     ref : Reference, the tone phases and ``tau0`` in force
     why : why the chain's own lines gave no target (for the reasons below)
 
@@ -269,13 +273,19 @@ def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Refe
     Raises
     ------
     NoTarget
-        Fewer than two squared lines above ``settings.min_line_snr_db``: ``why`` and that.
+        Fewer than two squared lines above ``settings.min_line_snr_db``, or a range where the
+        declared laser is coherent: ``why`` and that.
     """
     why = why or "no target"
     try:
         point, l_unamb = range_from_lines(square_lines(x, frame.fs_hz, frame.tones_hz), frame, settings, ref)
     except NoTarget as sq:
         raise NoTarget(f"{why}; {sq}") from None
+    coherence = carrier_coherence(settings, point.range_m)
+    if coherence >= MIN_CARRIER_COHERENCE:
+        raise NoTarget(f"{why}; the squared record's lines give {point.range_m:.3f} m, where the declared laser is "
+                       f"coherent (carrier coherence {coherence:.2f}): one target there would show in the chain's "
+                       "own lines, so they blend several")
     return [point], l_unamb, f"squared record (whole-band IF mixing): {why} in the chain's own; speed unknown"
 
 
