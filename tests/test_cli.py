@@ -33,7 +33,7 @@ def test_process_reports_truth_errors_and_stage_times(recording, tmp_path):
     assert s["status"] == {"ok": 4} and s["matched"] == 4
     assert abs(s["range_bias_m"]) < 5 * s["median_reported_sigma_m"]
     # every stage that ran, in the chain's order (a CW scene has no gate)
-    assert list(s["median_ms_per_stage"]) == [n for n in STAGE_NAMES if n != "gate"]
+    assert list(s["median_ms_per_stage"]) == [n for n in STAGE_NAMES if n not in ("gate", "square")]  # and a target: no square
     rows = list(csv.DictReader(open(tmp_path / "p.csv")))
     assert len(rows) == 4 and all(row["status"] == "ok" for row in rows)
 
