@@ -128,9 +128,9 @@ def _select(s: FrameState) -> None:
     targets = select_targets(s.candidates, s.settings)
     if not targets:
         s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
-        st = s.settings  # beyond a declared laser's coherence, the square stage has the last word
+        st = s.settings
         if st.technique == "pb" and st.squared_lines and st.laser_linewidth_hz > 0 and s.gate is None:
-            return
+            return  # a declared laser, a CW frame: the square stage has the last word
         raise NoTarget(s.no_target_why)
     s.result.targets = targets
     s.result.doppler_hz = targets[0].doppler_hz
@@ -140,7 +140,7 @@ def _select(s: FrameState) -> None:
 def _square(s: FrameState) -> None:
     r = s.result
     r.targets, r.unambiguous_range_m, r.reason = square_point(s.x, s.frame, s.settings, s.reference, s.no_target_why)
-    s.result.doppler_hz, s.result.status = 0.0, "ok"
+    r.doppler_hz, r.status = 0.0, "ok"
 
 
 @dataclass(frozen=True)
