@@ -46,7 +46,7 @@ from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
 from .ranging import ab, pe, ptof
-from .ranging.accumulate import square_point
+from .ranging.accumulate import square_can_range, square_point
 from .ranging.mixing import mix
 from .ranging.pe import PeLines
 from .ranging.targets import Reference, resolve_targets, select_targets
@@ -129,8 +129,8 @@ def _select(s: FrameState) -> None:
     if not targets:
         s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
         st = s.settings
-        if st.technique == "pb" and st.squared_lines and st.laser_linewidth_hz > 0 and s.gate is None:
-            return  # a declared laser, a CW frame: the square stage has the last word
+        if st.technique == "pb" and st.squared_lines and s.gate is None and square_can_range(st, s.frame.tones_hz):
+            return  # a CW frame, a laser declared incoherent at some range: the square stage has the last word
         raise NoTarget(s.no_target_why)
     s.result.targets = targets
     s.result.doppler_hz = targets[0].doppler_hz

@@ -19,7 +19,7 @@ from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.evaluate import judge_frame
 from mtcw_core.phase import C
 from mtcw_core.ranging.accumulate import (AccumulateSettings, Accumulator, mean_truth, same_phasors_p, square_lines,
-                                          square_point, weighted_mean)
+                                          square_can_range, square_point, weighted_mean)
 from mtcw_core.ranging.targets import Reference
 from mtcw_core.results import NoTarget
 from mtcw_core.scene import load_scene, scene_variant
@@ -93,6 +93,16 @@ def test_one_frame_reaches_60_db_where_the_chain_finds_nothing():
         # the squared lines carry no Doppler: the speed is unknown, never a claimed "static"
         assert p.direction == "unknown" and p.velocity_sigma_mps >= 0.1
         assert not judge_frame(r, truth).confident_wrong
+
+
+def test_the_square_stage_is_skipped_where_the_declared_laser_is_coherent_over_the_whole_interval():
+    tones = (500e6, 700e6, 950e6)  # 3 m unambiguous
+    assert not square_can_range(get_profile("balanced"), tones)  # undeclared: coherent everywhere
+    assert not square_can_range(get_profile("balanced", laser_linewidth_hz=1e5), tones)  # exp(-2pi 1e5 20 ns) = 0.99
+    assert square_can_range(PROFILE, tones)  # 5.3 GHz, LO 9 m longer: ~0 everywhere in 0-3 m
+    # coherent at the near end, not at the far end of a long interval (1 MHz, 150 m: 1 us)
+    far = get_profile("balanced", laser_linewidth_hz=1e6, range_max_m=150.0)
+    assert square_can_range(far, tones) and not square_can_range(far.model_copy(update={"range_max_m": 3.0}), tones)
 
 
 def test_the_square_stage_refuses_a_range_where_the_declared_laser_is_coherent():

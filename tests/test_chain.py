@@ -240,8 +240,10 @@ def test_no_target_when_echo_is_lost():
     res = process_frame(fr, "balanced")
     assert res.status == "no_target"
     assert "fewer than two lines" in res.reason and "square" not in res.stage_seconds  # no laser declared
-    # with the bench's laser declared, the square stage tries the squared record too, and says so
-    res = process_frame(fr, get_profile("balanced", laser_linewidth_hz=1e5))
+    # with a laser declared incoherent at the echo's delay, the square stage tries the squared record
+    # too, and says so (a laser coherent over the whole search interval never reaches it)
+    assert "square" not in process_frame(fr, get_profile("balanced", laser_linewidth_hz=1e5)).stage_seconds
+    res = process_frame(fr, get_profile("balanced", laser_linewidth_hz=5.3e9, lo_path_difference_m=9.0))
     assert res.status == "no_target" and "squared lines" in res.reason and "square" in res.stage_seconds
 
 

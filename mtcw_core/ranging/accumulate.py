@@ -70,7 +70,7 @@ from ..profiles import ChainSettings
 from ..results import FrameResult, NoTarget, Rejected, TargetPoint
 from .gating import is_gated
 from .mixing import pair_observations
-from .targets import Reference, carrier_coherence, solve_target
+from .targets import Reference, _search_interval, carrier_coherence, solve_target
 
 #: the largest number of frames a point may rest on (issue 12's target: <= 32)
 MAX_FRAMES = 32
@@ -242,6 +242,17 @@ def range_from_lines(lines: SquaredLines, frame: Frame, settings: ChainSettings,
     p = solve_target([fam], obs, static, frame, settings, ref, None, l_unamb)
     # the squared lines carry no Doppler: any speed up to the search's limit fits them
     return replace(p, velocity_mps=0.0, velocity_sigma_mps=v_max, direction="unknown", speed_min_mps=v_max), l_unamb
+
+
+def square_can_range(settings: ChainSettings, tones_hz) -> bool:
+    """Whether the declared laser is incoherent (carrier coherence below ``MIN_CARRIER_COHERENCE``)
+    anywhere in the searched range interval: where it is not, :func:`square_point` refuses every
+    range, so the chain need not square the record. ``|2L - d_LO|`` is convex in ``L``, so the
+    coherence is lowest at an end of the interval (no quasi-CW gate here: the plan's unambiguous
+    range, the longest any subset of its pairs can give). False for a laser declared coherent."""
+    lo, hi, _ = _search_interval(settings, float(unambiguous_range(np.diff(np.sort(np.asarray(tones_hz, float))))),
+                                 None)
+    return min(carrier_coherence(settings, lo), carrier_coherence(settings, hi)) < MIN_CARRIER_COHERENCE
 
 
 def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Reference,
