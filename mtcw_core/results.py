@@ -57,9 +57,14 @@ class TargetPoint:
         ``ChainSettings.cycle_slip_max``); the line phases are not those of one target (sigma
         Birge-scaled).
     speed_min_mps : float
-        The smallest speed this frame could have measured (m/s): a Doppler line closer to 0 Hz
-        than the search's guard is not told from the static lines. When the laser is not coherent
-        at the target's range, the search's largest speed (nothing could have shown).
+        The smallest speed this frame could have measured (m/s). Where the static lines are
+        coherent and the whole record was searched, one record bin (``fs/N * lambda/2``; closer to
+        0 Hz a line is a slope of the mean) and no less than a fifth of the search's guard -- a
+        mover found below the guard is measured by the sub-guard fit, one missed there lies within
+        5 of this sigma of a ``static`` claim; beside a mover found there, no less than its speed.
+        Otherwise (lines broadened by the laser's phase noise, the ``fast`` profile's partial
+        spectrum, a quasi-CW record) the guard itself. When the laser is not coherent at the
+        target's range, the search's largest speed (nothing could have shown).
     cycle_slip_prob : float
         The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1].
     doppler_hz : float

@@ -100,11 +100,26 @@ def test_moving_target_speed_and_range(plan, v):
     assert abs(p.range_m - fr.truth[0].range_m) < 4 * p.range_sigma_m + 1e-5
 
 
-def test_doppler_below_resolution_reports_static_within_its_sigma():
-    """1.2 FFT bins of Doppler cannot be resolved: velocity 0 with a sigma that covers the truth."""
+def test_doppler_of_1_2_bins_is_measured_below_the_search_guard():
+    """1.2 record bins of Doppler (94 kHz at 76 kHz bins), below the search's ~5-bin guard: the
+    sub-guard fit measures it (issue 12 case 6), within its sigma."""
     fr = simulate_frame(make_scene(targets=[{"range_m": 2.5, "velocity_mps": 0.05}], digitizer={"samples": 2**16}))
+    assert 2 * 0.05 / fr.wavelength_m / (fr.fs_hz / fr.n) == pytest.approx(1.23, abs=0.01)
     p = process_frame(fr, "accurate").targets[0]
-    assert p.velocity_mps == 0.0 and p.velocity_sigma_mps > 0.05
+    assert p.direction == "unknown" and p.velocity_sigma_mps < 0.005
+    assert abs(p.velocity_mps - 0.05) <= 5 * p.velocity_sigma_mps
+
+
+def test_doppler_below_one_bin_reports_static_within_its_sigma():
+    """Half a record bin of Doppler is below what the sub-guard fit measures (a line closer to 0 Hz
+    than a bin is a slope of the mean): velocity 0, its sigma the smallest measurable speed, one bin
+    (``fs/N * lambda/2``), which covers the truth."""
+    bin_mps = 5e9 / 2**16 * 1.064e-6 / 2
+    fr = simulate_frame(make_scene(targets=[{"range_m": 2.5, "velocity_mps": 0.5 * bin_mps}],
+                                   digitizer={"samples": 2**16}))
+    p = process_frame(fr, "accurate").targets[0]
+    assert p.direction == "static" and p.velocity_mps == 0.0
+    assert p.speed_min_mps == pytest.approx(bin_mps, rel=1e-9) and p.velocity_sigma_mps == p.speed_min_mps
 
 
 @pytest.mark.parametrize("v,direction", [(0.5, "receding"), (-0.5, "approaching")])

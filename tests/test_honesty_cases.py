@@ -157,8 +157,6 @@ def test_case5_fast_mover_has_no_ghost_and_an_honest_speed(profile):
 
 # -------------------------------------------------------------------------------------------
 # 6. small Doppler
-@pytest.mark.xfail(strict=True, reason="issue 12 case 6: 3.5 cm/s at 1550 nm (45 kHz, 4.5 bins of 10 kHz; 2^16 "
-                                       "at 655.36 MS/s) is reported static in 3/3 frames, sigma 0.04-0.16 m/s")
 def test_case6_speed_below_the_search_is_measured():
     sc = scene([tgt(1.5, 0.035, 30.0)], 2**16, (150e6, 200e6, 270e6), laser={"wavelength_m": 1.55e-6},
                digitizer={"sample_rate_hz": 0.65536e9})

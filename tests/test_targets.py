@@ -113,6 +113,14 @@ class TestVelocity:
         assert s == pytest.approx(math.sqrt(30.0**2 + 2e10 * psd + 40.0**2) * LAM / 2, rel=1e-12)
         assert shared_phase_psd(ChainSettings(), 3.0) == 0.0  # a laser declared coherent
 
+    def test_a_sub_guard_fit_adds_the_shared_phase_like_a_reassigned_one(self):
+        """The sub-guard fit (method ``fit``) is one record-long window too: the declared laser's
+        phase noise over the echo delay enters through its gain."""
+        d = dop(2.5 * FS / N, refine=3.0, method="fit", gain=4e11)
+        psd = shared_phase_psd(ChainSettings(laser_linewidth_hz=1e5), 1.5)
+        s = velocity(d, frame(), [fam("U", 1, var=np.full(3, 1e-4))], False, phase_psd=psd)[1]
+        assert s == pytest.approx(math.sqrt(3.0**2 + 4e11 * psd) * LAM / 2, rel=1e-12)
+
     def test_sigma_floor(self):
         _, s, _, _ = velocity(dop(7.5e6), frame(), [fam("U", 1, var=(1e-30,) * 3)], False)
         assert s == pytest.approx(SPEED_FLOOR_BINS * FS / N * LAM / 2)
@@ -200,6 +208,36 @@ class TestResolveTargets:
         assert pts[1][1].velocity_mps == pytest.approx(fd * LAM / 2)
         assert pts[1][1].doppler_hz == fd
         assert lu == pytest.approx(C / (2 * 10e6))
+
+
+    def test_static_beside_a_sub_guard_mover_claims_no_less_than_its_doppler(self):
+        """A mover found below the guard (``fit``, 2.5 bins; the search's floor 4 bins stated as 1):
+        the static candidate -- which may be that mover's own self-beat, kept in its place by
+        select -- states no smaller speed than the mover's."""
+        fd = 2.5 * FS / N
+        fams = [fam(range_m=3.7), fam("U", 1, range_m=9.1, fd=fd), fam("L", 1, range_m=9.1, fd=-fd)]
+        sub = DopplerEstimate(fd, True, 1e4, 100.0, FS / N, 3.0, 0.0, "fit", 0.0)
+        pts, _ = resolve_targets(fams, mix(fams, PHI, 10.0), [sub], frame(), ChainSettings(), Reference(PHI, 0.0),
+                                 None)
+        static = dict(pts)[0]
+        assert static.direction == "static" and static.speed_min_mps == pytest.approx(fd * LAM / 2)
+        assert static.velocity_sigma_mps == static.speed_min_mps
+
+    def test_single_receiver_self_beat_kept_for_a_sub_guard_mover_answers_it(self):
+        """Against truth: a single photodiode at 0 dB loss (the echo's self-beat as strong as its LO
+        beats, and select keeps it in the mover's place), the mover 4.5 bins out: the point's speed
+        error within 1.5 of its sigma (1 bin stated there would put the truth at 4.5 sigma)."""
+        from mtcw_bench.honesty import issue_scene
+        from mtcw_core.evaluate import judge_frame
+        bin_mps = 0.65536e9 / 2**16 * 1.55e-6 / 2
+        sc = issue_scene([{"range_m": 1.5, "velocity_mps": 4.5 * bin_mps, "loss_db": 0.0}], 2**16,
+                         (150e6, 200e6, 270e6), laser={"wavelength_m": 1.55e-6},
+                         digitizer={"sample_rate_hz": 0.65536e9})
+        for fr in Simulator(sc, seed=7).frames(2):
+            res = process_frame(fr, "balanced")
+            v = judge_frame(res, fr.truth)
+            assert res.status == "ok" and v.points[0].truth_index == 0
+            assert abs(v.points[0].speed_z) <= 1.5, (res.targets[0], v.points[0])
 
 
 class TestSelectTargets:

@@ -6,7 +6,9 @@ a pair of lines at ``f_i + f_d`` (family ``U``) and ``|f_i - f_d|`` (family ``L`
 receiver keeps the sign: ``f_d +- f_i``). The search (:func:`search_doppler`) scores every
 candidate shift by all of those lines together against the local noise floor; the refinement
 (:func:`estimate_doppler`) takes the peak below one spectrum bin, by a parabola, the lines'
-phase advance across the record (:func:`refine_by_phase`) or the exact line power.
+phase advance across the record (:func:`refine_by_phase`) or the exact line power. Below the
+search's guard (a few bins, where the static lines' window skirts would pass for Doppler pairs),
+:func:`search_small_doppler` fits the record's lines themselves, down to one record bin.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
+from scipy import linalg
 from scipy.optimize import minimize_scalar
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import t as student_t
@@ -23,7 +26,7 @@ from scipy.stats import t as student_t
 from ..frame import Frame
 from ..profiles import ChainSettings
 from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
-from .tones import exact_dft
+from .tones import _dirichlet, _gram_real, exact_dft
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,10 @@ class DopplerEstimate:
     #: it used -- the carrier's baseband line among them --, their scatter and the carrier phase
     #: they share, measured across the record), ``"reassigned"`` (the whole record's reassigned
     #: frequency, where lines are too close for parts: the same, less the shared phase, which one
-    #: window cannot see -- ``shared_phase_gain`` says what it adds), or ``""`` (the parabola)
+    #: window cannot see -- ``shared_phase_gain`` says what it adds), ``"fit"`` (below the search's
+    #: guard, :func:`search_small_doppler`: each line's frequency fitted on the whole record jointly
+    #: with the static lines, combined like the reassigned ones, the shared phase likewise left to
+    #: ``shared_phase_gain``), or ``""`` (the parabola)
     method: str = ""
     #: var(fd) per unit two-sided PSD of a phase all the lines share (Hz^2 per rad^2/Hz), for a
     #: refinement that cannot measure that phase itself; 0 otherwise
@@ -669,9 +675,24 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
 
     ``gated``: a quasi-CW record (echo in windows, laser incoherent at km delays): the phase
     refinement, which follows the lines' phases across the record, falls back to the parabola.
+
+    When the search finds no line beyond its guard and its spectrum is of the whole record (not
+    ``fast``'s part, not gated; a refining profile), :func:`search_small_doppler` looks below the
+    guard; with nothing decisive there, the estimate states :func:`small_doppler_floor_hz` as the
+    smallest Doppler it could have measured.
     """
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
                           settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets)
+    if not ests[0].detected and not gated and settings.doppler_refine != "parabolic" and spec.n == x.size \
+            and spec.record_n is None:
+        # nothing beyond the guard: a mover below it, on the whole record
+        guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins)
+        small = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
+                                     settings.doppler_threshold)
+        if small is not None:
+            return [small]
+        return [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(spec, frame.tones_hz, guard,
+                                                                          frame.fs_hz, x.size))]
     if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
         return ests
     iq = np.iscomplexobj(x)
@@ -760,3 +781,212 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain)
+
+
+# ---------------------------------------------------------------------------------------------
+# below the search's guard
+#: the sub-guard search looks down to this many record bins (fs/N) from 0 Hz: there a line's
+#: record-long cosine and sine are orthogonal to the mean (the Dirichlet kernel's first zero), a
+#: real record's image of it lies 2 bins away and the lines U, L lie a bin either side of the
+#: static line; closer, a line is a slope of the mean and U + L an amplitude beat of the static line
+SMALL_MIN_BINS = 1.0
+#: the scan's step (record bins)
+SMALL_SCAN_STEP = 0.25
+#: a sub-guard mover is decisive when its baseband line's post-integration SNR reaches this (20 dB;
+#: white noise's largest over the scan is ``ln(points)``, ~5) ...
+SMALL_MIN_SNR = 100.0
+#: ... its line is coherent: at most this wide in the search spectrum (bins; a Kaiser(14) line is
+#: 2.3-3, the Lorentzian hump of a laser incoherent at the echo's delay ten and more) ...
+SMALL_MAX_WIDTH = 3.2
+#: ... and at least this many tones (all, with fewer) have both sidebands above the search's
+#: per-line threshold (a mover must be rangeable)
+SMALL_MIN_PAIRS = 2
+#: the near floor about each line: +-this many bins of the search spectrum (the whole record's) ...
+SMALL_NEAR_HALF_WIDTH = 32
+#: ... less those within this many bins of a modelled line (the Kaiser(14) main lobe: +-4.6)
+SMALL_NEAR_GUARD = 5
+#: the step (record bins) of the energy's second difference about each line's fitted frequency
+SMALL_CURVATURE_STEP = 0.02
+#: ... and of the last parabola step (the vertex's bias), as a fraction of it
+SMALL_FINAL_STEP_FRACTION = 0.02
+#: the local floor's effect on a line's frequency, over white noise's: up to 2 when the floor is the
+#: line's own phase-noise pedestal (all of it in the phase quadrature, half of white noise)
+PEDESTAL_FACTOR = 2.0
+#: a ``static`` claim's sigma (the smallest measurable speed) covers a mover missed anywhere below
+#: the search's guard within this many sigmas
+STATIC_COVER_Z = 5.0
+
+
+def _explained(dft: np.ndarray, freqs: np.ndarray, fs: float, n: int, total: float, iq: bool
+               ) -> tuple[float, np.ndarray]:
+    """The energy (V^2) of a record explained by the least-squares lines at ``freqs`` (Hz; with a DC
+    column for a real record) given its exact DFT there, and their complex amplitudes (V), as
+    :func:`~mtcw_core.dsp.tones.fit_lines` gives them. ``total``: the record's sum (real only)."""
+    w = 2 * np.pi * freqs / fs
+    if iq:
+        c = linalg.solve(_dirichlet(w[:, None] - w[None, :], n), dft, assume_a="sym")
+        return float(np.real(np.vdot(dft, c))), c
+    gc, gs = _gram_real(w, n)
+    pc = np.concatenate([[total], dft.real])
+    ps = -dft.imag
+    a = linalg.solve(gc, pc, assume_a="sym")
+    b = linalg.solve(gs, ps, assume_a="sym")
+    return float(pc @ a + ps @ b), a[1:] - 1j * b
+
+
+def _parabola_peak(fun, x0: float, h: float, lo: float, hi: float, steps: int) -> tuple[float, float]:
+    """The top of a smooth peak of ``fun`` near ``x0``: ``steps`` times, the vertex of the parabola
+    through ``fun`` at ``x - h, x, x + h`` (clipped to ``[lo, hi]``); returns it and the last
+    parabola's second derivative (``>= 0``: no peak there, the walk stops). The last step's
+    points are :data:`SMALL_FINAL_STEP_FRACTION` of ``h`` apart: a parabola's vertex through points
+    ``h`` about an asymmetric peak misses it by ~``h^2`` (0.02 bin: 4e-4 bin near 0 Hz, where the
+    line and its image make it asymmetric -- 15 sigma at 70 dB; 0.1 of it still 6 sigma at 110 dB)."""
+    x, curv = x0, 0.0
+    for k in range(steps):
+        if k == steps - 1:
+            h = h * SMALL_FINAL_STEP_FRACTION  # the vertex's bias grows as h^2 (an asymmetric peak)
+        f_lo, f_0, f_hi = fun(x - h), fun(x), fun(x + h)
+        curv = (f_hi - 2 * f_0 + f_lo) / h**2
+        if not curv < 0:
+            break
+        x = float(np.clip(x - (f_hi - f_lo) / (2 * h) / curv, lo, hi))
+    return x, curv
+
+
+def small_doppler_floor_hz(spec: Spectrum, tones_hz, guard_bins: int, fs: float, n: int) -> float:
+    """The smallest Doppler (Hz) a frame searched below the guard states it could have measured: a
+    line :data:`SMALL_MIN_BINS` record bins from 0 Hz, and no less than the guard over
+    :data:`STATIC_COVER_Z` (a mover missed below the guard stays within that many sigmas of a static
+    claim); the guard itself where the static lines are not coherent (the sub-guard search then
+    finds nothing it may keep)."""
+    guard_hz = guard_bins * spec.df_hz
+    if line_width_bins(spec, tuple(float(f) for f in tones_hz)) >= 4:
+        return guard_hz
+    return max(SMALL_MIN_BINS * fs / n, guard_hz / STATIC_COVER_Z)
+
+
+def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
+                         threshold_factor: float) -> DopplerEstimate | None:
+    """A mover whose Doppler lies below the search's guard, measured on the whole record.
+
+    The search keeps ``guard_bins`` from the static lines, whose Kaiser main lobes would pass for
+    Doppler pairs there. Here the record's own lines are fitted instead, by least squares at their
+    exact frequencies (rectangular window, no leakage between modelled lines): a scan of the
+    baseband line ``|f_d|`` (``f_d`` for IQ) from :data:`SMALL_MIN_BINS` record bins up to one
+    search bin past the guard; at its peak (a local maximum inside the band), every line of the
+    mover -- baseband, ``f_i + f_d``, ``|f_i - f_d|`` -- fitted jointly with the static lines (``f_i``,
+    the DC; ``+-f_i`` and 0 Hz for IQ), first all at one trial ``f_d`` (the joint energy's
+    maximum), then each line's own frequency with the others held (:func:`_parabola_peak`). Each
+    line's error: the local floor -- the spectrum's wide ring, or the near one
+    (:data:`SMALL_NEAR_HALF_WIDTH`) where a partly coherent carrier's pedestal lies -- times
+    :data:`PEDESTAL_FACTOR`, over the fitted energy's curvature in that line's frequency (its
+    Fisher information with every amplitude free: near 0 Hz, the line's image and the static line
+    take some). The lines' estimates are combined with power weights and their error scaled by
+    their scatter (:func:`_combine_lines`). The phase all the lines share (laser
+    phase noise over the echo delay) is left to ``shared_phase_gain``: a straight-line fit of a
+    phase over ``T = N/fs`` turns its flat two-sided PSD ``S`` into ``var(f) = 12*S/((2*pi)^2*T^3)``
+    (x1.5 for a real record, as :func:`refine_reassigned`).
+
+    The mover is kept only when the evidence is decisive: the baseband line's SNR at least
+    :data:`SMALL_MIN_SNR`, stronger than any of its sidebands (the carrier beat of a mover is), a
+    coherent line (:data:`SMALL_MAX_WIDTH`), :data:`SMALL_MIN_PAIRS` tones with both sidebands
+    above ``threshold_factor``, and, on a static intermodulation product within the guard, stronger
+    than every static line (the search's rule).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V: the whole record
+    spec : the search spectrum (of the whole record)
+    guard_bins : the search's guard (``spec`` bins)
+
+    Returns
+    -------
+    DopplerEstimate (``method="fit"``), or None when there is no decisive sub-guard mover
+    """
+    iq = np.iscomplexobj(x)
+    fs, n = frame.fs_hz, x.size
+    dfr = fs / n
+    tones = np.asarray(frame.tones_hz, float)
+    lo = SMALL_MIN_BINS * dfr
+    hi = min((guard_bins + 1) * spec.df_hz, fd_max_hz)
+    if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
+        return None
+    total = 0.0 if iq else float(np.sum(x))
+    # the scan: the baseband line alone, with the mean (its sum is the DC column's projection)
+    grid = np.arange(lo, hi + 0.5 * SMALL_SCAN_STEP * dfr, SMALL_SCAN_STEP * dfr)
+    grid = np.concatenate([grid, -grid]) if iq else grid
+    xc = x - x.mean()
+    p = np.abs(exact_dft(xc, grid, fs)) ** 2
+    # the strongest point of the band (both signs for IQ), a local maximum inside it: a line just
+    # outside the band has its peak at the band's edge, and its sidelobes inside are weaker
+    k = int(np.argmax(p))
+    side = grid.size // 2 if iq else grid.size
+    if not 0 < k % side < side - 1:
+        return None
+    fd0 = float(grid[k])
+    if iq:
+        static = np.concatenate([[0.0], tones, -tones])
+    else:
+        static = tones.copy()
+    d_static = exact_dft(x, static, fs)
+
+    def joint(fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        fm, slope = target_lines(tones, fd, iq)
+        dm = exact_dft(x, fm, fs)
+        e, c = _explained(np.concatenate([d_static, dm]), np.concatenate([static, fm]), fs, n, total, iq)
+        return e, c, fm, dm
+
+    # the joint energy's maximum within half a scan step either side, inside the band
+    a_, b_ = abs(fd0) - 0.5 * SMALL_SCAN_STEP * dfr, abs(fd0) + 0.5 * SMALL_SCAN_STEP * dfr
+    sgn = 1.0 if fd0 > 0 else -1.0
+    h = SMALL_CURVATURE_STEP * dfr
+    fd = sgn * _parabola_peak(lambda f: joint(sgn * f)[0], abs(fd0), h, max(a_, lo), min(b_, hi), 3)[0]
+    _, c, fm, dm = joint(fd)
+    _, slope = target_lines(tones, fd, iq)
+    cm = c[static.size:]
+    all_f = np.concatenate([static, fm])
+    # the floor about each line: the spectrum's wide ring, or closer where more lies there (the
+    # pedestal of a carrier beat only partly coherent at the echo's delay, tens of bins wide)
+    excl = list(all_f) + [0.0]
+    s2 = np.maximum(spec.noise_variances(fm, excl),
+                    spec.noise_variances(fm, excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD))
+    kappa = 0.5 if iq else 2.0
+    snr = np.abs(cm) ** 2 * n / (kappa * np.maximum(s2, 1e-300))
+    t = tones.size
+    u_snr, l_snr = snr[1:1 + t], snr[1 + t:]
+    pairs = int(np.sum(np.minimum(u_snr, l_snr) >= threshold_factor))
+    base_pw = float(np.abs(cm[0]) ** 2)
+    if not (snr[0] >= SMALL_MIN_SNR and base_pw > float(np.max(np.abs(cm[1:]) ** 2))
+            and pairs >= min(SMALL_MIN_PAIRS, t)):
+        return None
+    if widths_at(spec, [fd if iq else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
+        return None
+    spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
+    if np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz) and \
+            base_pw <= float(np.max(np.abs(c[:static.size]) ** 2)):
+        return None
+    # each line's own frequency, the others held: its Doppler estimate and its white-noise error
+    use = snr >= threshold_factor
+    use[0] = True
+    d_line, curv = np.zeros(fm.size), np.zeros(fm.size)
+    for j in np.flatnonzero(use):
+
+        def energy(d: float, j: int = j) -> float:
+            f2, d2 = fm.copy(), dm.copy()
+            f2[j] += d
+            d2[j] = exact_dft(x, f2[j:j + 1], fs)[0]
+            return _explained(np.concatenate([d_static, d2]), np.concatenate([static, f2]), fs, n, total, iq)[0]
+
+        # the energy's curvature there (V^2/Hz^2) is the Fisher information of the line's frequency
+        # with every amplitude of the model free -- near 0 Hz, its image and the static line, less
+        # than an isolated line's
+        d_line[j], curv[j] = _parabola_peak(energy, 0.0, h, -0.5 * dfr, 0.5 * dfr, 2)
+    # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
+    # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
+    # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
+    s2_eff = PEDESTAL_FACTOR * s2[use]
+    var_line = (1.0 if iq else 2.0) * s2_eff / np.maximum(-curv[use], 1e-300)  # a flat top: no information
+    delta, err = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
+    gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
+    # a coherent line (the width test above): no wander of its own
+    return DopplerEstimate(fd + delta, True, float(snr[0]), SMALL_MIN_SNR, lo, err, 0.0, "fit", gain)

@@ -64,15 +64,27 @@ class LineFamily:
 
 
 
-def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings, fit_samples: int | None = None
-               ) -> tuple[list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]], np.ndarray]:
+#: a sub-guard mover's lines (``plan_lines``'s ``fine``) clash with another line within this many
+#: record bins (its search keeps its baseband line a bin or more from 0 Hz: U and L a bin or more
+#: from the static line)
+FINE_CLASH_BINS = 0.9
+
+
+def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings, fit_samples: int | None = None,
+               fine: list[bool] | None = None) -> tuple[list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
+                                                        np.ndarray]:
     """Line families per target candidate, and every frequency to fit.
 
     Candidate 0 is static (Doppler 0: the S lines of a real detector, the +-f_i lines of an IQ
     one); candidate k >= 1 is the k-th Doppler line (U and L families). Lines that fall within
     2 record-bins of lines already planned (or of each other) cannot be separated: they are
     marked unusable and not fitted. ``fit_samples``: the length of the records the lines are
-    fitted on (a segment's, when extraction is segmented), which sets the resolution.
+    fitted on (a segment's, when extraction is segmented), which sets the resolution. ``fine``
+    (one per Doppler line): a mover found below the search's guard
+    (:func:`~mtcw_core.dsp.doppler.search_small_doppler`, on the whole record) was itself measured
+    with its lines fitted jointly a bin or more from the static ones, where the record's Dirichlet
+    kernel leaves them at most 0.22 correlated: its lines clash only within
+    :data:`FINE_CLASH_BINS` record bins.
 
     Returns
     -------
@@ -91,31 +103,36 @@ def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings
         fams.append((0, "S", t.copy(), none, none))
     used = np.concatenate([f for _, _, f, _, _ in fams])
     extra: list[float] = []
+    sep: list[float] = []  # each extra line's clearance, in units of 1.5*res (a fine mover's baseband: less)
     for k, fd in enumerate(fds, start=1):
         cand = [(k, name, f, conj) for name, f, conj in doppler_families(t, fd, iq)]
         new = np.concatenate([f for _, _, f, _ in cand])
         # a line within 2 bins of another (e.g. f_i + f_d = f_j - f_d at half the tone spacing,
         # or another target's line) cannot be told apart: it is left out of this target
-        clash = np.abs(new[:, None] - used[None, :]).min(axis=1) <= res
+        res_k = FINE_CLASH_BINS * frame.fs_hz / frame.n if (fine and fine[k - 1] and not fit_samples) else res
+        clash = np.abs(new[:, None] - used[None, :]).min(axis=1) <= res_k
         d = np.where(np.eye(new.size, dtype=bool), np.inf, np.abs(new[:, None] - new[None, :]))
-        clash |= d.min(axis=1) <= res
+        clash |= d.min(axis=1) <= res_k
         for j, (kk, name, f, conj) in enumerate(cand):
             bad = clash[j * t.size:(j + 1) * t.size]
             fams.append((kk, name, f, conj, bad))
             used = np.concatenate([used, f[~bad]])
         extra.append(fd if iq else abs(fd))
+        sep.append(res_k / res)
     if iq:
         extra.append(0.0)  # the complex fit has no DC column: the LO's DC is a line at 0 Hz
+        sep.append(1.0)
     if settings.model_products and not iq:
         prods = [2 * a for a in t] + [a + b for i, a in enumerate(t) for b in t[i + 1:]] + \
                 [abs(a - b) for i, a in enumerate(t) for b in t[i + 1:]]
         extra += [p for p in prods if p < frame.fs_hz / 2]
+    sep += [1.0] * (len(extra) - len(sep))
     # a product line too close to a used line cannot be told apart: keep the used ones
     ex = np.asarray(extra, float)
-    clear = np.abs(ex[:, None] - used[None, :]).min(axis=1, initial=np.inf) > 1.5 * res  # from every used line
+    clear = np.abs(ex[:, None] - used[None, :]).min(axis=1, initial=np.inf) > 1.5 * res * np.asarray(sep)
     keep: list[float] = []
-    for f, ok in zip(extra, clear):
-        if ok and all(abs(f - k) > 1.5 * res for k in keep) and (abs(f) > 1.5 * res or (iq and f == 0.0)):
+    for f, ok, c in zip(extra, clear, sep):
+        if ok and all(abs(f - k) > 1.5 * res * c for k in keep) and (abs(f) > 1.5 * res * c or (iq and f == 0.0)):
             keep.append(f)
     return fams, np.concatenate([used, np.asarray(keep, float)])
 
@@ -165,7 +182,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     if segmented:
         starts, length = segment_starts(n, fs, settings, windows, [d.fd_hz for d in dops if d.detected])
     fams, all_f = plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
-                              length if segmented else None)
+                             length if segmented else None, [d.method == "fit" for d in dops if d.detected])
     uniq = np.unique(np.round(all_f, 6))
     if settings.extraction == "filter":
         if windows:

@@ -77,8 +77,8 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     noise over the echo delay) and the line's wander (incoherent laser), with a floor of
     :data:`SPEED_FLOOR_BINS`. A Doppler refined by phase advance carries its whole error itself,
     the shared carrier phase's wander measured by the refinement; one reassigned over the whole
-    record adds what the shared phase's PSD ``phase_psd`` (:func:`shared_phase_psd`) does to
-    it, and the wander.
+    record -- or fitted on it below the search's guard (``fit``) -- adds what the shared phase's
+    PSD ``phase_psd`` (:func:`shared_phase_psd`) does to it, and the wander.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
@@ -92,7 +92,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             v_max = fd_max_hz * lam / 2
             return 0.0, v_max, "unknown", v_max
         return 0.0, v_min, "static", v_min
-    if dop.method == "reassigned":
+    if dop.method in ("reassigned", "fit"):
         # one window over the whole record: its own white-noise error and scatter, plus what the
         # phase the lines share (laser phase noise over the echo delay) does to it, from physics
         # (it cannot be measured there), and the wander the lines' width shows
@@ -267,8 +267,12 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     candidate whose lines are a scaled copy of a stronger mover's (:func:`is_scaled_copy`: that
     mover's phase-noise pedestal) gets no point.
     """
-    static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, dops[0].min_detectable_hz)
     moving = [d for d in dops if d.detected]
+    # the static candidate's smallest measurable speed: the search's; beside a mover found below
+    # the guard, no less than that mover's Doppler (the static lines may be its own self-beat, and
+    # select may keep them in its place: they then answer it within one sigma)
+    floor = max([dops[0].min_detectable_hz] + [abs(d.fd_hz) for d in moving if d.method == "fit"])
+    static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, floor)
     points: list[tuple[int, TargetPoint]] = []
     l_unamb = None
     for k, obs in sorted(observations.items()):
