@@ -805,6 +805,10 @@ SMALL_MIN_PAIRS = 2
 SMALL_NEAR_HALF_WIDTH = 32
 #: ... less those within this many bins of a modelled line (the Kaiser(14) main lobe: +-4.6)
 SMALL_NEAR_GUARD = 5
+#: a line's own frequency is fitted, and enters the estimate, from this SNR (15 dB): below it a
+#: line's frequency leaves its Cramér-Rao bound (the threshold effect) and its scatter would
+#: inflate the combination's error by Birge's ratio for nothing
+SMALL_LINE_SNR = 30.0
 #: the step (record bins) of the energy's second difference about each line's fitted frequency
 SMALL_CURVATURE_STEP = 0.02
 #: ... and of the last parabola step (the vertex's bias), as a fraction of it
@@ -966,7 +970,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
             base_pw <= float(np.max(np.abs(c[:static.size]) ** 2)):
         return None
     # each line's own frequency, the others held: its Doppler estimate and its white-noise error
-    use = snr >= threshold_factor
+    use = snr >= SMALL_LINE_SNR
     use[0] = True
     d_line, curv = np.zeros(fm.size), np.zeros(fm.size)
     for j in np.flatnonzero(use):
@@ -984,8 +988,13 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
     # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
     # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
+    # a line whose energy has no peak near its frequency (a weak line's noise: no concave top, or
+    # one beyond the half bin searched) tells nothing of it; without the baseband, no estimate
+    use &= (curv < 0) & (np.abs(d_line) < 0.5 * dfr)
+    if not use[0]:
+        return None
     s2_eff = PEDESTAL_FACTOR * s2[use]
-    var_line = (1.0 if iq else 2.0) * s2_eff / np.maximum(-curv[use], 1e-300)  # a flat top: no information
+    var_line = (1.0 if iq else 2.0) * s2_eff / -curv[use]
     delta, err = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
     gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
     # a coherent line (the width test above): no wander of its own
