@@ -915,61 +915,97 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     hi = min((guard_bins + 1) * spec.df_hz, fd_max_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    total = 0.0 if iq else float(np.sum(x))
-    # the scan: the baseband line alone, with the mean (its sum is the DC column's projection)
-    grid = np.arange(lo, hi + 0.5 * SMALL_SCAN_STEP * dfr, SMALL_SCAN_STEP * dfr)
-    grid = np.concatenate([grid, -grid]) if iq else grid
-    xc = x - x.mean()
-    p = np.abs(exact_dft(xc, grid, fs)) ** 2
-    # the strongest point of the band (both signs for IQ), a local maximum inside it: a line just
-    # outside the band has its peak at the band's edge, and its sidelobes inside are weaker
-    k = int(np.argmax(p))
-    side = grid.size // 2 if iq else grid.size
-    if not 0 < k % side < side - 1:
+    fd0 = _small_scan(x, fs, lo, hi, iq)
+    if fd0 is None:
         return None
-    fd0 = float(grid[k])
-    if iq:
-        static = np.concatenate([[0.0], tones, -tones])
-    else:
-        static = tones.copy()
-    d_static = exact_dft(x, static, fs)
-
-    def joint(fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        fm, slope = target_lines(tones, fd, iq)
-        dm = exact_dft(x, fm, fs)
-        e, c = _explained(np.concatenate([d_static, dm]), np.concatenate([static, fm]), fs, n, total, iq)
-        return e, c, fm, dm
-
+    fit = _SmallFit(x, fs, tones, iq)
     # the joint energy's maximum within half a scan step either side, inside the band
     a_, b_ = abs(fd0) - 0.5 * SMALL_SCAN_STEP * dfr, abs(fd0) + 0.5 * SMALL_SCAN_STEP * dfr
     sgn = 1.0 if fd0 > 0 else -1.0
-    h = SMALL_CURVATURE_STEP * dfr
-    fd = sgn * _parabola_peak(lambda f: joint(sgn * f)[0], abs(fd0), h, max(a_, lo), min(b_, hi), 3)[0]
-    _, c, fm, dm = joint(fd)
-    _, slope = target_lines(tones, fd, iq)
-    cm = c[static.size:]
-    all_f = np.concatenate([static, fm])
+    fd = sgn * _parabola_peak(lambda f: fit.energy(sgn * f), abs(fd0), SMALL_CURVATURE_STEP * dfr,
+                              max(a_, lo), min(b_, hi), 3)[0]
+    _, c, fm, dm = fit.joint(fd)
+    cm = c[fit.static.size:]
     # the floor about each line: the spectrum's wide ring, or closer where more lies there (the
     # pedestal of a carrier beat only partly coherent at the echo's delay, tens of bins wide)
-    excl = list(all_f) + [0.0]
+    excl = list(fit.static) + list(fm) + [0.0]
     s2 = np.maximum(spec.noise_variances(fm, excl),
                     spec.noise_variances(fm, excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD))
-    kappa = 0.5 if iq else 2.0
-    snr = np.abs(cm) ** 2 * n / (kappa * np.maximum(s2, 1e-300))
-    t = tones.size
-    u_snr, l_snr = snr[1:1 + t], snr[1 + t:]
-    pairs = int(np.sum(np.minimum(u_snr, l_snr) >= threshold_factor))
+    snr = np.abs(cm) ** 2 * n / ((0.5 if iq else 2.0) * np.maximum(s2, 1e-300))
+    if not _small_decisive(spec, fd, c, snr, fit.static.size, tones, guard_bins, fd_max_hz, threshold_factor):
+        return None
+    combined = _small_lines(fit, fd, fm, dm, cm, s2, snr)
+    if combined is None:
+        return None
+    gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
+    # a coherent line (the width test): no wander of its own
+    return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain)
+
+
+def _small_scan(x: np.ndarray, fs: float, lo: float, hi: float, iq: bool) -> float | None:
+    """The sub-guard scan: the baseband line alone (mean removed), every :data:`SMALL_SCAN_STEP`
+    record bins over ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local
+    maximum inside the band (a line just outside has its peak at the band's edge, and its sidelobes
+    inside are weaker), else None."""
+    dfr = fs / x.size
+    grid = np.arange(lo, hi + 0.5 * SMALL_SCAN_STEP * dfr, SMALL_SCAN_STEP * dfr)
+    grid = np.concatenate([grid, -grid]) if iq else grid
+    p = np.abs(exact_dft(x - x.mean(), grid, fs)) ** 2
+    k = int(np.argmax(p))
+    side = grid.size // 2 if iq else grid.size
+    return float(grid[k]) if 0 < k % side < side - 1 else None
+
+
+class _SmallFit:
+    """The whole record's least-squares lines: the static ones (``f_i`` and the DC; ``+-f_i`` and
+    0 Hz for IQ), with a mover's at a trial Doppler (:func:`target_lines`)."""
+
+    def __init__(self, x: np.ndarray, fs: float, tones: np.ndarray, iq: bool):
+        self.x, self.fs, self.tones, self.iq = x, fs, tones, iq
+        self.total = 0.0 if iq else float(np.sum(x))
+        self.static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
+        self.d_static = exact_dft(x, self.static, fs)
+
+    def explained(self, fm: np.ndarray, dm: np.ndarray) -> tuple[float, np.ndarray]:
+        """Energy explained by the static lines and ``fm`` (whose exact DFT is ``dm``), amplitudes."""
+        return _explained(np.concatenate([self.d_static, dm]), np.concatenate([self.static, fm]), self.fs,
+                          self.x.size, self.total, self.iq)
+
+    def joint(self, fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        fm, _ = target_lines(self.tones, fd, self.iq)
+        dm = exact_dft(self.x, fm, self.fs)
+        return (*self.explained(fm, dm), fm, dm)
+
+    def energy(self, fd: float) -> float:
+        return self.joint(fd)[0]
+
+
+def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_static: int, tones: np.ndarray,
+                    guard_bins: int, fd_max_hz: float, threshold_factor: float) -> bool:
+    """Whether a sub-guard fit at ``fd`` is a mover: the baseband line's SNR (``snr[0]``) at least
+    :data:`SMALL_MIN_SNR` and stronger than every sideband, :data:`SMALL_MIN_PAIRS` tones with both
+    sidebands above ``threshold_factor``, a coherent line (:data:`SMALL_MAX_WIDTH`), and on a static
+    intermodulation product within the guard, stronger than every static line. ``c``: the fit's
+    amplitudes, the static lines' first (``n_static``), then the mover's (baseband, U, L)."""
+    cm, t = c[n_static:], tones.size
+    pairs = int(np.sum(np.minimum(snr[1:1 + t], snr[1 + t:]) >= threshold_factor))
     base_pw = float(np.abs(cm[0]) ** 2)
     if not (snr[0] >= SMALL_MIN_SNR and base_pw > float(np.max(np.abs(cm[1:]) ** 2))
             and pairs >= min(SMALL_MIN_PAIRS, t)):
-        return None
-    if widths_at(spec, [fd if iq else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
-        return None
+        return False
+    if widths_at(spec, [fd if spec.complex_input else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
+        return False
     spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
-    if np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz) and \
-            base_pw <= float(np.max(np.abs(c[:static.size]) ** 2)):
-        return None
-    # each line's own frequency, the others held: its Doppler estimate and its white-noise error
+    on_spur = np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz)
+    return not (on_spur and base_pw <= float(np.max(np.abs(c[:n_static]) ** 2)))
+
+
+def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: np.ndarray, s2: np.ndarray,
+                 snr: np.ndarray) -> tuple[float, float] | None:
+    """Each line's own frequency, the others held, and the lines' combined Doppler correction and
+    error (Hz); None when the baseband line has no peak of its own."""
+    dfr = fit.fs / fit.x.size
+    h = SMALL_CURVATURE_STEP * dfr
     use = snr >= SMALL_LINE_SNR
     use[0] = True
     d_line, curv = np.zeros(fm.size), np.zeros(fm.size)
@@ -978,24 +1014,21 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
         def energy(d: float, j: int = j) -> float:
             f2, d2 = fm.copy(), dm.copy()
             f2[j] += d
-            d2[j] = exact_dft(x, f2[j:j + 1], fs)[0]
-            return _explained(np.concatenate([d_static, d2]), np.concatenate([static, f2]), fs, n, total, iq)[0]
+            d2[j] = exact_dft(fit.x, f2[j:j + 1], fit.fs)[0]
+            return fit.explained(f2, d2)[0]
 
         # the energy's curvature there (V^2/Hz^2) is the Fisher information of the line's frequency
         # with every amplitude of the model free -- near 0 Hz, its image and the static line, less
         # than an isolated line's
         d_line[j], curv[j] = _parabola_peak(energy, 0.0, h, -0.5 * dfr, 0.5 * dfr, 2)
-    # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
-    # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
-    # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
     # a line whose energy has no peak near its frequency (a weak line's noise: no concave top, or
     # one beyond the half bin searched) tells nothing of it; without the baseband, no estimate
     use &= (curv < 0) & (np.abs(d_line) < 0.5 * dfr)
     if not use[0]:
         return None
-    s2_eff = PEDESTAL_FACTOR * s2[use]
-    var_line = (1.0 if iq else 2.0) * s2_eff / -curv[use]
-    delta, err = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
-    gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
-    # a coherent line (the width test above): no wander of its own
-    return DopplerEstimate(fd + delta, True, float(snr[0]), SMALL_MIN_SNR, lo, err, 0.0, "fit", gain)
+    # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
+    # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
+    # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
+    var_line = (1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2[use] / -curv[use]
+    _, slope = target_lines(fit.tones, fd, fit.iq)
+    return _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
