@@ -20,7 +20,7 @@ from scipy import signal as sps
 from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
-from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
+from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, _chi2_quantile, doppler_families
 from .spectrum import Spectrum
 from .tones import exact_dft, fit_lines, fit_lines_segments
 
@@ -200,6 +200,17 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
+    if (not iq and not windows and settings.segments == 1 and settings.extraction != "filter"
+            and not any(d.detected for d in dops)):
+        # no Doppler line found: the static lines may still fade within the record (a mover below
+        # the search's guard, the carrier's phase noise); their common real envelope is measured
+        s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
+        s2_s = spec.noise_variances(fams[0][2], uniq)
+        guard = max((d.min_detectable_hz for d in dops), default=0.0)
+        c = fading_lines(x, fs, uniq, s_idx, s2_s, guard)
+        if c is not None:
+            z_all = z_all.copy()
+            z_all[0, s_idx] = c
     zs = {}
     for target, name, freqs, conj, bad in fams:
         idx = np.clip(np.searchsorted(uniq, np.round(freqs, 6)), 0, uniq.size - 1)
@@ -227,6 +238,82 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
     return out
+
+
+#: the static lines' envelope is taken as varying when a free real envelope explains more of the
+#: segments' amplitudes than a constant one by more than chance allows at this probability
+FADING_SIGNIFICANCE = 1e-3
+#: segments of the envelope fit: enough that the guard's Doppler turns a segment's carrier by at
+#: most a quarter cycle, within these bounds
+FADING_SEGMENTS = (8, 64)
+#: the fit's lines must lie this many segment bins apart (and from 0 Hz) for the segment fits to
+#: separate them, and a segment must hold this many samples
+FADING_MIN_SEPARATION_BINS, FADING_MIN_LENGTH = 3.0, 256
+
+
+def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
+                 guard_hz: float) -> np.ndarray | None:
+    """The static lines' whole-record amplitudes with a fading envelope taken out, or None.
+
+    A real detector sees a target's LO beats at tone ``f_i`` as ``A_i*a(t)*cos(2*pi*f_i*t +
+    theta_i)`` with ``a(t) = 2*cos(Phi(t))``, ``Phi`` the carrier phase between echo and LO: one
+    real envelope shared by every tone. For a static target with a coherent laser ``a`` is constant
+    and the whole-record fit at ``f_i`` is efficient. A mover whose Doppler ``f_d`` lies below the
+    search's guard puts ``a(t) = 2*cos(2*pi*f_d*t + Phi_0)`` on the same lines: the whole-record fit
+    then keeps ``|mean a|``, which a half-bin Doppler brings near 0 in some frames (the phases'
+    variance grows as ``1/cos^2(Phi_0)``), though the lines carry all their power. Here the record
+    is cut into S segments, the lines fitted on each (referred to the record's centre: ``Z``,
+    shape (S, T)), and ``Z = a c^T`` fitted with ``a`` real (the leading singular pair of
+    ``[Re Z, Im Z]``, each line whitened by its floor): ``c_i = mean_s a_s*Z_si`` with ``mean a^2 =
+    1`` keeps every segment's power, ``|c_i|^2 = mean_s |Z_si|^2``, and its noise is the
+    whole-record fit's, so the phases' variance ``2*s2/(N*|c|^2)`` holds as the chain states it.
+    The envelope's sign is common to all tones (it cancels in the pair phases).
+
+    Taken only where the data ask for it: the residual of a constant envelope less that of a free
+    real one is ~chi2(S-1) (in units of the segment noise) when the envelope is constant; above its
+    :data:`FADING_SIGNIFICANCE` quantile the free envelope is used.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64, V (a real record)
+    fs : sample rate (Hz)
+    uniq : ndarray, shape (K,), every fitted frequency (Hz), sorted
+    s_idx : ndarray of int, shape (T,), the static lines' columns in ``uniq``
+    s2 : ndarray, shape (T,), each static line's noise variance per sample (V^2, local floor)
+    guard_hz : the largest Doppler the search could have missed (Hz)
+
+    Returns
+    -------
+    ndarray, shape (T,), complex (V, phase at the record's centre), or None where the envelope is
+    constant within the noise or the record cannot be cut fine enough
+    """
+    n = x.size
+    want = 4.0 * guard_hz * n / fs  # segments for a quarter cycle of the guard's envelope in each
+    segs = int(2 ** math.ceil(math.log2(max(want, FADING_SEGMENTS[0]))))
+    segs = min(segs, FADING_SEGMENTS[1], n // FADING_MIN_LENGTH)
+    if segs < 2 or s_idx.size < 2 or not np.all(s2 > 0):
+        return None
+    length = n // segs
+    res = fs / length
+    gaps = np.diff(np.concatenate([[0.0], uniq]))
+    if np.min(gaps) < FADING_MIN_SEPARATION_BINS * res:
+        return None
+    starts = np.arange(segs) * length
+    z = fit_lines_segments(x, starts, length, uniq, fs)[:, s_idx]  # (S, T), about each segment's centre
+    f = uniq[s_idx]
+    t_rel = (starts + (length - 1) / 2) / fs - (n - 1) / (2 * fs)  # segment centres from the record's
+    z = z * np.exp(-2j * np.pi * t_rel[:, None] * f[None, :])
+    sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
+    m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
+    rss_const = float(np.sum((m - m.mean(axis=0)) ** 2))
+    u, sv, _ = np.linalg.svd(m, full_matrices=False)
+    rss_free = float(np.sum(m**2) - sv[0] ** 2)
+    if rss_const - rss_free <= _chi2_quantile(1 - FADING_SIGNIFICANCE, segs - 1):
+        return None
+    a = u[:, 0] * math.sqrt(segs)
+    if np.sum(a) < 0:
+        a = -a
+    return (a @ z) / segs
 
 
 #: a fitted self-beat scale is taken when it leaves this part of the static lines' power at scale 1
