@@ -78,7 +78,7 @@ import numpy as np
 
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.dsp.tones import fit_lines
-from mtcw_core.evaluate import Z_WRONG, FrameVerdict, judge_frame, range_bound
+from mtcw_core.evaluate import Z_WRONG, FrameVerdict, judge_frame, phase_noise_bound, range_bound
 from mtcw_core.phase import C
 from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator, mean_truth
 from mtcw_core.scene import Scene, load_scene, scene_from_dict, scene_variant
@@ -565,6 +565,27 @@ def check_targets(cell: dict) -> list[str]:
     return miss
 
 
+#: noiseless frames (and their ideal-laser twins) behind a cell's phase-noise bound
+PN_BOUND_FRAMES = 8
+
+
+def in_crb_domain(scene: Scene) -> bool:
+    """Whether the ``crb`` target judges cells of ``scene``: a first target that moves, 40-80 dB."""
+    return scene.targets[0].velocity_mps != 0 and 40 <= scene.targets[0].loss_db <= 80
+
+
+def crb_phase_noise(g: Group, bound) -> float | None:
+    """The range bound of the group's first target with the laser's phase-noise leakage counted
+    as noise (:func:`mtcw_core.evaluate.phase_noise_bound`), m: where the ``crb`` target judges
+    the cells and the laser has a linewidth (it equals the white-noise bound for an ideal laser);
+    else None. It says which misses of the white-noise bound a phase-noise floor explains; the
+    target itself stays on the white-noise bound."""
+    if bound is None or g.scene.laser.linewidth_hz <= 0 or not in_crb_domain(g.scene):
+        return None
+    b = phase_noise_bound(bound_scene(g.scene), g.seed, PN_BOUND_FRAMES)
+    return None if b is None else b.range_sigma_m
+
+
 def _first_target_efficiency(verdicts: list[FrameVerdict], lam_min: float) -> float | None:
     """Sample std (m) of the first truth's range errors, wrong cycles (> lam_min/4) left out."""
     e = [p.range_error_m for v in verdicts for p in v.points
@@ -589,6 +610,7 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     runs = list(profiles) + ([accumulate_label(g.config.accumulate)] if g.config.accumulate else [])
     first_snr = predicted_snr_db(sc, True, g.seed) if g.config.self_beat else (bound.line_snr_db if bound else None)
     must = must_find(sc, first_snr, g.config.self_beat, g.seed)
+    pn = crb_phase_noise(g, bound)
     for prof in runs:
         settings = get_profile(prof.split("+")[0], **known)
         # case 9: the accumulator's points answer the truth averaged over the frames they rest on
@@ -619,6 +641,8 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
         std = _first_target_efficiency(verdicts, lam_min)
         cell["range_std_m"] = std
         cell["range_std_over_crb"] = std / bound.range_sigma_m if (std is not None and bound) else None
+        cell["crb_pn_range_m"] = pn
+        cell["range_std_over_crb_pn"] = std / pn if (std is not None and pn) else None
         cell["misses"] = check_targets(cell)
         cells.append(cell)
     return {"cells": cells, "frames": rows}
@@ -785,7 +809,7 @@ def main(argv: list[str] | None = None) -> None:
 
 __all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "issue_scene",
            "case9_accumulate_configs", "accumulate_label", "plan", "run_group",
-           "run_map", "summarise", "must_find", "check_targets", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
+           "run_map", "summarise", "must_find", "check_targets", "crb_phase_noise", "in_crb_domain", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
            "bin_speed_mps", "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v",
            "loss_shift_for", "read_result", "main"]
 

@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from mtcw_core.evaluate import ErrorLog, match_truth
+from mtcw_core.evaluate import ErrorLog, match_truth, range_bound
+from mtcw_core.phase import C
+from mtcw_core.scene import scene_variant
 from mtcw_core.frame import TruthTarget
 from mtcw_core.results import FrameResult, TargetPoint
 
@@ -102,3 +104,54 @@ class TestErrorLog:
         s = log.summary()
         assert s["range_bias_m"] == pytest.approx(0.001) and s["range_std_m"] is None
         assert s["speed_std_mps"] is None
+
+
+class TestPhaseNoiseBound:
+    """``phase_noise_bound``: the white-noise bound plus the laser's phase-noise leakage between lines."""
+
+    @staticmethod
+    def six_tone_mover(linewidth_hz: float):
+        from tests.conftest import make_scene
+
+        return make_scene(laser={"linewidth_hz": linewidth_hz},
+                          modulator={"tones": [{"frequency_hz": f} for f in (20e6, 500e6, 670e6, 700e6, 890e6, 950e6)]},
+                          targets=[{"range_m": 7.89, "velocity_mps": 1.62, "loss_db": 40.0}],
+                          noise={"shot": True, "thermal": True})
+
+    def test_ideal_laser_is_the_white_noise_bound(self):
+        from mtcw_core.evaluate import phase_noise_bound
+
+        sc = self.six_tone_mover(0.0)
+        b = phase_noise_bound(sc, seed=3, frames=2)
+        assert np.all(b.leak_var_rad2 == 0)
+        assert b.range_sigma_m == pytest.approx(range_bound(sc, 3).range_sigma_m, rel=1e-9)
+
+    def test_leakage_of_the_baseband_line_onto_a_20_mhz_tone(self):
+        """The 20 MHz tone's lines sit 14-26 MHz from the mover's baseband line B (and its mirror at
+        -f_d), ~35 dB stronger; B's phase-noise pedestal there, from the delayed self-heterodyne
+        spectrum ``linewidth*(1 - cos(2*pi*f*tau))/(pi*f^2)`` (two-sided, per Hz), gives each line a
+        phase variance ``|B|^2*sum S(offset)/(2*A^2*T)`` -- the measured leakage within 3 dB. The
+        bound then rises well above the white-noise one (which ignores it)."""
+        import math
+
+        from mtcw_core.dsp.tones import fit_lines
+        from mtcw_core.evaluate import phase_noise_bound
+        from mtcw_core.simulate import Simulator
+
+        lw = 100e3
+        sc = self.six_tone_mover(lw)
+        b = phase_noise_bound(sc, seed=3, frames=16)
+        fd = 2 * 1.62 / sc.laser.wavelength_m
+        lines = np.array([fd, 20e6 + fd, 20e6 - fd])
+        ideal = Simulator(scene_variant(sc, laser={"linewidth_hz": 0.0}, noise={"shot": False, "thermal": False}),
+                          3).frame(0)
+        z = np.abs(fit_lines(ideal.volts("pd"), lines, ideal.fs_hz))
+        t_rec, tau = ideal.n / ideal.fs_hz, 2 * 7.89 / C
+
+        def pedestal(f):  # two-sided PSD of the carrier phase over the delay tau, per Hz
+            return lw * (1 - math.cos(2 * math.pi * f * tau)) / (math.pi * f**2)
+
+        for k, line in ((0, lines[1]), (6, lines[2])):  # U and L of the 20 MHz tone
+            predicted = z[0] ** 2 * (pedestal(abs(line - fd)) + pedestal(line + fd)) / (2 * z[1 + (k > 0)] ** 2 * t_rec)
+            assert abs(10 * np.log10(b.leak_var_rad2[k] / predicted)) < 3.0, (k, b.leak_var_rad2[k], predicted)
+        assert b.range_sigma_m > 1.5 * b.white_sigma_m
