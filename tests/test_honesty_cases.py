@@ -83,10 +83,6 @@ def test_case1_six_tone_speed_is_within_its_sigma(profile):
     assert not confident(runs), confident(runs)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 12 case 1: fast finds no target at 2^18, 70 dB (3/3 frames "
-                                       "no_target) where the bound's line SNR is 25 dB, 15 dB above the threshold: its "
-                                       "Doppler search sees 1/8 of the record; the square stage does not apply (the "
-                                       "100 kHz laser is coherent at 6.8 m)")
 def test_case1_fast_finds_a_target_the_bound_says_is_strong():
     """0.21 m/s is 21 bins at 2^18, below fast's 4-bin guard on an eighth of the record: no Doppler
     line, and the whole-record fit at ``f_i`` of sidebands 21 bins away found nothing (3/3 frames

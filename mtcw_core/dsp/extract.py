@@ -20,7 +20,7 @@ from scipy import signal as sps
 from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
-from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, _chi2_quantile, doppler_families
+from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
 from .spectrum import Spectrum
 from .tones import exact_dft, fit_lines, fit_lines_segments
 
@@ -240,9 +240,14 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     return out
 
 
-#: the static lines' envelope is taken as varying when a free real envelope explains more of the
-#: segments' amplitudes than a constant one by more than chance allows at this probability
-FADING_SIGNIFICANCE = 1e-3
+#: the static lines' envelope is taken as varying when the segments' amplitudes less their mean
+#: hold a rank-1 part this many times the largest a pure-noise matrix of that shape holds
+#: (``(sqrt(S-1) + sqrt(2T))^2`` in units of the segment noise, the Marchenko-Pastur edge) ...
+FADING_VARIATION_EDGES = 2.0
+#: ... and the whole rank-1 part is this many times the edge of an (S, 2T) noise matrix: below
+#: that the free envelope follows the noise and raises the lines' power with it (a pure-noise
+#: frame at -6 dB line SNR came out 'ok' with an unflagged wrong range)
+FADING_SIGNAL_EDGES = 6.0
 #: segments of the envelope fit: enough that the guard's Doppler turns a segment's carrier by at
 #: most a quarter cycle, within these bounds
 FADING_SEGMENTS = (8, 64)
@@ -269,9 +274,11 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     whole-record fit's, so the phases' variance ``2*s2/(N*|c|^2)`` holds as the chain states it.
     The envelope's sign is common to all tones (it cancels in the pair phases).
 
-    Taken only where the data ask for it: the residual of a constant envelope less that of a free
-    real one is ~chi2(S-1) (in units of the segment noise) when the envelope is constant; above its
-    :data:`FADING_SIGNIFICANCE` quantile the free envelope is used.
+    Taken only where the data ask for it and can carry it: the whitened amplitudes less their mean
+    over the segments must hold a rank-1 part well above what noise alone puts there
+    (:data:`FADING_VARIATION_EDGES`), and the lines must be strong enough that the free envelope
+    follows them, not the noise (:data:`FADING_SIGNAL_EDGES`: 19-21 dB per line for 3-6 tones on
+    16-64 segments). Weaker lines keep the whole-record fit.
 
     Parameters
     ----------
@@ -305,10 +312,12 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     z = z * np.exp(-2j * np.pi * t_rel[:, None] * f[None, :])
     sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
-    rss_const = float(np.sum((m - m.mean(axis=0)) ** 2))
+    cols = m.shape[1]
+    varying = np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[0] ** 2
+    if varying <= FADING_VARIATION_EDGES * (math.sqrt(segs - 1) + math.sqrt(cols)) ** 2:
+        return None
     u, sv, _ = np.linalg.svd(m, full_matrices=False)
-    rss_free = float(np.sum(m**2) - sv[0] ** 2)
-    if rss_const - rss_free <= _chi2_quantile(1 - FADING_SIGNIFICANCE, segs - 1):
+    if sv[0] ** 2 <= FADING_SIGNAL_EDGES * (math.sqrt(segs) + math.sqrt(cols)) ** 2:
         return None
     a = u[:, 0] * math.sqrt(segs)
     if np.sum(a) < 0:
