@@ -58,7 +58,10 @@ truth with no flag raised and ``|z| > 5`` on range or speed -- issue 12's defini
 **confident-false frames** (an unflagged point that answers no truth: a ghost), flagged-wrong
 points (a flag beside a wrong number), missed targets, false targets, flags raised, and the
 issue's targets checked where they apply (:func:`check_targets`). Matching and z-scores:
-:func:`mtcw_core.evaluate.judge_frame`.
+:func:`mtcw_core.evaluate.judge_frame`. The ``crb`` target's reference is the white-noise bound
+(``crb_range_m``); where it judges a cell and the laser has a linewidth, ``crb_pn_range_m`` is the
+bound with the laser's phase-noise leakage between lines counted as noise
+(:func:`crb_phase_noise`), which says which misses a phase-noise floor explains.
 """
 
 from __future__ import annotations
