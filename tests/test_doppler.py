@@ -584,3 +584,46 @@ class TestSmallDopplerSimulated:
                 truth = 2 * fr.truth[0].velocity_mps / fr.wavelength_m
                 assert d.refine_error_hz < 0.02 * fr.fs_hz / fr.n and abs(d.fd_hz - truth) < 5 * d.refine_error_hz
         assert found >= 1
+
+
+class TestSmallGate:
+    """The sub-guard search's cheap steps: the scan on block sums, then the joint fit (tens of passes
+    over the record) only where the scan's lone baseband line could reach its SNR threshold."""
+
+    def test_a_static_record_never_reaches_the_joint_fit(self, monkeypatch):
+        import mtcw_core.dsp.doppler as dp
+
+        def boom(*a, **k):
+            raise AssertionError("the joint fit ran on a static record")
+
+        monkeypatch.setattr(dp, "_SmallFit", boom)
+        for seed in range(5):
+            # static lines 53 dB above the noise; a record's rectangular window leaks them
+            # 1/(pi*distance) into the band below the guard (static=0.5 here would leak as much as
+            # a mover at the fit's threshold, and the gate passes such a record on to the fit)
+            x = real_record((), static=0.005, seed=seed)
+            assert not TestSmallDoppler.estimate(x).detected
+
+    def test_the_gate_passes_whatever_the_fit_keeps(self, monkeypatch):
+        """Sub-guard movers below and around the fit's threshold (baseband SNR 1-330): with the gate off the fit
+        keeps some and refuses others; with it on, the same ones to the last digit, and fewer fits run."""
+        import mtcw_core.dsp.doppler as dp
+
+        fd, base = 2.6 * DF, np.sqrt(2e-6 / N)  # baseband amplitude of SNR 1 (noise 1e-3)
+        recs = [real_record(((fd, a * base, 0.3 * a * base),), static=0.005, seed=s)
+                for a in (1.0, 3.0, 8.0, 11.0, 18.0) for s in range(3)]
+        fits = {"n": 0}
+        real_fit = dp._SmallFit
+
+        def counted(*a, **k):
+            fits["n"] += 1
+            return real_fit(*a, **k)
+
+        monkeypatch.setattr(dp, "_SmallFit", counted)
+        on = [TestSmallDoppler.estimate(x) for x in recs]
+        gated = fits["n"]
+        monkeypatch.setattr(dp, "_small_worth_fitting", lambda *a: True)
+        off = [TestSmallDoppler.estimate(x) for x in recs]
+        assert [(e.detected, e.fd_hz) for e in on] == [(e.detected, e.fd_hz) for e in off]
+        assert any(e.detected for e in off) and not all(e.detected for e in off)
+        assert gated < fits["n"] - gated

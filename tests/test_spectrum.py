@@ -445,3 +445,42 @@ def test_local_floor_is_the_ring_mean_written_out():
         ring = [abs(j) if j < 0 else (2 * 4000 - j if j > 4000 else j) for j in ring]
         want = math.exp(math.fsum(math.log(p[j]) for j in ring) / len(ring) + np.euler_gamma)
         assert fl[k] == pytest.approx(want, rel=1e-12)
+
+
+class TestLowBand:
+    """LowBand: the DFT near 0 Hz from block sums -- what the sub-guard scan reads."""
+
+    @pytest.mark.parametrize("iq", [False, True])
+    def test_a_low_line_beside_strong_high_lines_is_the_exact_dft(self, iq):
+        from mtcw_core.dsp.spectrum import LowBand
+        from mtcw_core.dsp.tones import exact_dft
+
+        n = 1_000_003  # no block count divides it: the tail counts too
+        df = FS / n
+        rng = np.random.default_rng(4)
+        x = 2.0 + 1e-3 * tone(n, 3.3 * df, p=0.4) + tone(n, 100e6) + 0.5 * tone(n, 310e6 + 2.1 * df)
+        x = x + 0.01 * rng.standard_normal(n)
+        if iq:
+            x = x + 1j * (0.01 * rng.standard_normal(n) + 1e-3 * tone(n, 2.2 * df))
+        f = np.arange(1.0, 8.0, 0.25) * df
+        f = np.concatenate([f, -f]) if iq else f
+        exact = exact_dft(x - x.mean(), f, FS)
+        low = LowBand.of(x, FS, 8.0)
+        assert low.sums.size * low.block + low.tail.size == n
+        approx = low.dft(f)
+        # the block sums' error is the noise's content within each block (a few %), not the lines'
+        assert np.max(np.abs(approx - exact)) < 0.03 * np.max(np.abs(exact))
+        k = int(np.argmin(np.abs(f - 3.3 * df)))
+        assert abs(approx[k]) == pytest.approx(abs(exact[k]), rel=0.01)
+        assert abs(abs(exact[k]) - 1e-3 * n / 2) < 0.1 * 1e-3 * n / 2  # the line itself: A*N/2 (noise ~ 10)
+
+    def test_white_noise_keeps_the_dfts_statistics(self):
+        """E|X(f)|^2 = N*s2 at the band's frequencies, as for the record's own DFT (the snr the
+        sub-guard gate compares against the fit's)."""
+        from mtcw_core.dsp.spectrum import LowBand
+
+        n, s = 2**16, 0.3
+        rng = np.random.default_rng(9)
+        f = np.arange(1, 9) * FS / n
+        p = np.concatenate([np.abs(LowBand.of(s * rng.standard_normal(n), FS, 8).dft(f)) ** 2 for _ in range(200)])
+        assert np.mean(p) / (n * s**2) == pytest.approx(1.0, abs=0.08)

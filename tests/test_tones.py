@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_core.dsp.tones import exact_dft, exact_dft_parts, fit_lines, fit_lines_segments, phasors
+from mtcw_core.dsp.tones import exact_dft, exact_dft_parts, exact_dft_tiled, fit_lines, fit_lines_segments, phasors
 
 FS = 1.0e9
 
@@ -279,3 +279,30 @@ def test_cached_tables_serve_repeated_frequencies_only():
     eb, _, _ = _tables(x.size, (f1 / FS).tobytes())
     with pytest.raises(ValueError):
         eb[0, 0] = 0
+
+
+class TestTiled:
+    """exact_dft_tiled: the whole record's DFT and its parts' from one pass."""
+
+    @pytest.mark.parametrize("n,parts", [(2**14, 8), (10_007, 16), (1000, 1)])
+    def test_equals_the_direct_transforms(self, n, parts):
+        rng = np.random.default_rng(n)
+        f = np.array([3.3e6, 117.25e6, 301.0e6, 0.47e9])
+        for x in (rng.standard_normal(n), rng.standard_normal(n) + 1j * rng.standard_normal(n)):
+            whole, each = exact_dft_tiled(x, parts, f, FS)
+            length = n // parts
+            direct = exact_dft(x, f, FS)
+            assert np.max(np.abs(whole - direct)) < 1e-9 * np.max(np.abs(direct))
+            assert np.allclose(each, exact_dft_parts(x[:parts * length].reshape(parts, length), f, FS),
+                               rtol=0, atol=1e-12 * np.max(np.abs(each)))
+
+    def test_segment_fit_from_the_tiled_dfts_is_the_direct_fit(self):
+        n, parts = 2**14, 16
+        f = np.array([50e6, 120e6, 200e6])
+        x = real_tones(n, f, [1.0, 0.5, 0.25], [0.1, 1.0, -2.0], dc=0.3)
+        x = x + 0.01 * np.random.default_rng(2).standard_normal(n)
+        length = n // parts
+        starts = np.arange(parts) * length
+        _, each = exact_dft_tiled(x, parts, f, FS)
+        assert np.allclose(fit_lines_segments(x, starts, length, f, FS, each),
+                           fit_lines_segments(x, starts, length, f, FS), rtol=0, atol=1e-12)

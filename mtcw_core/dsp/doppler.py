@@ -25,7 +25,7 @@ from scipy.stats import t as student_t
 
 from ..frame import Frame
 from ..profiles import ChainSettings
-from .spectrum import Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
+from .spectrum import LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
 from .tones import _dirichlet, _gram_real, exact_dft
 
 
@@ -792,6 +792,9 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
 SMALL_MIN_BINS = 1.0
 #: the scan's step (record bins)
 SMALL_SCAN_STEP = 0.25
+#: the scan's peak goes on to the joint fit when its lone baseband line is within this factor of
+#: :data:`SMALL_MIN_SNR` (:func:`_small_worth_fitting`)
+SMALL_SCAN_MARGIN = 4.0
 #: a sub-guard mover is decisive when its baseband line's post-integration SNR reaches this (20 dB;
 #: white noise's largest over the scan is ``ln(points)``, ~5) ...
 SMALL_MIN_SNR = 100.0
@@ -915,8 +918,9 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     hi = min((guard_bins + 1) * spec.df_hz, fd_max_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    fd0 = _small_scan(x, fs, lo, hi, iq)
-    if fd0 is None:
+    low = LowBand.of(x, fs, hi / dfr, spec.total if spec.n == n else None)
+    fd0 = _small_scan(low, lo, hi, iq)
+    if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq):
         return None
     fit = _SmallFit(x, fs, tones, iq)
     # the joint energy's maximum within half a scan step either side, inside the band
@@ -942,18 +946,52 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain)
 
 
-def _small_scan(x: np.ndarray, fs: float, lo: float, hi: float, iq: bool) -> float | None:
-    """The sub-guard scan: the baseband line alone (mean removed), every :data:`SMALL_SCAN_STEP`
-    record bins over ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local
-    maximum inside the band (a line just outside has its peak at the band's edge, and its sidelobes
-    inside are weaker), else None."""
-    dfr = fs / x.size
+def _small_scan(low: LowBand, lo: float, hi: float, iq: bool) -> float | None:
+    """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
+    :class:`~.spectrum.LowBand`), every :data:`SMALL_SCAN_STEP` record bins over ``[lo, hi]`` Hz
+    (both signs for IQ); its strongest point, when that is a local maximum inside the band (a line
+    just outside has its peak at the band's edge, and its sidelobes inside are weaker), else None."""
+    dfr = low.fs_hz / low.n
     grid = np.arange(lo, hi + 0.5 * SMALL_SCAN_STEP * dfr, SMALL_SCAN_STEP * dfr)
     grid = np.concatenate([grid, -grid]) if iq else grid
-    p = np.abs(exact_dft(x - x.mean(), grid, fs)) ** 2
+    p = np.abs(low.dft(grid)) ** 2
     k = int(np.argmax(p))
     side = grid.size // 2 if iq else grid.size
     return float(grid[k]) if 0 < k % side < side - 1 else None
+
+
+def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndarray, iq: bool) -> bool:
+    """Whether the scan's peak at ``fd`` could pass :data:`SMALL_MIN_SNR` in the joint fit: its
+    baseband line alone, ``2|X(fd)|^2/(N*s2)`` against the spectrum's wide floor there, with
+    ``|X|`` raised by what the static lines may leak into it (:func:`_static_leakage`: the fit
+    models them, the lone line does not), is at least that over :data:`SMALL_SCAN_MARGIN`. The
+    fit's amplitude differs from the lone line's by the line's image and the mean's removal (at
+    most ~0.2 each a bin or more from 0 Hz: -2 dB), and its floor is the larger of the wide and
+    the near ring's: so 6 dB leaves every line the fit would keep. The joint fit (tens of passes
+    over the record) then runs only on a real line."""
+    static = np.concatenate([[0.0], tones, -tones]) if iq else np.concatenate([[0.0], tones])
+    s2 = float(spec.noise_variances([fd if iq else abs(fd)], static)[0])
+    if not s2 > 0:
+        return True
+    x_fd = abs(low.dft([fd])[0]) + _static_leakage(spec, low, fd, tones, iq)
+    return 2.0 * x_fd**2 / (low.n * s2) >= SMALL_MIN_SNR / SMALL_SCAN_MARGIN
+
+
+def _static_leakage(spec: Spectrum, low: LowBand, fd: float, tones: np.ndarray, iq: bool) -> float:
+    """An upper bound on ``|X(fd)|`` from the static lines (``f_i``; ``+-f_i`` for IQ) through the
+    record's rectangular window: each line's exponential has the amplitude ``sqrt(P)/sum(w)`` in
+    the search spectrum's power ``P`` (its largest within a bin of the line), at most
+    ``sqrt(P)/sum(w^2)`` (``0 <= w <= 1``), times the Dirichlet kernel ``|D(f_i -+ f_d)|``.
+    Negligible on long records (``1/(pi*distance in bins)``), not on a 2^14-sample record whose
+    static lines are 60 dB above the noise."""
+    f = np.concatenate([tones, -tones]) if iq else tones
+    b = spec.bin_of(f)
+    near = np.clip(b[:, None] + np.arange(-1, 2)[None, :], 0, spec.power.size - 1)
+    amp = np.sqrt(np.max(np.asarray(spec.power[near], dtype=np.float64), axis=1)) / spec.window_power
+    kern = np.abs(_dirichlet(2 * np.pi * (f - fd) / low.fs_hz, low.n))
+    if not iq:
+        kern = kern + np.abs(_dirichlet(2 * np.pi * (f + fd) / low.fs_hz, low.n))
+    return float(np.sum(amp * kern))
 
 
 class _SmallFit:

@@ -22,7 +22,7 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
 from .spectrum import Spectrum
-from .tones import exact_dft, fit_lines, fit_lines_segments
+from .tones import exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
 @dataclass
@@ -184,6 +184,10 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     fams, all_f = plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
                              length if segmented else None, [d.method == "fit" for d in dops if d.detected])
     uniq = np.unique(np.round(all_f, 6))
+    fading = (not iq and not windows and settings.segments == 1 and settings.extraction != "filter"
+              and not any(d.detected for d in dops))
+    guard = max((d.min_detectable_hz for d in dops), default=0.0)  # the largest Doppler missed (Hz)
+    seg_dft = None
     if settings.extraction == "filter":
         if windows:
             raise Rejected("unsupported", "the seed's filter extraction has no quasi-CW gating")
@@ -194,20 +198,22 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         # the search spectrum's when it transformed the whole record (the same sum of the same array)
         total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
                                  else float(np.sum(x)))
-        z_all, centres = fit_lines(x, uniq, fs, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
+        # no Doppler line on a real record: the static lines may fade within it (below), and the
+        # whole record's DFTs come from the envelope fit's segments (one pass for both)
+        fade_segs = fading_segments(n, fs, uniq, guard) if fading else None
+        whole, seg_dft = exact_dft_tiled(x, fade_segs, uniq, fs) if fade_segs else (None, None)
+        z_all, centres = fit_lines(x, uniq, fs, dft=whole, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
-    if (not iq and not windows and settings.segments == 1 and settings.extraction != "filter"
-            and not any(d.detected for d in dops)):
+    if seg_dft is not None:
         # no Doppler line found: the static lines may still fade within the record (a mover below
         # the search's guard, the carrier's phase noise); their common real envelope is measured
         s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
         s2_s = spec.noise_variances(fams[0][2], uniq)
-        guard = max((d.min_detectable_hz for d in dops), default=0.0)
-        c = fading_lines(x, fs, uniq, s_idx, s2_s, guard)
+        c = fading_lines(x, fs, uniq, s_idx, s2_s, guard, seg_dft)
         if c is not None:
             z_all = z_all.copy()
             z_all[0, s_idx] = c
@@ -256,8 +262,23 @@ FADING_SEGMENTS = (8, 64)
 FADING_MIN_SEPARATION_BINS, FADING_MIN_LENGTH = 3.0, 256
 
 
+def fading_segments(n: int, fs: float, uniq: np.ndarray, guard_hz: float) -> int | None:
+    """The segments :func:`fading_lines` cuts an ``n``-sample record into (enough that the
+    guard's Doppler turns a segment's carrier by at most a quarter cycle, within
+    :data:`FADING_SEGMENTS`), or None where the record cannot be cut that fine: fewer than 2
+    segments of :data:`FADING_MIN_LENGTH` samples, or lines (``uniq``, Hz, sorted) closer than
+    :data:`FADING_MIN_SEPARATION_BINS` segment bins to each other or to 0 Hz."""
+    want = 4.0 * guard_hz * n / fs  # segments for a quarter cycle of the guard's envelope in each
+    segs = int(2 ** math.ceil(math.log2(max(want, FADING_SEGMENTS[0]))))
+    segs = min(segs, FADING_SEGMENTS[1], n // FADING_MIN_LENGTH)
+    if segs < 2 or uniq.size < 2:
+        return None
+    gaps = np.diff(np.concatenate([[0.0], uniq]))
+    return None if np.min(gaps) < FADING_MIN_SEPARATION_BINS * fs / (n // segs) else segs
+
+
 def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
-                 guard_hz: float) -> np.ndarray | None:
+                 guard_hz: float, seg_dft: np.ndarray | None = None) -> np.ndarray | None:
     """The static lines' whole-record amplitudes with a fading envelope taken out, or None.
 
     A real detector sees a target's LO beats at tone ``f_i`` as ``A_i*a(t)*cos(2*pi*f_i*t +
@@ -288,6 +309,8 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     s_idx : ndarray of int, shape (T,), the static lines' columns in ``uniq``
     s2 : ndarray, shape (T,), each static line's noise variance per sample (V^2, local floor)
     guard_hz : the largest Doppler the search could have missed (Hz)
+    seg_dft : ndarray, shape (S, K), complex, optional: the segments' DFTs of ``uniq`` if already
+        taken (:func:`~.tones.exact_dft_tiled` with :func:`fading_segments`' count)
 
     Returns
     -------
@@ -295,18 +318,12 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     constant within the noise or the record cannot be cut fine enough
     """
     n = x.size
-    want = 4.0 * guard_hz * n / fs  # segments for a quarter cycle of the guard's envelope in each
-    segs = int(2 ** math.ceil(math.log2(max(want, FADING_SEGMENTS[0]))))
-    segs = min(segs, FADING_SEGMENTS[1], n // FADING_MIN_LENGTH)
-    if segs < 2 or s_idx.size < 2 or not np.all(s2 > 0):
+    segs = fading_segments(n, fs, uniq, guard_hz)
+    if segs is None or s_idx.size < 2 or not np.all(s2 > 0):
         return None
     length = n // segs
-    res = fs / length
-    gaps = np.diff(np.concatenate([[0.0], uniq]))
-    if np.min(gaps) < FADING_MIN_SEPARATION_BINS * res:
-        return None
     starts = np.arange(segs) * length
-    z = fit_lines_segments(x, starts, length, uniq, fs)[:, s_idx]  # (S, T), about each segment's centre
+    z = fit_lines_segments(x, starts, length, uniq, fs, seg_dft)[:, s_idx]  # (S, T), about each segment's centre
     f = uniq[s_idx]
     t_rel = (starts + (length - 1) / 2) / fs - (n - 1) / (2 * fs)  # segment centres from the record's
     z = z * np.exp(-2j * np.pi * t_rel[:, None] * f[None, :])

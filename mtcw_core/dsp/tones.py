@@ -189,7 +189,44 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
     return alpha - 1j * beta
 
 
-def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz, fs_hz: float) -> np.ndarray:
+def exact_dft_tiled(x: np.ndarray, parts: int, freqs_hz, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`exact_dft` of the whole record and of its ``parts`` consecutive parts of
+    ``L = N // parts`` samples (each about its own centre), in one pass.
+
+    The whole record's sum is its parts' sums turned by their centres' phases,
+    ``X(f) = sum_s X_s(f) exp(-j*2*pi*f*(s*L + (L-1)/2 - (N-1)/2)/fs)`` (cycles reduced modulo 1
+    in float64), with the ``N mod parts`` samples left over added the same way: a caller that
+    needs both (the whole-record fit and the segments' fits of one set of lines) reads the
+    record once.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128
+    parts : int, 1 <= parts <= N
+    freqs_hz : array_like, shape (K,), Hz (any sign)
+
+    Returns
+    -------
+    whole : ndarray, shape (K,), complex128, as :func:`exact_dft` (within rounding)
+    each : ndarray, shape (parts, K), complex128, as :func:`exact_dft_parts` of the parts
+    """
+    f = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
+    n = x.size
+    length = n // parts
+    r = f / fs_hz
+    c = (n - 1) / 2.0
+    each = exact_dft_parts(x[:parts * length].reshape(parts, length), f, fs_hz)
+    offs = np.arange(parts, dtype=np.float64) * length + (length - 1) / 2.0 - c  # part centres from the record's
+    whole = np.sum(each * np.exp(-2j * np.pi * np.mod(np.outer(offs, r), 1.0)), axis=0)
+    rest = n - parts * length
+    if rest:
+        off = parts * length + (rest - 1) / 2.0 - c
+        whole = whole + exact_dft(x[parts * length:], f, fs_hz) * np.exp(-2j * np.pi * np.mod(r * off, 1.0))
+    return whole, each
+
+
+def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz, fs_hz: float,
+                       dft: np.ndarray | None = None) -> np.ndarray:
     """:func:`fit_lines` on many equal-length segments at once, each referred to its own centre.
 
     :func:`exact_dft_parts` gives every segment's DFTs (the phasor tables are the same for all
@@ -201,6 +238,8 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
     starts : ndarray of int, shape (S,), first sample of each segment
     length : int, samples per segment
     freqs_hz : array_like, shape (K,)
+    dft : ndarray, shape (S, K), optional: the segments' DFTs if already computed
+        (:func:`exact_dft_tiled`)
 
     Returns
     -------
@@ -208,9 +247,12 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
     """
     f = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
     starts = np.asarray(starts, dtype=np.int64)
-    idx = starts[:, None] + np.arange(length)[None, :]
-    seg = x[idx]  # (S, L)
-    dft = exact_dft_parts(seg, f, fs_hz)  # (S, K), each segment about its own centre
+    if starts.size and np.all(starts == np.arange(starts.size) * length) and starts.size * length <= x.size:
+        seg = x[:starts.size * length].reshape(starts.size, length)  # consecutive segments: a view
+    else:
+        seg = x[starts[:, None] + np.arange(length)[None, :]]  # (S, L)
+    if dft is None:
+        dft = exact_dft_parts(seg, f, fs_hz)  # (S, K), each segment about its own centre
     w = 2 * np.pi * f / fs_hz
     if np.iscomplexobj(seg):
         g = _dirichlet(w[:, None] - w[None, :], length)
