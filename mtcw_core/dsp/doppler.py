@@ -676,15 +676,14 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     ``gated``: a quasi-CW record (echo in windows, laser incoherent at km delays): the phase
     refinement, which follows the lines' phases across the record, falls back to the parabola.
 
-    When the search finds no line beyond its guard and its spectrum is of the whole record (not
-    ``fast``'s part, not gated; a refining profile), :func:`search_small_doppler` looks below the
-    guard; with nothing decisive there, the estimate states :func:`small_doppler_floor_hz` as the
-    smallest Doppler it could have measured.
+    When the search finds no line beyond its guard (a CW record, a refining profile -- ``fast``
+    too, whose guard on an eighth of the record is 8x wider in Hz), :func:`search_small_doppler`
+    looks below the guard on the whole record; with nothing decisive there, the estimate states
+    :func:`small_doppler_floor_hz` as the smallest Doppler it could have measured.
     """
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
                           settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets)
-    if not ests[0].detected and not gated and settings.doppler_refine != "parabolic" and spec.n == x.size \
-            and spec.record_n is None:
+    if not ests[0].detected and not gated and settings.doppler_refine != "parabolic":
         # nothing beyond the guard: a mover below it, on the whole record
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins)
         small = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
@@ -903,7 +902,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     Parameters
     ----------
     x : ndarray, shape (N,), float64 or complex128, V: the whole record
-    spec : the search spectrum (of the whole record)
+    spec : the search spectrum (of the whole record, or of its first part: ``fast``'s eighth)
     guard_bins : the search's guard (``spec`` bins)
 
     Returns
@@ -918,7 +917,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     hi = min((guard_bins + 1) * spec.df_hz, fd_max_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    low = LowBand.of(x, fs, hi / dfr, spec.total if spec.n == n else None)
+    low = LowBand.of(x, fs, hi / dfr)
     fd0 = _small_scan(low, lo, hi, iq)
     if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq):
         return None
@@ -948,16 +947,17 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
 
 def _small_scan(low: LowBand, lo: float, hi: float, iq: bool) -> float | None:
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
-    :class:`~.spectrum.LowBand`), every :data:`SMALL_SCAN_STEP` record bins over ``[lo, hi]`` Hz
-    (both signs for IQ); its strongest point, when that is a local maximum inside the band (a line
-    just outside has its peak at the band's edge, and its sidelobes inside are weaker), else None."""
-    dfr = low.fs_hz / low.n
-    grid = np.arange(lo, hi + 0.5 * SMALL_SCAN_STEP * dfr, SMALL_SCAN_STEP * dfr)
-    grid = np.concatenate([grid, -grid]) if iq else grid
-    p = np.abs(low.dft(grid)) ** 2
+    :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
+    ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
+    the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
+    weaker), else None."""
+    grid, p = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
+    if grid.size < 3:
+        return None
     k = int(np.argmax(p))
-    side = grid.size // 2 if iq else grid.size
-    return float(grid[k]) if 0 < k % side < side - 1 else None
+    side = int(np.sum(grid > 0))
+    i, count = (k, side) if k < side else (k - side, grid.size - side)
+    return float(grid[k]) if 0 < i < count - 1 else None
 
 
 def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndarray, iq: bool) -> bool:

@@ -626,18 +626,19 @@ class LowBand:
     fs_hz: float
 
     @classmethod
-    def of(cls, x: np.ndarray, fs_hz: float, band_bins: float, total: float | complex | None = None) -> "LowBand":
+    def of(cls, x: np.ndarray, fs_hz: float, band_bins: float) -> "LowBand":
         """The block sums of ``x`` (shape (N,), float64 or complex128, V) for a band of
         ``band_bins`` record bins (``fs/N``) about 0 Hz: :data:`LOW_BAND_BLOCKS_PER_BIN` blocks
-        per bin (at least :data:`LOW_BAND_MIN_BLOCKS`, a power of two, at most ``N/4``).
-        ``total``: ``np.sum(x)`` if already known (:attr:`Spectrum.total` of the whole record)."""
+        per bin (at least :data:`LOW_BAND_MIN_BLOCKS`, a power of two, at most ``N/4``); the
+        record's mean from the sums themselves (one pass)."""
         n = x.size
         want = max(LOW_BAND_MIN_BLOCKS, LOW_BAND_BLOCKS_PER_BIN * band_bins)
         m = int(min(2 ** math.ceil(math.log2(want)), max(n // 4, 1)))
         b = n // m
-        mean = (np.sum(x) if total is None else total) / n
-        sums = x[:m * b].reshape(m, b).sum(axis=1) - mean * b
-        return cls(sums, x[m * b:] - mean, b, n, float(fs_hz))
+        sums = x[:m * b].reshape(m, b).sum(axis=1)
+        tail = x[m * b:]
+        mean = (np.sum(sums) + np.sum(tail)) / n
+        return cls(sums - mean * b, tail - mean, b, n, float(fs_hz))
 
     def dft(self, freqs_hz) -> np.ndarray:
         """``exact_dft(x - mean(x), f, fs)`` (phase about the record's centre) for frequencies in
@@ -656,3 +657,27 @@ class LowBand:
             t_idx = np.arange(m * b, self.n, dtype=np.float64) - c
             out = out + np.exp(-2j * np.pi * np.outer(r, t_idx)) @ self.tail
         return out
+
+    def scan(self, lo_hz: float, hi_hz: float, step_bins: float, both_signs: bool) -> tuple[np.ndarray, np.ndarray]:
+        """``|exact_dft(x - mean(x), f, fs)|^2`` on a grid of about ``step_bins`` record bins over
+        ``lo_hz <= |f| <= hi_hz`` (``f >= 0`` only unless ``both_signs``), by one zero-padded FFT of
+        the block sums: the grid is ``k*fs/(P*M*B)`` with ``P*M`` a power of two (``M*B`` the
+        samples in whole blocks, the record less its tail of fewer than ``M`` samples, which the
+        scan leaves out). For finding a peak, not for its phase.
+
+        Returns
+        -------
+        f : ndarray, shape (G,), Hz, ascending (the negative half after the positive one for IQ)
+        power : ndarray, shape (G,), V^2
+        """
+        m, b = self.sums.size, self.block
+        pad = int(2 ** math.ceil(math.log2(max(m / step_bins * self.n / (m * b), m))))
+        spec = scipy.fft.fft(self.sums, pad)
+        f = np.fft.fftfreq(pad, d=b / self.fs_hz)  # Hz
+        keep = (np.abs(f) >= lo_hz) & (np.abs(f) <= hi_hz) & ((f > 0) | both_signs)
+        r = f[keep] / self.fs_hz
+        den = np.sin(np.pi * r)
+        droop = np.sin(np.pi * r * b) / np.where(den == 0, 1.0, den) / b
+        pos, neg = f[keep] > 0, f[keep] < 0
+        order = np.concatenate([np.flatnonzero(pos), np.flatnonzero(neg)])
+        return f[keep][order], (np.abs(spec[keep]) ** 2 / droop**2)[order]
