@@ -627,3 +627,27 @@ class TestSmallGate:
         assert [(e.detected, e.fd_hz) for e in on] == [(e.detected, e.fd_hz) for e in off]
         assert any(e.detected for e in off) and not all(e.detected for e in off)
         assert gated < fits["n"] - gated
+
+
+class TestSmallSeveral:
+    """Several movers below the guard: each further one scanned with the baseband lines of those
+    found taken out, and fitted with all their lines held (one echo's lines leak into another's
+    through the record's window)."""
+
+    def test_two_sub_guard_movers_are_both_measured(self):
+        f1, f2 = 1.8 * DF, 4.4 * DF
+        x = real_record(((f1, 2e-3, 6e-4), (f2, 1.2e-3, 4e-4)), static=0.005, seed=5)
+        fr = frame_of(x)
+        ests = estimate_doppler(x, fr, power_spectrum(x, FS, n=x.size), get_profile("balanced"))
+        assert [e.method for e in ests] == ["fit", "fit"]
+        assert ests[0].score > ests[1].score
+        for e, f in zip(ests, (f1, f2)):
+            assert abs(e.fd_hz - f) <= 5 * e.refine_error_hz and e.refine_error_hz < 0.01 * DF
+
+    def test_one_mover_is_not_counted_twice(self):
+        """The strongest mover's sidelobes (rectangular window: -13 dB a bin and a half away) would
+        be the scan's next peak: its baseband line is taken out of the scan, and with all its lines
+        held in the fit nothing decisive is left (either alone suffices here)."""
+        x = real_record(((2.6 * DF, 2e-2, 6e-3),), static=0.005, seed=6)
+        ests = estimate_doppler(x, frame_of(x), power_spectrum(x, FS, n=x.size), get_profile("balanced"))
+        assert len(ests) == 1 and ests[0].method == "fit"

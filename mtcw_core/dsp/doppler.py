@@ -162,7 +162,7 @@ def _near(x: np.ndarray, marks: np.ndarray, tol: float) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------
 # the search
-def _guard_bins(spec: Spectrum, tones_hz, min_bins: int) -> int:
+def _guard_bins(spec: Spectrum, tones_hz, min_bins: int, width: float | None = None) -> int:
     """How far (bins) a Doppler line must lie from the static lines to be told from their skirts.
 
     With a laser incoherent at the echo's delay every line is a Lorentzian whose wings carry
@@ -170,7 +170,7 @@ def _guard_bins(spec: Spectrum, tones_hz, min_bins: int) -> int:
     its main lobe); a Lorentzian's wings reach ~2.5 FWHM at -15 dB, so keep ~5 FWHM, 4 equivalent
     widths, away.
     """
-    w = line_width_bins(spec, tones_hz)
+    w = line_width_bins(spec, tones_hz) if width is None else width
     return max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
 
 
@@ -259,12 +259,13 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
 
 
 def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[tuple[int, int]],
-             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool) -> np.ndarray:
-    """Candidates still open after ``found``: away from the lines taken, and no ghost of them."""
+             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool, apart: int) -> np.ndarray:
+    """Candidates still open after ``found``: more than ``apart`` bins from the lines taken, and no
+    ghost of them."""
     ok = sc.valid.copy()
     for ts, tb in taken:
         if ts == sign or not complex_input:
-            ok[max(tb - 2 * min_bins, 0): tb + 2 * min_bins + 1] = False
+            ok[max(tb - apart, 0): tb + apart + 1] = False
     if found:
         ok &= sc.n_pairs >= 2
         # not a ghost of a target already found: its lines and intermodulation products (tones,
@@ -315,7 +316,12 @@ def search_doppler(
     list of DopplerEstimate, strongest first; ``[not detected]`` when there is none
     """
     df = spec.df_hz
-    min_bins = _guard_bins(spec, tones_hz, min_bins)
+    width = line_width_bins(spec, tones_hz)
+    min_bins = _guard_bins(spec, tones_hz, min_bins, width)
+    # a further target keeps twice the guard from those found: a strong mover's phase-noise
+    # pedestal carries bumps past one guard (issue 12 case 5: with one guard, such a bump taken as
+    # a second target left the mover's refinement 60-70 sigma off)
+    apart = 2 * min_bins
     # two bins beyond the limit, so that a line exactly at it is still a local maximum
     bmax = int(min(np.floor(fd_max_hz / df) + 2, spec.power.size // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
@@ -337,7 +343,7 @@ def search_doppler(
     for _ in range(max_targets):
         best = None
         for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input)
+            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, apart)
             if not ok.any():
                 continue
             k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
@@ -686,10 +692,15 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     if not ests[0].detected and not gated and settings.doppler_refine != "parabolic":
         # nothing beyond the guard: a mover below it, on the whole record
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins)
-        small = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
-                                     settings.doppler_threshold)
-        if small is not None:
-            return [small]
+        small: list[DopplerEstimate] = []
+        while len(small) < settings.max_targets:
+            more = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
+                                        settings.doppler_threshold, tuple(d.fd_hz for d in small))
+            if more is None:
+                break
+            small.append(more)
+        if small:
+            return sorted(small, key=lambda d: -d.score)
         return [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(spec, frame.tones_hz, guard,
                                                                           frame.fs_hz, x.size))]
     if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
@@ -791,6 +802,9 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
 SMALL_MIN_BINS = 1.0
 #: the scan's step (record bins)
 SMALL_SCAN_STEP = 0.25
+#: a further sub-guard mover's scan keeps this many record bins from the movers already found and
+#: from their beats (:func:`_small_scan`)
+SMALL_OTHER_BINS = 2.0
 #: the scan's peak goes on to the joint fit when its lone baseband line is within this factor of
 #: :data:`SMALL_MIN_SNR` (:func:`_small_worth_fitting`)
 SMALL_SCAN_MARGIN = 4.0
@@ -872,7 +886,7 @@ def small_doppler_floor_hz(spec: Spectrum, tones_hz, guard_bins: int, fs: float,
 
 
 def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
-                         threshold_factor: float) -> DopplerEstimate | None:
+                         threshold_factor: float, others: tuple[float, ...] = ()) -> DopplerEstimate | None:
     """A mover whose Doppler lies below the search's guard, measured on the whole record.
 
     The search keeps ``guard_bins`` from the static lines, whose Kaiser main lobes would pass for
@@ -905,6 +919,11 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     spec : the search spectrum (of the whole record, or of its first part: ``fast``'s eighth)
     guard_bins : the search's guard (``spec`` bins)
 
+    others : the Dopplers (Hz) of sub-guard movers already found in this record: their lines join
+        the static ones in the fit, their baseband lines are taken out of the scan
+        (:func:`_small_residual`), and the scan keeps :data:`SMALL_OTHER_BINS` from them and from
+        their beats with each other (``|f_a +- f_b|``: one echo is the other's LO)
+
     Returns
     -------
     DopplerEstimate (``method="fit"``), or None when there is no decisive sub-guard mover
@@ -918,10 +937,11 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
     low = LowBand.of(x, fs, hi / dfr)
-    fd0 = _small_scan(low, lo, hi, iq)
-    if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq):
+    fit = _SmallFit(x, fs, tones, iq, others) if others else None
+    fd0 = _small_scan(low, lo, hi, iq, fit)
+    if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, fit):
         return None
-    fit = _SmallFit(x, fs, tones, iq)
+    fit = fit or _SmallFit(x, fs, tones, iq)
     # the joint energy's maximum within half a scan step either side, inside the band
     a_, b_ = abs(fd0) - 0.5 * SMALL_SCAN_STEP * dfr, abs(fd0) + 0.5 * SMALL_SCAN_STEP * dfr
     sgn = 1.0 if fd0 > 0 else -1.0
@@ -935,7 +955,8 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     s2 = np.maximum(spec.noise_variances(fm, excl),
                     spec.noise_variances(fm, excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD))
     snr = np.abs(cm) ** 2 * n / ((0.5 if iq else 2.0) * np.maximum(s2, 1e-300))
-    if not _small_decisive(spec, fd, c, snr, fit.static.size, tones, guard_bins, fd_max_hz, threshold_factor):
+    if not _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz,
+                           threshold_factor):
         return None
     combined = _small_lines(fit, fd, fm, dm, cm, s2, snr)
     if combined is None:
@@ -945,22 +966,45 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain)
 
 
-def _small_scan(low: LowBand, lo: float, hi: float, iq: bool) -> float | None:
+def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | None" = None) -> float | None:
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
     :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
     ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
     the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
-    weaker), else None."""
-    grid, p = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
+    weaker), else None. ``fit``: with movers already found (``fit.others``), their baseband lines
+    are taken out first and the points near them and their beats left out."""
+    grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
+    p = np.abs(xs - _small_residual(fit, grid)) ** 2 if fit is not None else np.abs(xs) ** 2
+    if fit is not None:
+        dfr = low.fs_hz / low.n
+        near = [*fit.others, *(a + sg * b for i, a in enumerate(fit.others) for b in fit.others[i + 1:]
+                               for sg in (1, -1))]
+        for f0 in near:
+            p[np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr] = 0.0
     k = int(np.argmax(p))
     side = int(np.sum(grid > 0))
     i, count = (k, side) if k < side else (k - side, grid.size - side)
-    return float(grid[k]) if 0 < i < count - 1 else None
+    return float(grid[k]) if 0 < i < count - 1 and p[k] > 0 else None
 
 
-def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndarray, iq: bool) -> bool:
+def _small_residual(fit: "_SmallFit", grid: np.ndarray) -> np.ndarray:
+    """What the movers already found put into the record's DFT on ``grid`` (Hz), shape (G,),
+    complex: each one's baseband line, fitted with the static lines and their other lines
+    (``fit``), through the record's rectangular window (centred Dirichlet kernel; a real line's
+    image at ``-f`` too)."""
+    n = fit.x.size
+    out = np.zeros(grid.size, dtype=np.complex128)
+    for f0, a in zip(fit.other_base, fit.other_amps()):
+        out += (a if fit.iq else a / 2) * _dirichlet(2 * np.pi * (grid - f0) / fit.fs, n)
+        if not fit.iq:
+            out += np.conj(a) / 2 * _dirichlet(2 * np.pi * (grid + f0) / fit.fs, n)
+    return out
+
+
+def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndarray, iq: bool,
+                         fit: "_SmallFit | None" = None) -> bool:
     """Whether the scan's peak at ``fd`` could pass :data:`SMALL_MIN_SNR` in the joint fit: its
     baseband line alone, ``2|X(fd)|^2/(N*s2)`` against the spectrum's wide floor there, with
     ``|X|`` raised by what the static lines may leak into it (:func:`_static_leakage`: the fit
@@ -973,7 +1017,10 @@ def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndar
     s2 = float(spec.noise_variances([fd if iq else abs(fd)], static)[0])
     if not s2 > 0:
         return True
-    x_fd = abs(low.dft([fd])[0]) + _static_leakage(spec, low, fd, tones, iq)
+    x_fd = low.dft([fd])[0]
+    if fit is not None:  # less the movers already found
+        x_fd = x_fd - _small_residual(fit, np.array([fd]))[0]
+    x_fd = abs(x_fd) + _static_leakage(spec, low, fd, tones, iq)
     return 2.0 * x_fd**2 / (low.n * s2) >= SMALL_MIN_SNR / SMALL_SCAN_MARGIN
 
 
@@ -996,13 +1043,25 @@ def _static_leakage(spec: Spectrum, low: LowBand, fd: float, tones: np.ndarray, 
 
 class _SmallFit:
     """The whole record's least-squares lines: the static ones (``f_i`` and the DC; ``+-f_i`` and
-    0 Hz for IQ), with a mover's at a trial Doppler (:func:`target_lines`)."""
+    0 Hz for IQ) and every line of the movers already found (``others``, Hz), held at their
+    frequencies (``static`` holds both, the static ones' ``n_static`` first), with a mover's at a
+    trial Doppler (:func:`target_lines`)."""
 
-    def __init__(self, x: np.ndarray, fs: float, tones: np.ndarray, iq: bool):
-        self.x, self.fs, self.tones, self.iq = x, fs, tones, iq
+    def __init__(self, x: np.ndarray, fs: float, tones: np.ndarray, iq: bool, others: tuple[float, ...] = ()):
+        self.x, self.fs, self.tones, self.iq, self.others = x, fs, tones, iq, tuple(others)
         self.total = 0.0 if iq else float(np.sum(x))
-        self.static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
+        static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
+        self.n_static = static.size
+        self.other_base = np.array([o if iq else abs(o) for o in self.others], dtype=float)
+        self.static = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
         self.d_static = exact_dft(x, self.static, fs)
+
+    def other_amps(self) -> np.ndarray:
+        """The baseband amplitudes (V, at the record's centre) of the movers already found, fitted
+        with the static lines and all their lines, shape (len(others),)."""
+        c = _explained(self.d_static, self.static, self.fs, self.x.size, self.total, self.iq)[1]
+        per = (self.static.size - self.n_static) // max(len(self.others), 1)  # lines per mover
+        return c[self.n_static::per][:len(self.others)]
 
     def explained(self, fm: np.ndarray, dm: np.ndarray) -> tuple[float, np.ndarray]:
         """Energy explained by the static lines and ``fm`` (whose exact DFT is ``dm``), amplitudes."""
@@ -1018,14 +1077,15 @@ class _SmallFit:
         return self.joint(fd)[0]
 
 
-def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_static: int, tones: np.ndarray,
-                    guard_bins: int, fd_max_hz: float, threshold_factor: float) -> bool:
+def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_fixed: int, n_static: int,
+                    tones: np.ndarray, guard_bins: int, fd_max_hz: float, threshold_factor: float) -> bool:
     """Whether a sub-guard fit at ``fd`` is a mover: the baseband line's SNR (``snr[0]``) at least
     :data:`SMALL_MIN_SNR` and stronger than every sideband, :data:`SMALL_MIN_PAIRS` tones with both
     sidebands above ``threshold_factor``, a coherent line (:data:`SMALL_MAX_WIDTH`), and on a static
     intermodulation product within the guard, stronger than every static line. ``c``: the fit's
-    amplitudes, the static lines' first (``n_static``), then the mover's (baseband, U, L)."""
-    cm, t = c[n_static:], tones.size
+    amplitudes, the held lines' first (``n_fixed``: the static lines' ``n_static``, then those of
+    the movers already found), then the mover's (baseband, U, L)."""
+    cm, t = c[n_fixed:], tones.size
     pairs = int(np.sum(np.minimum(snr[1:1 + t], snr[1 + t:]) >= threshold_factor))
     base_pw = float(np.abs(cm[0]) ** 2)
     if not (snr[0] >= SMALL_MIN_SNR and base_pw > float(np.max(np.abs(cm[1:]) ** 2))

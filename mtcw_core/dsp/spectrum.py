@@ -659,25 +659,27 @@ class LowBand:
         return out
 
     def scan(self, lo_hz: float, hi_hz: float, step_bins: float, both_signs: bool) -> tuple[np.ndarray, np.ndarray]:
-        """``|exact_dft(x - mean(x), f, fs)|^2`` on a grid of about ``step_bins`` record bins over
+        """``exact_dft(x - mean(x), f, fs)`` on a grid of about ``step_bins`` record bins over
         ``lo_hz <= |f| <= hi_hz`` (``f >= 0`` only unless ``both_signs``), by one zero-padded FFT of
         the block sums: the grid is ``k*fs/(P*M*B)`` with ``P*M`` a power of two (``M*B`` the
         samples in whole blocks, the record less its tail of fewer than ``M`` samples, which the
-        scan leaves out). For finding a peak, not for its phase.
+        scan leaves out); each value turned to the record's centre, as :meth:`dft`. For finding a
+        peak, not for its phase's last digit.
 
         Returns
         -------
         f : ndarray, shape (G,), Hz, ascending (the negative half after the positive one for IQ)
-        power : ndarray, shape (G,), V^2
+        x : ndarray, shape (G,), complex, V
         """
         m, b = self.sums.size, self.block
         pad = int(2 ** math.ceil(math.log2(max(m / step_bins * self.n / (m * b), m))))
         spec = scipy.fft.fft(self.sums, pad)
         f = np.fft.fftfreq(pad, d=b / self.fs_hz)  # Hz
         keep = (np.abs(f) >= lo_hz) & (np.abs(f) <= hi_hz) & ((f > 0) | both_signs)
-        r = f[keep] / self.fs_hz
+        f = f[keep]
+        r = f / self.fs_hz
         den = np.sin(np.pi * r)
         droop = np.sin(np.pi * r * b) / np.where(den == 0, 1.0, den) / b
-        pos, neg = f[keep] > 0, f[keep] < 0
-        order = np.concatenate([np.flatnonzero(pos), np.flatnonzero(neg)])
-        return f[keep][order], (np.abs(spec[keep]) ** 2 / droop**2)[order]
+        turn = np.exp(-2j * np.pi * r * ((b - 1) / 2.0 - (self.n - 1) / 2.0))  # block 0's centre from the record's
+        order = np.concatenate([np.flatnonzero(f > 0), np.flatnonzero(f < 0)])
+        return f[order], (spec[keep] * turn / droop)[order]
