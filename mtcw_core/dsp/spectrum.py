@@ -640,6 +640,13 @@ class LowBand:
         mean = (np.sum(sums) + np.sum(tail)) / n
         return cls(sums - mean * b, tail - mean, b, n, float(fs_hz))
 
+    def _droop(self, r: np.ndarray) -> np.ndarray:
+        """The block sum's gain at ``r`` cycles per sample against ``B``: ``sin(pi*r*B)/(B*sin(pi*r))``
+        (1 at 0 Hz)."""
+        b = self.block
+        den = np.sin(np.pi * r)
+        return np.where(den == 0, 1.0, np.sin(np.pi * r * b) / (b * np.where(den == 0, 1.0, den)))
+
     def dft(self, freqs_hz) -> np.ndarray:
         """``exact_dft(x - mean(x), f, fs)`` (phase about the record's centre) for frequencies in
         the band, shape (K,), complex128."""
@@ -648,9 +655,7 @@ class LowBand:
         c = (self.n - 1) / 2.0
         m, b = self.sums.size, self.block
         centres = np.arange(m, dtype=np.float64) * b + (b - 1) / 2.0 - c  # block centres from the record's
-        arg = np.sin(np.pi * r * b)
-        den = np.sin(np.pi * r)
-        droop = np.where(np.abs(den) > 0, arg / np.where(den == 0, 1.0, den), float(b)) / b
+        droop = self._droop(r)
         # the band's phases stay within a few hundred cycles over the record: no reduction needed
         out = (np.exp(-2j * np.pi * np.outer(r, centres)) @ self.sums) / droop
         if self.tail.size:
@@ -672,14 +677,13 @@ class LowBand:
         x : ndarray, shape (G,), complex, V
         """
         m, b = self.sums.size, self.block
-        pad = int(2 ** math.ceil(math.log2(max(m / step_bins * self.n / (m * b), m))))
+        pad = int(2 ** math.ceil(math.log2(max(self.n / (b * step_bins), m))))
         spec = scipy.fft.fft(self.sums, pad)
         f = np.fft.fftfreq(pad, d=b / self.fs_hz)  # Hz
         keep = (np.abs(f) >= lo_hz) & (np.abs(f) <= hi_hz) & ((f > 0) | both_signs)
         f = f[keep]
         r = f / self.fs_hz
-        den = np.sin(np.pi * r)
-        droop = np.sin(np.pi * r * b) / np.where(den == 0, 1.0, den) / b
+        droop = self._droop(r)
         turn = np.exp(-2j * np.pi * r * ((b - 1) / 2.0 - (self.n - 1) / 2.0))  # block 0's centre from the record's
         order = np.concatenate([np.flatnonzero(f > 0), np.flatnonzero(f < 0)])
         return f[order], (spec[keep] * turn / droop)[order]
