@@ -296,6 +296,7 @@ def search_doppler(
     threshold_factor: float = 8.0,
     use_baseband: bool = True,
     max_targets: int = 1,
+    width: float | None = None,
 ) -> list[DopplerEstimate]:
     """Find the Doppler shift from the baseband line and the symmetric lines ``f_i +- f_d``.
 
@@ -311,12 +312,14 @@ def search_doppler(
     in addition, at least two of their sideband pairs stand above the threshold (a second
     target must be rangeable, not a stray line).
 
+    ``width``: :func:`~.spectrum.line_width_bins` of ``spec`` if already read (it sets the guard).
+
     Returns
     -------
     list of DopplerEstimate, strongest first; ``[not detected]`` when there is none
     """
     df = spec.df_hz
-    width = line_width_bins(spec, tones_hz)
+    width = line_width_bins(spec, tones_hz) if width is None else width
     min_bins = _guard_bins(spec, tones_hz, min_bins, width)
     # a further target keeps twice the guard from those found: a strong mover's phase-noise
     # pedestal carries bumps past one guard (issue 12 case 5: with one guard, such a bump taken as
@@ -687,11 +690,13 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     looks below the guard on the whole record; with nothing decisive there, the estimate states
     :func:`small_doppler_floor_hz` as the smallest Doppler it could have measured.
     """
+    width = line_width_bins(spec, frame.tones_hz)  # the lines' width, read once (search, guard, floor)
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
-                          settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets)
+                          settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets,
+                          width=width)
     if not ests[0].detected and not gated and settings.doppler_refine != "parabolic":
         # nothing beyond the guard: a mover below it, on the whole record
-        guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins)
+        guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins, width)
         small: list[DopplerEstimate] = []
         while len(small) < settings.max_targets:
             more = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
@@ -702,7 +707,7 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
         if small:
             return sorted(small, key=lambda d: -d.score)
         return [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(spec, frame.tones_hz, guard,
-                                                                          frame.fs_hz, x.size))]
+                                                                          frame.fs_hz, x.size, width))]
     if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
         return ests
     iq = np.iscomplexobj(x)
@@ -873,14 +878,16 @@ def _parabola_peak(fun, x0: float, h: float, lo: float, hi: float, steps: int) -
     return x, curv
 
 
-def small_doppler_floor_hz(spec: Spectrum, tones_hz, guard_bins: int, fs: float, n: int) -> float:
+def small_doppler_floor_hz(spec: Spectrum, tones_hz, guard_bins: int, fs: float, n: int,
+                           width: float | None = None) -> float:
     """The smallest Doppler (Hz) a frame searched below the guard states it could have measured: a
     line :data:`SMALL_MIN_BINS` record bins from 0 Hz, and no less than the guard over
     :data:`STATIC_COVER_Z` (a mover missed below the guard stays within that many sigmas of a static
     claim); the guard itself where the static lines are not coherent (the sub-guard search then
-    finds nothing it may keep)."""
+    finds nothing it may keep). ``width``: :func:`~.spectrum.line_width_bins` if already read."""
     guard_hz = guard_bins * spec.df_hz
-    if line_width_bins(spec, tuple(float(f) for f in tones_hz)) >= 4:
+    w = line_width_bins(spec, tuple(float(f) for f in tones_hz)) if width is None else width
+    if w >= 4:
         return guard_hz
     return max(SMALL_MIN_BINS * fs / n, guard_hz / STATIC_COVER_Z)
 
