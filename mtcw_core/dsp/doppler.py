@@ -18,7 +18,6 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
-from scipy import linalg
 from scipy.optimize import minimize_scalar
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import t as student_t
@@ -26,7 +25,7 @@ from scipy.stats import t as student_t
 from ..frame import Frame
 from ..profiles import ChainSettings
 from .spectrum import LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
-from .tones import _dirichlet, _gram_real, exact_dft
+from .tones import _dirichlet, exact_dft, solve_lines
 
 
 @dataclass(frozen=True)
@@ -259,13 +258,14 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
 
 
 def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[tuple[int, int]],
-             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool, apart: int) -> np.ndarray:
-    """Candidates still open after ``found``: more than ``apart`` bins from the lines taken, and no
-    ghost of them."""
+             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool) -> np.ndarray:
+    """Candidates still open after ``found``: away from the lines taken, and no ghost of them."""
     ok = sc.valid.copy()
     for ts, tb in taken:
+        # twice the guard: a strong mover's phase-noise pedestal carries bumps past one guard (issue
+        # 12 case 5: one guard let such a bump in as a second target, the mover 60-70 sigma off)
         if ts == sign or not complex_input:
-            ok[max(tb - apart, 0): tb + apart + 1] = False
+            ok[max(tb - 2 * min_bins, 0): tb + 2 * min_bins + 1] = False
     if found:
         ok &= sc.n_pairs >= 2
         # not a ghost of a target already found: its lines and intermodulation products (tones,
@@ -321,10 +321,6 @@ def search_doppler(
     df = spec.df_hz
     width = line_width_bins(spec, tones_hz) if width is None else width
     min_bins = _guard_bins(spec, tones_hz, min_bins, width)
-    # a further target keeps twice the guard from those found: a strong mover's phase-noise
-    # pedestal carries bumps past one guard (issue 12 case 5: with one guard, such a bump taken as
-    # a second target left the mover's refinement 60-70 sigma off)
-    apart = 2 * min_bins
     # two bins beyond the limit, so that a line exactly at it is still a local maximum
     bmax = int(min(np.floor(fd_max_hz / df) + 2, spec.power.size // 2 - 1))
     tones = np.asarray(tones_hz, dtype=float)
@@ -346,7 +342,7 @@ def search_doppler(
     for _ in range(max_targets):
         best = None
         for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, apart)
+            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input)
             if not ok.any():
                 continue
             k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
@@ -698,9 +694,11 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
         # nothing beyond the guard: a mover below it, on the whole record
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins, width)
         small: list[DopplerEstimate] = []
+        f_max = fd_max(frame.tones_hz, settings)
+        low = LowBand.of(x, frame.fs_hz, small_band(spec, guard, f_max, frame.fs_hz, x.size)[1] * x.size / frame.fs_hz)
         while len(small) < settings.max_targets:
-            more = search_small_doppler(x, frame, spec, guard, fd_max(frame.tones_hz, settings),
-                                        settings.doppler_threshold, tuple(d.fd_hz for d in small))
+            more = search_small_doppler(x, frame, spec, guard, f_max, settings.doppler_threshold,
+                                        tuple(d.fd_hz for d in small), low)
             if more is None:
                 break
             small.append(more)
@@ -842,23 +840,6 @@ PEDESTAL_FACTOR = 2.0
 STATIC_COVER_Z = 5.0
 
 
-def _explained(dft: np.ndarray, freqs: np.ndarray, fs: float, n: int, total: float, iq: bool
-               ) -> tuple[float, np.ndarray]:
-    """The energy (V^2) of a record explained by the least-squares lines at ``freqs`` (Hz; with a DC
-    column for a real record) given its exact DFT there, and their complex amplitudes (V), as
-    :func:`~mtcw_core.dsp.tones.fit_lines` gives them. ``total``: the record's sum (real only)."""
-    w = 2 * np.pi * freqs / fs
-    if iq:
-        c = linalg.solve(_dirichlet(w[:, None] - w[None, :], n), dft, assume_a="sym")
-        return float(np.real(np.vdot(dft, c))), c
-    gc, gs = _gram_real(w, n)
-    pc = np.concatenate([[total], dft.real])
-    ps = -dft.imag
-    a = linalg.solve(gc, pc, assume_a="sym")
-    b = linalg.solve(gs, ps, assume_a="sym")
-    return float(pc @ a + ps @ b), a[1:] - 1j * b
-
-
 def _parabola_peak(fun, x0: float, h: float, lo: float, hi: float, steps: int) -> tuple[float, float]:
     """The top of a smooth peak of ``fun`` near ``x0``: ``steps`` times, the vertex of the parabola
     through ``fun`` at ``x - h, x, x + h`` (clipped to ``[lo, hi]``); returns it and the last
@@ -892,8 +873,15 @@ def small_doppler_floor_hz(spec: Spectrum, tones_hz, guard_bins: int, fs: float,
     return max(SMALL_MIN_BINS * fs / n, guard_hz / STATIC_COVER_Z)
 
 
+def small_band(spec: Spectrum, guard_bins: int, fd_max_hz: float, fs: float, n: int) -> tuple[float, float]:
+    """The band (Hz) :func:`search_small_doppler` scans: from :data:`SMALL_MIN_BINS` record bins
+    up to one search bin past the guard (no further than the search's largest Doppler)."""
+    return SMALL_MIN_BINS * fs / n, min((guard_bins + 1) * spec.df_hz, fd_max_hz)
+
+
 def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
-                         threshold_factor: float, others: tuple[float, ...] = ()) -> DopplerEstimate | None:
+                         threshold_factor: float, others: tuple[float, ...] = (),
+                         low: LowBand | None = None) -> DopplerEstimate | None:
     """A mover whose Doppler lies below the search's guard, measured on the whole record.
 
     The search keeps ``guard_bins`` from the static lines, whose Kaiser main lobes would pass for
@@ -930,6 +918,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
         the static ones in the fit, their baseband lines are taken out of the scan
         (:func:`_small_residual`), and the scan keeps :data:`SMALL_OTHER_BINS` from them and from
         their beats with each other (``|f_a +- f_b|``: one echo is the other's LO)
+    low : the record's block sums for this search's band (:func:`small_band`), if already taken
 
     Returns
     -------
@@ -939,11 +928,10 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     fs, n = frame.fs_hz, x.size
     dfr = fs / n
     tones = np.asarray(frame.tones_hz, float)
-    lo = SMALL_MIN_BINS * dfr
-    hi = min((guard_bins + 1) * spec.df_hz, fd_max_hz)
+    lo, hi = small_band(spec, guard_bins, fd_max_hz, fs, n)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    low = LowBand.of(x, fs, hi / dfr)
+    low = low or LowBand.of(x, fs, hi / dfr)
     fit = _SmallFit(x, fs, tones, iq, others) if others else None
     fd0 = _small_scan(low, lo, hi, iq, fit)
     if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, fit):
@@ -1003,7 +991,7 @@ def _small_residual(fit: "_SmallFit", grid: np.ndarray) -> np.ndarray:
     image at ``-f`` too)."""
     n = fit.x.size
     out = np.zeros(grid.size, dtype=np.complex128)
-    for f0, a in zip(fit.other_base, fit.other_amps()):
+    for f0, a in zip(fit.other_base, fit.other_amps):
         out += (a if fit.iq else a / 2) * _dirichlet(2 * np.pi * (grid - f0) / fit.fs, n)
         if not fit.iq:
             out += np.conj(a) / 2 * _dirichlet(2 * np.pi * (grid + f0) / fit.fs, n)
@@ -1062,18 +1050,17 @@ class _SmallFit:
         self.other_base = np.array([o if iq else abs(o) for o in self.others], dtype=float)
         self.static = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
         self.d_static = exact_dft(x, self.static, fs)
-
-    def other_amps(self) -> np.ndarray:
-        """The baseband amplitudes (V, at the record's centre) of the movers already found, fitted
-        with the static lines and all their lines, shape (len(others),)."""
-        c = _explained(self.d_static, self.static, self.fs, self.x.size, self.total, self.iq)[1]
-        per = (self.static.size - self.n_static) // max(len(self.others), 1)  # lines per mover
-        return c[self.n_static::per][:len(self.others)]
+        # the baseband amplitudes (V, at the record's centre) of the movers already found, fitted with
+        # the static lines and all their lines, shape (len(others),)
+        self.other_amps = np.empty(0, dtype=np.complex128)
+        if self.others:
+            c = solve_lines(self.d_static, self.static, fs, x.size, self.total, iq)[1]
+            self.other_amps = c[self.n_static::1 + 2 * tones.size][:len(self.others)]
 
     def explained(self, fm: np.ndarray, dm: np.ndarray) -> tuple[float, np.ndarray]:
         """Energy explained by the static lines and ``fm`` (whose exact DFT is ``dm``), amplitudes."""
-        return _explained(np.concatenate([self.d_static, dm]), np.concatenate([self.static, fm]), self.fs,
-                          self.x.size, self.total, self.iq)
+        return solve_lines(np.concatenate([self.d_static, dm]), np.concatenate([self.static, fm]), self.fs,
+                           self.x.size, self.total, self.iq)
 
     def joint(self, fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         fm, _ = target_lines(self.tones, fd, self.iq)

@@ -22,7 +22,7 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
 from .spectrum import Spectrum
-from .tones import exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
+from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
 @dataclass
@@ -310,7 +310,7 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     s2 : ndarray, shape (T,), each static line's noise variance per sample (V^2, local floor)
     guard_hz : the largest Doppler the search could have missed (Hz)
     seg_dft : ndarray, shape (S, K), complex, optional: the segments' DFTs of ``uniq`` if already
-        taken (:func:`~.tones.exact_dft_tiled` with :func:`fading_segments`' count)
+        taken (:func:`~.tones.exact_dft_tiled` with :func:`fading_segments`' count, which ``S`` is then)
 
     Returns
     -------
@@ -318,15 +318,13 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     constant within the noise or the record cannot be cut fine enough
     """
     n = x.size
-    segs = fading_segments(n, fs, uniq, guard_hz)
+    segs = seg_dft.shape[0] if seg_dft is not None else fading_segments(n, fs, uniq, guard_hz)
     if segs is None or s_idx.size < 2 or not np.all(s2 > 0):
         return None
     length = n // segs
     starts = np.arange(segs) * length
     z = fit_lines_segments(x, starts, length, uniq, fs, seg_dft)[:, s_idx]  # (S, T), about each segment's centre
-    f = uniq[s_idx]
-    t_rel = (starts + (length - 1) / 2) / fs - (n - 1) / (2 * fs)  # segment centres from the record's
-    z = z * np.exp(-2j * np.pi * t_rel[:, None] * f[None, :])
+    z = z * centre_turn(segs, length, n, uniq[s_idx], fs)  # about the record's centre
     sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
     cols = m.shape[1]

@@ -173,20 +173,46 @@ def fit_lines(x: np.ndarray, freqs_hz, fs_hz: float, dft: np.ndarray | None = No
     ndarray, shape (K,), complex128, amplitude (V) and phase (rad) at the record's centre
     """
     f = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
-    n = x.size
-    w = 2 * np.pi * f / fs_hz
     if dft is None:
         dft = exact_dft(x, f, fs_hz)
-    if np.iscomplexobj(x):
-        g = _dirichlet(w[:, None] - w[None, :], n)
-        return linalg.solve(g, dft, assume_a="sym")
+    iq = np.iscomplexobj(x)
+    total = 0.0 if iq else float(np.sum(x) if total is None else total)
+    return solve_lines(dft, f, fs_hz, x.size, total, iq)[1]
+
+
+def solve_lines(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, total: float, iq: bool
+                ) -> tuple[float, np.ndarray]:
+    """The least-squares lines of :func:`fit_lines` from the record's exact DFT at their frequencies:
+    the energy (V^2) they explain and their complex amplitudes (V, phase at the record's centre).
+
+    Parameters
+    ----------
+    dft : ndarray, shape (K,), complex: :func:`exact_dft` of the record at ``freqs_hz``
+    freqs_hz : ndarray, shape (K,), Hz
+    n : the record's length
+    total : the record's sum (V; the DC column of a real record's fit, unused for IQ)
+    iq : a complex record (no DC column, signed frequencies)
+    """
+    w = 2 * np.pi * np.asarray(freqs_hz, dtype=np.float64) / fs_hz
+    if iq:
+        c = linalg.solve(_dirichlet(w[:, None] - w[None, :], n), dft, assume_a="sym")
+        return float(np.real(np.vdot(dft, c))), c
     # cosine block with a DC column, sine block without
     gc, gs = _gram_real(w, n)
-    pc = np.concatenate([[float(np.sum(x) if total is None else total)], dft.real])
+    pc = np.concatenate([[total], dft.real])
     ps = -dft.imag
-    alpha = linalg.solve(gc, pc, assume_a="sym")[1:]
+    alpha = linalg.solve(gc, pc, assume_a="sym")
     beta = linalg.solve(gs, ps, assume_a="sym")
-    return alpha - 1j * beta
+    return float(pc @ alpha + ps @ beta), alpha[1:] - 1j * beta
+
+
+def centre_turn(parts: int, length: int, n: int, freqs_hz, fs_hz: float) -> np.ndarray:
+    """``exp(-2j*pi*f*(s*L + (L-1)/2 - (N-1)/2)/fs)``: what turns a phase about part ``s``'s centre
+    (``parts`` consecutive parts of ``length`` samples) into one about the record's, cycles from
+    the integer sample offsets reduced modulo 1 in float64; shape (parts, K)."""
+    r = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64)) / fs_hz
+    offs = np.arange(parts, dtype=np.float64) * length + (length - 1) / 2.0 - (n - 1) / 2.0
+    return np.exp(-2j * np.pi * np.mod(np.outer(offs, r), 1.0))
 
 
 def exact_dft_tiled(x: np.ndarray, parts: int, freqs_hz, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -216,8 +242,7 @@ def exact_dft_tiled(x: np.ndarray, parts: int, freqs_hz, fs_hz: float) -> tuple[
     r = f / fs_hz
     c = (n - 1) / 2.0
     each = exact_dft_parts(x[:parts * length].reshape(parts, length), f, fs_hz)
-    offs = np.arange(parts, dtype=np.float64) * length + (length - 1) / 2.0 - c  # part centres from the record's
-    whole = np.sum(each * np.exp(-2j * np.pi * np.mod(np.outer(offs, r), 1.0)), axis=0)
+    whole = np.sum(each * centre_turn(parts, length, n, f, fs_hz), axis=0)
     rest = n - parts * length
     if rest:
         off = parts * length + (rest - 1) / 2.0 - c
