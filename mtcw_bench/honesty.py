@@ -302,6 +302,10 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
             digitizer={"sample_rate_hz": 16.384e9}), 4),
         "6 small Doppler": ("3.5 cm/s at 1550 nm, 10 kHz bins (45 kHz)", issue_scene(
             [_target(1.5, 0.035, 30.0)], 500_000, laser={"wavelength_m": 1.55e-6}), 12),
+        "6 two small movers iq": ("20 and 65 kHz, 8/10 dB, coherent laser, IQ, 2^16 at 0.65536 GS/s (leakage between "
+                                  "sub-guard movers)", _two_small_movers("iq", 8.0), 6),
+        "6 two small movers 1 pd": ("the same at 40/42 dB on one photodiode (their cross-beat at 45 kHz)",
+                                    _two_small_movers("single", 40.0), 6),
         "7 timing jitter": ("60 ps trigger jitter (cw-bench, 1e6)", scene_variant(
             load_scene("cw-bench"), noise={"trigger_jitter_s": JITTER_S}), 12),
         "8 moving-target 60 dB": ("moving-target at 60 dB (sigma/CRB)", scene_variant(
@@ -314,6 +318,14 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
         "9 low-coherence 70 dB": ("beyond coherence, 70 dB (the square stage's one-frame reach)", scene_variant(
             low, targets=[{"loss_db": 70.0}]), 8),
     }
+
+
+def _two_small_movers(receiver: str, loss_db: float) -> Scene:
+    """Two movers 2 and 6.5 record bins up (2^16 samples at 0.65536 GS/s, 1550 nm), a coherent laser."""
+    bin_mps = 0.65536e9 / 2**16 * 1.55e-6 / 2
+    return issue_scene([_target(1.5, 2.0 * bin_mps, loss_db), _target(3.7, 6.5 * bin_mps, loss_db + 2.0)], 2**16,
+                       (150e6, 200e6, 270e6), laser={"wavelength_m": 1.55e-6, "linewidth_hz": 0.0},
+                       digitizer={"sample_rate_hz": 0.65536e9}, receiver={"kind": receiver})
 
 
 def case_configs() -> list[Config]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_core.dsp.doppler import (DopplerEstimate, doppler_families, estimate_doppler, fd_max,
+from mtcw_core.dsp.doppler import (DopplerEstimate, cross_beats, doppler_families, estimate_doppler, fd_max,
                                    intermod_frequencies, phase_advance, refine_by_phase, refine_exact,
                                    refine_reassigned,
                                    search_doppler, sideband_freqs, target_lines)
@@ -643,6 +643,14 @@ class TestSmallSeveral:
         assert ests[0].score > ests[1].score
         for e, f in zip(ests, (f1, f2)):
             assert abs(e.fd_hz - f) <= 5 * e.refine_error_hz and e.refine_error_hz < 0.01 * DF
+
+    def test_cross_beats_of_movers_on_a_square_law_detector(self):
+        """One echo is the other's LO on one photodiode: a beat at |f_a - f_b| (none for IQ, none on
+        the static lines)."""
+        assert cross_beats((20e3, 65e3), False, 1e4) == [pytest.approx(45e3)]
+        assert sorted(cross_beats((20e3, 65e3, 90e3), False, 1e4)) == pytest.approx([25e3, 45e3, 70e3])
+        assert cross_beats((20e3, 65e3), True, 1e4) == []
+        assert cross_beats((20e3, 30e3), False, 1e4) == []  # 1 bin from 0 Hz: on the static lines
 
     def test_one_mover_is_not_counted_twice(self):
         """The strongest mover's sidelobes (rectangular window: -13 dB a bin and a half away) would
