@@ -258,14 +258,26 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
 
 
 def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[tuple[int, int]],
-             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool) -> np.ndarray:
-    """Candidates still open after ``found``: away from the lines taken, and no ghost of them."""
+             ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool,
+             threshold: float = np.inf) -> np.ndarray:
+    """Candidates still open after ``found``: away from the lines taken, and no ghost of them.
+
+    Within one guard of a line taken, none; between one and two guards, only a line standing apart
+    from it (:func:`_apart`). A strong mover's phase-noise pedestal carries bumps past one guard
+    (issue 12 case 5: one guard let such a bump in as a second target, the mover 60-70 sigma off:
+    bumps 20 dB below the line, a valley of 1.5-5 dB before them); a second mover 1-2 guards away
+    (``fast``'s coarse bins: movers 40 and 120 record bins up at 2^16 are 10 search bins apart,
+    its guard 5) stands 4 dB below the first, 25 dB above the noise between them.
+    """
     ok = sc.valid.copy()
+    score = sc.score
     for ts, tb in taken:
-        # twice the guard: a strong mover's phase-noise pedestal carries bumps past one guard (issue
-        # 12 case 5: one guard let such a bump in as a second target, the mover 60-70 sigma off)
         if ts == sign or not complex_input:
-            ok[max(tb - 2 * min_bins, 0): tb + 2 * min_bins + 1] = False
+            ok[max(tb - min_bins, 0): tb + min_bins + 1] = False
+            for lo, hi in ((max(tb - 2 * min_bins, 0), tb - min_bins), (tb + min_bins + 1, tb + 2 * min_bins + 1)):
+                hi = min(hi, score.size)
+                if hi > lo:
+                    ok[lo:hi] &= _apart(score, tb, lo, hi, threshold)
     if found:
         ok &= sc.n_pairs >= 2
         # not a ghost of a target already found: its lines and intermodulation products (tones,
@@ -278,6 +290,29 @@ def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[t
             ghosts = np.abs(np.concatenate([ghost_base + sh, ghost_base - sh]))
             ok &= ~_near(base_f, ghosts, min_bins * df_hz)
     return ok
+
+
+#: a candidate 1-2 guards from a line taken counts when the score between them falls this far
+#: below it (a valley, not a bump on the line's skirt) ...
+APART_VALLEY = 0.1
+#: ... and below the threshold, and when it is at least this part of the line taken's score
+#: (a phase-noise pedestal's bumps are ~1 % of it)
+APART_RATIO = 0.1
+
+
+def _apart(score: np.ndarray, tb: int, lo: int, hi: int, threshold: float) -> np.ndarray:
+    """For each candidate bin in ``[lo, hi)`` on one side of the line taken at bin ``tb``: whether
+    it stands apart from that line -- the lowest score between them below ``threshold`` and below
+    :data:`APART_VALLEY` of the candidate's own, and the candidate at least :data:`APART_RATIO` of
+    the line's score. Shape ``(hi - lo,)``, bool."""
+    if lo > tb:  # right of the line: the lowest score over tb+1 .. k-1
+        run = np.minimum.accumulate(score[tb + 1:hi])
+        valley = run[lo - tb - 2:hi - tb - 2]
+    else:  # left: over k+1 .. tb-1
+        run = np.minimum.accumulate(score[lo + 1:tb][::-1])[::-1]
+        valley = run[:hi - lo]
+    cand = score[lo:hi]
+    return (valley < threshold) & (valley < APART_VALLEY * cand) & (cand >= APART_RATIO * score[tb])
 
 
 def _parabola_offset(score: np.ndarray, k: int) -> float:
@@ -339,10 +374,14 @@ def search_doppler(
     ghost_base = np.concatenate([ghost_base, -ghost_base])
     found: list[DopplerEstimate] = []
     taken: list[tuple[int, int]] = []  # (sign, bin)
+    # local maxima only: the skirt of a line inside the guard (a mover below it) is no candidate,
+    # and must not hide one beyond it
+    local = {s: np.concatenate([[False], (sc.score[1:-1] >= sc.score[:-2]) & (sc.score[1:-1] >= sc.score[2:]),
+                                [False]]) for s, sc in results.items()}
     for _ in range(max_targets):
         best = None
         for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input)
+            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold) & local[s]
             if not ok.any():
                 continue
             k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
@@ -352,8 +391,7 @@ def search_doppler(
             break
         peak, k, s = best
         score = results[s].score
-        is_local = 0 < k < score.size - 1 and score[k] >= score[k - 1] and score[k] >= score[k + 1]
-        if peak < threshold or not is_local:
+        if peak < threshold:
             break
         fd = s * (k + _parabola_offset(score, k)) * df
         found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, _line_wander(spec, tones, fd)))
@@ -681,37 +719,45 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     ``gated``: a quasi-CW record (echo in windows, laser incoherent at km delays): the phase
     refinement, which follows the lines' phases across the record, falls back to the parabola.
 
-    When the search finds no line beyond its guard (a CW record, a refining profile -- ``fast``
-    too, whose guard on an eighth of the record is 8x wider in Hz), :func:`search_small_doppler`
-    looks below the guard on the whole record; with nothing decisive there, the estimate states
+    In a CW record and a refining profile (``fast`` too, whose guard on an eighth of the record is
+    8x wider in Hz), :func:`search_small_doppler` looks below the search's guard on the whole
+    record, with the movers the search found beyond it held (a mover below the guard beside one
+    above it: ``fast``'s movers 40 and 120 record bins up at 2^16, its guard 48); the movers found
+    there follow the search's, strongest first. With nothing found anywhere, the estimate states
     :func:`small_doppler_floor_hz` as the smallest Doppler it could have measured.
     """
     width = line_width_bins(spec, frame.tones_hz)  # the lines' width, read once (search, guard, floor)
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
                           settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets,
                           width=width)
-    if not ests[0].detected and not gated and settings.doppler_refine != "parabolic":
-        # nothing beyond the guard: a mover below it, on the whole record
+    small: list[DopplerEstimate] = []
+    if not gated and settings.doppler_refine != "parabolic":
+        # below the guard, on the whole record: a mover there, alone or beside those found beyond it
+        main = tuple(e.fd_hz for e in ests if e.detected)
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins, width)
-        small: list[DopplerEstimate] = []
         f_max = fd_max(frame.tones_hz, settings)
-        low = LowBand.of(x, frame.fs_hz, small_band(spec, guard, f_max, frame.fs_hz, x.size)[1] * x.size / frame.fs_hz)
-        while len(small) < settings.max_targets:
+        band = small_band(spec, guard, f_max, frame.fs_hz, x.size)
+        if main:
+            # a guard short of the nearest mover found: nearer, its phase-noise pedestal (the laser's,
+            # over the echo delay) carries bumps the search's own rule keeps out
+            band = (band[0], min(band[1], min(abs(m) for m in main) - guard * spec.df_hz))
+        low = LowBand.of(x, frame.fs_hz, band[1] * x.size / frame.fs_hz)
+        while band[1] > band[0] and len(main) + len(small) < settings.max_targets:
             more = search_small_doppler(x, frame, spec, guard, f_max, settings.doppler_threshold,
-                                        tuple(d.fd_hz for d in small), low)
+                                        (*main, *(d.fd_hz for d in small)), low, band[1])
             if more is None:
                 break
             small.append(more)
-        if len(small) > 1:
-            small = remeasure_small(x, frame, spec, small, *small_band(spec, guard, f_max, frame.fs_hz, x.size))
-        if small:
-            return sorted(small, key=lambda d: -d.score)
-        return [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(spec, frame.tones_hz, guard,
-                                                                          frame.fs_hz, x.size, width))]
+        if len(small) > 1 or (small and main):
+            small = remeasure_small(x, frame, spec, small, *band, held=main)
+        small.sort(key=lambda d: -d.score)
+        if not main:
+            return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
+                spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
     if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
         return ests
     iq = np.iscomplexobj(x)
-    others = [e.fd_hz for e in ests]
+    others = [e.fd_hz for e in ests] + [d.fd_hz for d in small]
     if settings.doppler_refine == "phase":
         out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
     else:
@@ -719,7 +765,7 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     out = [replace(new, method="phase") if new is not old else
            (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
            for new, old in zip(out, ests)]
-    return out
+    return out + small
 
 
 #: reassignment steps from the search's parabola (each one DFT pair of the target's lines)
@@ -888,7 +934,7 @@ def small_band(spec: Spectrum, guard_bins: int, fd_max_hz: float, fs: float, n: 
 
 def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
                          threshold_factor: float, others: tuple[float, ...] = (),
-                         low: LowBand | None = None) -> DopplerEstimate | None:
+                         low: LowBand | None = None, below_hz: float | None = None) -> DopplerEstimate | None:
     """A mover whose Doppler lies below the search's guard, measured on the whole record.
 
     The search keeps ``guard_bins`` from the static lines, whose Kaiser main lobes would pass for
@@ -926,6 +972,8 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
         (:func:`_small_residual`), and the scan keeps :data:`SMALL_OTHER_BINS` from them and from
         their beats with each other (``|f_a +- f_b|``: one echo is the other's LO)
     low : the record's block sums for this search's band (:func:`small_band`), if already taken
+    below_hz : the band's top (Hz) when lower than :func:`small_band`'s (a guard short of a mover
+        the search found beyond the guard)
 
     Returns
     -------
@@ -936,14 +984,18 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     dfr = fs / n
     tones = np.asarray(frame.tones_hz, float)
     lo, hi = small_band(spec, guard_bins, fd_max_hz, fs, n)
+    hi = hi if below_hz is None else min(hi, below_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
     low = low or LowBand.of(x, fs, hi / dfr)
-    fit = _SmallFit(x, fs, tones, iq, others) if others else None
-    fd0 = _small_scan(low, lo, hi, iq, fit)
+    # the movers already found, fitted first only where one lies in the band (its baseband line is
+    # then taken out of the scan); those the search found beyond the guard are held in the joint fit
+    in_band = any(abs(o) <= hi + SMALL_OTHER_BINS * dfr for o in others)
+    fit = _SmallFit(x, fs, tones, iq, others) if in_band else None
+    fd0 = _small_scan(low, lo, hi, iq, fit, others)
     if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, fit):
         return None
-    fit = fit or _SmallFit(x, fs, tones, iq)
+    fit = fit or _SmallFit(x, fs, tones, iq, others)
     fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, fd0, lo, hi)
     if not _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz,
                            threshold_factor):
@@ -978,7 +1030,7 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
 
 
 def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[DopplerEstimate], lo: float,
-                    hi: float) -> list[DopplerEstimate]:
+                    hi: float, held: tuple[float, ...] = ()) -> list[DopplerEstimate]:
     """Several sub-guard movers, each measured again with every other one's lines held.
 
     :func:`search_small_doppler` fits each further mover with the lines of those found before it,
@@ -993,8 +1045,9 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
 
     Parameters
     ----------
-    found : the movers :func:`search_small_doppler` found, in the order found (at least two)
+    found : the movers :func:`search_small_doppler` found, in the order found
     lo, hi : the searched band (Hz, :func:`small_band`)
+    held : the Dopplers (Hz) of movers the search found beyond the guard, held in every fit
     """
     iq = np.iscomplexobj(x)
     fs, n = frame.fs_hz, x.size
@@ -1003,7 +1056,7 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
     for _ in range(SMALL_REMEASURE_ROUNDS):
         moved = False
         for i, est in enumerate(out):
-            fit = _SmallFit(x, fs, tones, iq, tuple(o.fd_hz for j, o in enumerate(out) if j != i))
+            fit = _SmallFit(x, fs, tones, iq, (*held, *(o.fd_hz for j, o in enumerate(out) if j != i)))
             fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, est.fd_hz, lo, hi)
             combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
             if combined is not None:
@@ -1014,21 +1067,21 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
     return out
 
 
-def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | None" = None) -> float | None:
+def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | None" = None,
+                others: tuple[float, ...] = ()) -> float | None:
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
     :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
     ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
     the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
-    weaker), else None. ``fit``: with movers already found (``fit.others``), their baseband lines
-    are taken out first and the points near them and their beats left out."""
+    weaker), else None. ``others``: the movers already found; the points near them and their beats
+    are left out, and with ``fit`` (its ``others`` the same) their baseband lines taken out first."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
     p = np.abs(xs - _small_residual(fit, grid)) ** 2 if fit is not None else np.abs(xs) ** 2
-    if fit is not None:
+    if others:
         dfr = low.fs_hz / low.n
-        near = [*fit.others, *(a + sg * b for i, a in enumerate(fit.others) for b in fit.others[i + 1:]
-                               for sg in (1, -1))]
+        near = [*others, *(a + sg * b for i, a in enumerate(others) for b in others[i + 1:] for sg in (1, -1))]
         for f0 in near:
             p[np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr] = 0.0
     k = int(np.argmax(p))
