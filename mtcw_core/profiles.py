@@ -84,7 +84,8 @@ class ChainSettings(BaseModel):
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
-                                                        "cannot explain them: flagged blended")
+                                                        "cannot explain them, or of a Doppler line's own lines "
+                                                        "(two movers unresolved): flagged blended")
     # .. technique pe only (its stages pe_lines, pe_resolve; mtcw_core/ranging/pe.py)
     reference_range_m: float | None = Field(
         None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "

@@ -235,6 +235,48 @@ class TestSearchDoppler:
         assert not est.detected
 
 
+class TestBeats:
+    """One photodiode: two echoes beat with each other (one is the other's LO) at the difference and,
+    the signs unknown, the sum of their Dopplers, with the tones' lines about it -- a mover's
+    pattern. Balanced and IQ receivers keep only the LO's beats."""
+
+    F1, F2 = 5.3e6 + 0.37 * DF, 12.7e6 + 0.6 * DF
+
+    def three(self):
+        return real_record(((self.F1, 1.0, 0.3), (self.F2, 0.8, 0.25), (self.F1 + self.F2, 0.6, 0.2)), noise=0.05)
+
+    def test_a_mover_at_the_sum_of_two_is_kept_without_beats(self):
+        """A balanced or IQ receiver: a line at f1 + f2 is a mover (it used to be dropped as a beat)."""
+        ests = search_doppler(power_spectrum(self.three(), FS), list(TONES), FDMAX, max_targets=3)
+        assert sorted(round(e.fd_hz / DF) for e in ests) == sorted(round(f / DF) for f in (self.F1, self.F2, self.F1 + self.F2))
+        assert not any(e.beat_ambiguous for e in ests)
+
+    def test_a_line_at_the_beat_is_kept_only_when_stronger_than_the_beat(self):
+        """The predicted beat power is P1*P2/(W*DC)^2: a weak LO (small ``beat_scale``) makes beats
+        strong and the third line one of them; a strong LO makes them weak and the line a mover."""
+        spec = power_spectrum(self.three(), FS)
+        strong_lo = search_doppler(spec, list(TONES), FDMAX, max_targets=3, beat_scale=1e9)
+        assert len(strong_lo) == 3 and not any(e.beat_ambiguous for e in strong_lo)
+        weak_lo = search_doppler(spec, list(TONES), FDMAX, max_targets=3, beat_scale=1e-3)
+        assert len(weak_lo) == 2 and all(e.beat_ambiguous for e in weak_lo)
+
+    def test_beat_model_against_a_square_law_record(self):
+        """The model's prediction against a record that is |E_LO + E_1 + E_2|^2 (two pure carriers):
+        the line at f2 - f1 within 2 dB of P1*P2/(W*DC)^2 (here +1.5 dB: the echoes' own power in
+        the DC, 1.1 dB, and the lines' scalloping) -- far inside BEAT_MARGIN's 10 dB."""
+        from mtcw_core.dsp.doppler import _BeatModel
+        from mtcw_core.dsp.spectrum import window_sum
+        n = 2**16
+        t = np.arange(n)
+        f1, f2 = 400.3 * FS / n, 1000.6 * FS / n
+        e = 1.0 + 0.3 * np.exp(2j * np.pi * f1 * t / FS) + 0.2 * np.exp(2j * np.pi * f2 * t / FS + 1j)
+        x = np.abs(e) ** 2
+        spec = power_spectrum(x, FS)
+        model = _BeatModel(spec, spec.total / n * window_sum(("kaiser", 14.0), n))
+        measured = model.power(f2 - f1)
+        assert 10 * np.log10(measured / model.beat_power(f1, f2)) == pytest.approx(0.0, abs=2.0)
+
+
 class TestRefine:
     FD = 5.3e6 + 0.37 * DF
 

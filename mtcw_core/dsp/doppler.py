@@ -24,7 +24,8 @@ from scipy.stats import t as student_t
 
 from ..frame import Frame
 from ..profiles import ChainSettings
-from .spectrum import LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power
+from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
+                       window_sum)
 from .tones import _dirichlet, exact_dft, solve_lines
 
 
@@ -61,6 +62,14 @@ class DopplerEstimate:
     #: var(fd) per unit two-sided PSD of a phase all the lines share (Hz^2 per rad^2/Hz), for a
     #: refinement that cannot measure that phase itself; 0 otherwise
     shared_phase_gain: float = 0.0
+    #: chi2 per degree of freedom of the refined lines' own Doppler corrections about their mean
+    #: (:func:`_combine_lines`): ~1 for the lines of one mover; far above where the line the search
+    #: found is two movers it could not resolve (each tone then carries both echoes' phases, mixed
+    #: differently: the lines disagree, and the range from them is neither's); 0 when not refined
+    lines_chi2: float = 0.0
+    #: one photodiode, echoes near the LO's power: the movers' beats with each other come near their
+    #: own lines, and which line is a mover cannot be told (:data:`BEAT_AMBIGUOUS`)
+    beat_ambiguous: bool = False
 
     @property
     def refined(self) -> bool:
@@ -189,12 +198,14 @@ def _line_wander(spec: Spectrum, tones_hz, fd: float) -> float:
 
 @dataclass
 class _Scores:
-    """Every candidate shift of one sign: its Doppler (Hz), score, validity and pairs above threshold."""
+    """Every candidate shift of one sign: its Doppler (Hz), score, validity, pairs above threshold
+    and its baseband line's power (the search spectrum's, V^2)."""
 
     fd_hz: np.ndarray
     score: np.ndarray
     valid: np.ndarray
     n_pairs: np.ndarray
+    base_p: np.ndarray
 
 
 def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign: int, bmax: int, min_bins: int,
@@ -254,16 +265,18 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
             # target's carrier beat is stronger than its own sidebands)
             near = _near(np.abs(fd), spurs, min_bins * spec.df_hz)
             valid &= ~near | (base_p > float(np.max(power(tones))))
-    return _Scores(fd, score, valid, n_pairs)
+    return _Scores(fd, score, valid, n_pairs, base_p)
 
 
 def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[tuple[int, int]],
              ghost_base: np.ndarray, min_bins: int, df_hz: float, complex_input: bool,
-             threshold: float = np.inf) -> np.ndarray:
+             threshold: float = np.inf, beats=None) -> np.ndarray:
     """Candidates still open after ``found``: away from the lines taken, and no ghost of them.
 
     Within one guard of a line taken, none; between one and two guards, only a line standing apart
-    from it (:func:`_apart`). A strong mover's phase-noise pedestal carries bumps past one guard
+    from it (:func:`_apart`). ``beats``: on one photodiode, ``beats(found)`` gives every pair of
+    targets found, ``(f_a, f_b, P)``, with ``P`` their beat's predicted power (:class:`_BeatModel`);
+    a candidate at ``|f_a +- f_b|`` no stronger than :data:`BEAT_MARGIN` times that is their beat. A strong mover's phase-noise pedestal carries bumps past one guard
     (issue 12 case 5: one guard let such a bump in as a second target, the mover 60-70 sigma off:
     bumps 20 dB below the line, a valley of 1.5-5 dB before them); a second mover 1-2 guards away
     (``fast``'s coarse bins: movers 40 and 120 record bins up at 2^16 are 10 search bins apart,
@@ -281,15 +294,87 @@ def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[t
     if found:
         ok &= sc.n_pairs >= 2
         # not a ghost of a target already found: its lines and intermodulation products (tones,
-        # IMD, 0 Hz) shifted by that target's Doppler -- and the beat of two targets found (one
-        # acts as the other's LO: lines at the difference and the sum of their Dopplers)
+        # IMD, 0 Hz) shifted by that target's Doppler -- and, on one photodiode (``beats``), the
+        # beat of two targets found (one acts as the other's LO: lines at the difference and, a
+        # real record not telling the signs, the sum of their Dopplers); a balanced or IQ receiver
+        # keeps only the LO's beats, and a mover there is a mover
         base_f = np.abs(sc.fd_hz)
-        shifts = [d.fd_hz for d in found]
-        shifts += [a.fd_hz + sgn * b.fd_hz for i, a in enumerate(found) for b in found[i + 1:] for sgn in (1, -1)]
-        for sh in shifts:
+        for sh in [d.fd_hz for d in found]:
             ghosts = np.abs(np.concatenate([ghost_base + sh, ghost_base - sh]))
             ok &= ~_near(base_f, ghosts, min_bins * df_hz)
+        if beats:
+            for a, b, p_beat in beats(found):
+                at = _near(base_f, np.abs(np.array([a + b, a - b])), min_bins * df_hz)
+                ok &= ~(at & (sc.base_p <= BEAT_MARGIN * p_beat))
     return ok
+
+
+#: one photodiode: a line at the beat of two movers found is taken for their beat when its power is
+#: at most this times the beat's predicted power (:class:`_BeatModel`; its own error -- the tones'
+#: modulation of both echoes, the carrier's coherence -- lies well inside it); a stronger line there
+#: is a mover of its own
+BEAT_MARGIN = 10.0
+#: ... and which line is a mover and which a beat cannot be told (every mover's point is flagged
+#: ``blended``) once a pair's predicted beat comes within this part of the weaker mover's own line:
+#: an echo within ~10 dB of the LO's power
+BEAT_AMBIGUOUS = 0.1
+
+
+class _BeatModel:
+    """One photodiode: the predicted power, in the search spectrum, of the beat of two movers.
+
+    Mover ``k``'s carrier beat with the LO has the amplitude ``A_k = 2R|E_LO||E_k|`` (V); two echoes
+    beat with each other at ``|f_a -+ f_b|`` (a real record does not tell the signs) with
+    ``C = 2R|E_a||E_b| = A_a*A_b/(2R|E_LO|^2)``, and ``R|E_LO|^2`` is the record's mean (the LO's
+    power; the echoes' own lie far below it wherever the beats are weak). A line of amplitude ``A``
+    has the windowed spectrum's power ``(A*W/2)^2`` (``W = sum(w)``), so ``P_C = P_a*P_b/(W*L)^2``
+    with ``L`` the LO's part of the mean (:meth:`lo_w`: the mean less the movers' echo power; the
+    static echoes' share stays in it, which lowers the prediction: hence :data:`BEAT_MARGIN`).
+
+    Parameters
+    ----------
+    spec : the search spectrum (real)
+    dc_w : the record's mean times ``sum(w)`` of the spectrum's window (V); not above 0 (an AC-coupled
+        front end): every beat predicted as strong as can be (the former rule: a line there is a beat)
+    """
+
+    def __init__(self, spec: Spectrum, dc_w: float):
+        self.spec, self.dc_w = spec, float(dc_w)
+
+    def power(self, fd_hz: float) -> float:
+        """The baseband line's power at ``|fd_hz|`` (the largest of its bin and the two beside)."""
+        b = int(self.spec.bin_of(np.array([abs(fd_hz)]))[0])
+        lo, hi = max(b - 1, 0), min(b + 2, self.spec.power.size)
+        return float(np.max(np.asarray(self.spec.power[lo:hi], dtype=np.float64))) if hi > lo else 0.0
+
+    def lo_w(self, found: list[DopplerEstimate]) -> float:
+        """``R|E_LO|^2 * W`` (V): the record's mean less the echoes' own power. Each mover's carrier
+        line ``A_k`` puts ``A_k^2/(4L)`` of echo power into the mean ``DC = L + sum_k A_k^2/(4L)``,
+        so ``L = (DC + sqrt(DC^2 - sum A_k^2))/2`` (the LO the larger part; in spectrum units
+        ``A_k^2 W^2 = 4 P_k``); 0 where the echoes hold half the mean or more (no LO to tell)."""
+        disc = self.dc_w**2 - 4.0 * sum(self.power(d.fd_hz) for d in found)
+        return 0.5 * (self.dc_w + math.sqrt(disc)) if self.dc_w > 0 and disc > 0 else 0.0
+
+    def beat_power(self, a: float, b: float, lo_w: float | None = None) -> float:
+        lw = self.dc_w if lo_w is None else lo_w
+        return self.power(a) * self.power(b) / lw**2 if lw > 0 else np.inf
+
+    def __call__(self, found: list[DopplerEstimate]) -> list[tuple[float, float, float]]:
+        """Every pair of ``found``: ``(f_a, f_b, predicted beat power)``."""
+        lw = self.lo_w(found)
+        return [(a.fd_hz, b.fd_hz, self.beat_power(a.fd_hz, b.fd_hz, lw)) for i, a in enumerate(found)
+                for b in found[i + 1:]]
+
+    def explains(self, x: DopplerEstimate, others: list[DopplerEstimate], tol_hz: float) -> bool:
+        """Whether ``x`` lies at the beat of two of ``others`` and is no stronger than
+        :data:`BEAT_MARGIN` times it."""
+        return any(np.min(np.abs(abs(x.fd_hz) - np.abs([a + b, a - b]))) < tol_hz and
+                   self.power(x.fd_hz) <= BEAT_MARGIN * p for a, b, p in self(others))
+
+    def ambiguous(self, found: list[DopplerEstimate]) -> bool:
+        """Whether a pair's predicted beat comes within :data:`BEAT_AMBIGUOUS` of the weaker line
+        (always, with two movers or more, where the echoes hold half the record's mean)."""
+        return any(p >= BEAT_AMBIGUOUS * min(self.power(a), self.power(b)) for a, b, p in self(found))
 
 
 #: a candidate 1-2 guards from a line taken counts when the score between them falls this far
@@ -332,6 +417,7 @@ def search_doppler(
     use_baseband: bool = True,
     max_targets: int = 1,
     width: float | None = None,
+    beat_scale: float | None = None,
 ) -> list[DopplerEstimate]:
     """Find the Doppler shift from the baseband line and the symmetric lines ``f_i +- f_d``.
 
@@ -348,6 +434,12 @@ def search_doppler(
     target must be rangeable, not a stray line).
 
     ``width``: :func:`~.spectrum.line_width_bins` of ``spec`` if already read (it sets the guard).
+    ``beat_scale``: on one photodiode (the echoes beat with each other), the record's mean times the
+    window's sum (V, :class:`_BeatModel`); a line at the sum or the difference of two targets found
+    is their beat, not a target, unless it is stronger than their beat can be (:data:`BEAT_MARGIN`);
+    a line found before both its parents is dropped once they are found, and when the beats come
+    near the movers' own lines (:data:`BEAT_AMBIGUOUS`) every target found is marked
+    ``beat_ambiguous``. None: no beats (balanced, IQ).
 
     Returns
     -------
@@ -378,10 +470,14 @@ def search_doppler(
     # and must not hide one beyond it
     local = {s: np.concatenate([[False], (sc.score[1:-1] >= sc.score[:-2]) & (sc.score[1:-1] >= sc.score[2:]),
                                 [False]]) for s, sc in results.items()}
-    for _ in range(max_targets):
+    beats = _BeatModel(spec, beat_scale) if beat_scale is not None and not spec.complex_input else None
+    for _ in range(2 * max_targets):  # room for lines dropped as beats
+        if len(found) >= max_targets:
+            break
         best = None
         for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold) & local[s]
+            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold,
+                          beats) & local[s]
             if not ok.any():
                 continue
             k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
@@ -396,6 +492,13 @@ def search_doppler(
         fd = s * (k + _parabola_offset(score, k)) * df
         found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, _line_wander(spec, tones, fd)))
         taken.append((s, k))
+        if beats is not None:
+            # a line found before both its parents: the beat of two others found since
+            keep = [i for i, d in enumerate(found) if i == len(found) - 1
+                    or not beats.explains(d, found[:i] + found[i + 1:], min_bins * df)]
+            found, taken = [found[i] for i in keep], [taken[i] for i in keep]
+    if beats is not None and beats.ambiguous(found):
+        found = [replace(d, beat_ambiguous=True) for d in found]
     return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
 
 
@@ -563,7 +666,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     var_phi = s2 * window_power(("kaiser", PHASE_WINDOW_BETA), length) / (2 * np.maximum(amp2, 1e-300))
     var_line = 2 * var_phi / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
-    delta, spread = _combine_lines(wt, slope, d_line, var_line)
+    delta, spread, lines_chi2 = _combine_lines(wt, slope, d_line, var_line)
     # what every line shares -- the laser's phase noise over the echo delay moves the carrier
     # phase of all of them alike, so their agreement cannot show it: the common phase's wander
     # across the record does (common_mode_error)
@@ -578,20 +681,21 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
             res = _common_residual(np.angle(prod), slope, wt)
             var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
             spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
-    return replace(est, fd_hz=fd + delta, refine_error_hz=spread)
+    return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2)
 
 
 def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_line: np.ndarray
-                   ) -> tuple[float, float]:
+                   ) -> tuple[float, float, float]:
     """The lines' Doppler corrections combined: the weighted mean of ``slope*d_line`` (Hz; the
     local floors that inverse-variance weights would trust are rough next to the strongest lines,
     so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean, scaled
     by the lines' scatter about it when that exceeds what noise explains (Birge ratio: leakage,
-    skirts). All arrays shape (K,)."""
+    skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,)."""
     delta = float(np.sum(wt * slope * d_line) / np.sum(wt))
     stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
     chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
-    return delta, stat * math.sqrt(max(chi2 / max(len(wt) - 1, 1), 1.0))
+    dof_chi2 = chi2 / max(len(wt) - 1, 1)
+    return delta, stat * math.sqrt(max(dof_chi2, 1.0)), dof_chi2
 
 
 #: the common phase is measured on up to this many parts of the record, and at least this many
@@ -712,6 +816,42 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
     return replace(first, fd_hz=float(r.x))
 
 
+def _neighbour_beats(spec: Spectrum, settings: ChainSettings, main: list[DopplerEstimate],
+                     small: list[DopplerEstimate]) -> tuple[list[DopplerEstimate], list[DopplerEstimate]]:
+    """One photodiode: the movers found below the guard beside movers found beyond it, less those
+    that may be such a mover's beat with a neighbour inside its guard.
+
+    The search does not resolve two movers within one guard (40 and 44 record bins at 2^16 in
+    ``balanced``: one line at 44); their beat with each other, at the difference, then comes out
+    below the guard as a mover of its own. A mover found below the guard at ``f_s`` is kept only
+    where its line is stronger than :data:`BEAT_MARGIN` times the beat any mover ``m`` found
+    beyond the guard could make with what the spectrum holds at ``m -+ f_s``
+    (:class:`_BeatModel`); a mover that could so hide a neighbour is marked ``beat_ambiguous``
+    (its neighbour's self-beat may lie on the static lines)."""
+    model = _BeatModel(spec, _beat_scale(spec, settings))
+    lw = model.lo_w(main + small)
+    keep, suspect = [], set()
+    for sm in small:
+        beats = [(model.beat_power(m.fd_hz, abs(m.fd_hz) + sg * abs(sm.fd_hz), lw), i)
+                 for i, m in enumerate(main) if m.detected for sg in (-1, 1)]
+        worst, who = max(beats)
+        if model.power(sm.fd_hz) <= BEAT_MARGIN * worst:
+            suspect.add(who)
+        else:
+            keep.append(sm)
+    return [replace(m, beat_ambiguous=True) if i in suspect else m for i, m in enumerate(main)], keep
+
+
+def _beat_scale(spec: Spectrum, settings: ChainSettings) -> float:
+    """The search spectrum's record mean times its window's sum (V, :class:`_BeatModel`); 0 where
+    the spectrum kept no sum."""
+    if spec.total is None or spec.complex_input:
+        return 0.0
+    # the window the spectrum was taken with, in its dtype (the same cached array)
+    return float(spec.total) / spec.n * window_sum(("kaiser", settings.window_beta), spec.n,
+                                                     "float32" if settings.spectrum_single else "float64")
+
+
 def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSettings,
                      gated: bool = False) -> list[DopplerEstimate]:
     """The stage: Doppler lines, strongest first (``[not detected]`` when there is none).
@@ -729,11 +869,25 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     width = line_width_bins(spec, frame.tones_hz)  # the lines' width, read once (search, guard, floor)
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
                           settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets,
-                          width=width)
+                          width=width, beat_scale=_beat_scale(spec, settings) if frame.receiver == "single" else None)
+    # the movers beyond the guard, refined first: a mover below it is fitted with their lines held,
+    # and a line held half a search bin off leaks into that fit (12 and 300 bins at 2^16 in fast:
+    # the first's speed z 5-13 beside the second's parabola)
+    iq = np.iscomplexobj(x)
+    main_refined = ests
+    if ests[0].detected and not (settings.doppler_refine == "parabolic" or (gated and settings.doppler_refine == "phase")):
+        others = [e.fd_hz for e in ests]
+        if settings.doppler_refine == "phase":
+            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
+        else:
+            out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
+        main_refined = [replace(new, method="phase") if new is not old else
+                        (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
+                        for new, old in zip(out, ests)]
     small: list[DopplerEstimate] = []
     if not gated and settings.doppler_refine != "parabolic":
         # below the guard, on the whole record: a mover there, alone or beside those found beyond it
-        main = tuple(e.fd_hz for e in ests if e.detected)
+        main = tuple(e.fd_hz for e in main_refined if e.detected)
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins, width)
         f_max = fd_max(frame.tones_hz, settings)
         band = small_band(spec, guard, f_max, frame.fs_hz, x.size)
@@ -748,24 +902,16 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             if more is None:
                 break
             small.append(more)
+        if small and main and frame.receiver == "single":
+            main_refined, small = _neighbour_beats(spec, settings, main_refined, small)
+            main = tuple(e.fd_hz for e in main_refined if e.detected)
         if len(small) > 1 or (small and main):
             small = remeasure_small(x, frame, spec, small, *band, held=main)
         small.sort(key=lambda d: -d.score)
         if not main:
             return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
                 spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
-    if settings.doppler_refine == "parabolic" or not ests[0].detected or (gated and settings.doppler_refine == "phase"):
-        return ests
-    iq = np.iscomplexobj(x)
-    others = [e.fd_hz for e in ests] + [d.fd_hz for d in small]
-    if settings.doppler_refine == "phase":
-        out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
-    else:
-        out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
-    out = [replace(new, method="phase") if new is not old else
-           (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
-           for new, old in zip(out, ests)]
-    return out + small
+    return main_refined + small if ests[0].detected else ests
 
 
 #: reassignment steps from the search's parabola (each one DFT pair of the target's lines)
@@ -837,11 +983,12 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     s2 = spec.noise_variances(f_used, list(f_used) + list(near))
     sdw2 = float(np.sum(dw**2))
     var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
-    _, spread = _combine_lines(wt, slope[use], d_line, var_line)
+    _, spread, lines_chi2 = _combine_lines(wt, slope[use], d_line, var_line)
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
-    return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain)
+    return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
+                   lines_chi2=lines_chi2)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1005,7 +1152,8 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
         return None
     gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
     # a coherent line (the width test): no wander of its own
-    return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain)
+    return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain,
+                           combined[2])
 
 
 def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: float
@@ -1060,7 +1208,7 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
             fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, est.fd_hz, lo, hi)
             combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
             if combined is not None:
-                out[i] = replace(est, fd_hz=fd + combined[0], refine_error_hz=combined[1])
+                out[i] = replace(est, fd_hz=fd + combined[0], refine_error_hz=combined[1], lines_chi2=combined[2])
                 moved |= abs(out[i].fd_hz - est.fd_hz) > SMALL_REMEASURE_TOL * combined[1]
         if not moved:
             break
@@ -1227,10 +1375,12 @@ def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n
 
 
 def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: np.ndarray, s2: np.ndarray,
-                 snr: np.ndarray, beats: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float] | None:
+                 snr: np.ndarray, beats: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[float, float, float] | None:
     """Each line's own frequency, the others held (``beats``: the mover's beats with the movers
     already found, :meth:`_SmallFit.beats`, among them), and the lines' combined Doppler correction
-    and error (Hz); None when the baseband line has no peak of its own."""
+    and error (Hz) and the lines' chi2 per dof (:func:`_combine_lines`); None when the baseband
+    line has no peak of its own."""
     dfr = fit.fs / fit.x.size
     h = SMALL_CURVATURE_STEP * dfr
     use = snr >= SMALL_LINE_SNR

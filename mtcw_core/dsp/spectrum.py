@@ -126,6 +126,12 @@ def cached_window(window: tuple | str, m: int, dtype: str = "float64") -> np.nda
 
 
 @lru_cache(maxsize=8)
+def window_sum(window: tuple | str, m: int, dtype: str = "float64") -> float:
+    """``sum(w)`` of :func:`cached_window` (cached; summed in float64)."""
+    return float(np.sum(cached_window(window, m, dtype), dtype=np.float64))
+
+
+@lru_cache(maxsize=8)
 def window_power(window: tuple | str, m: int) -> float:
     """``sum(w^2)`` of :func:`cached_window` (cached)."""
     return float(np.sum(cached_window(window, m) ** 2))

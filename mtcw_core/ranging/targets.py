@@ -210,7 +210,12 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
         residual_rms_rad=sol.residual_rms_rad, near_edge=sol.near_edge,
         cycle_ambiguous=bool(ambiguous or p_slip > settings.cycle_slip_max), cycle_slip_prob=p_slip,
-        blended=bool(dof > 0 and ratio > settings.blended_chi2), chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
+        # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
+        # movers the search could not resolve: the range from their mixed phases is neither's), or
+        # the movers' beats come near their own lines (one photodiode, echoes near the LO's power)
+        blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_chi2
+                     or dop.beat_ambiguous),
+        chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
 
@@ -272,7 +277,14 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     # the guard, no less than that mover's Doppler (the static lines may be its own self-beat, and
     # select may keep them in its place: they then answer it within one sigma)
     floor = max([dops[0].min_detectable_hz] + [abs(d.fd_hz) for d in moving if d.method == "fit"])
-    static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, floor)
+    # on one photodiode every echo beats with itself onto the static lines; the extract stage takes
+    # out the self-beat of each mover found, but not of movers the search could not tell apart (a
+    # Doppler line whose own lines disagree) nor where beats blur which line is a mover: the static
+    # lines then may be such a mover's self-beat, and their point is flagged like the movers'
+    single = frame.receiver == "single"
+    static = DopplerEstimate(0.0, False, 0.0, dops[0].threshold, floor,
+                             lines_chi2=max([d.lines_chi2 for d in moving if single], default=0.0),
+                             beat_ambiguous=single and any(d.beat_ambiguous for d in moving))
     points: list[tuple[int, TargetPoint]] = []
     l_unamb = None
     for k, obs in sorted(observations.items()):
