@@ -84,8 +84,11 @@ class ChainSettings(BaseModel):
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "
-                                                        "cannot explain them, or of a Doppler line's own lines "
-                                                        "(two movers unresolved): flagged blended")
+                                                        "cannot explain them: flagged blended")
+    blended_lines_chi2: float = Field(300.0, gt=1, description=(
+        "chi2/dof of a Doppler line's own lines (their Doppler corrections about their mean) above which "
+        "it is taken for two movers the search could not resolve: flagged blended. One mover: 0.1-90 "
+        "(leakage and phase-noise pedestals included); two movers 2-6 bins apart: 170-1e7"))
     # .. technique pe only (its stages pe_lines, pe_resolve; mtcw_core/ranging/pe.py)
     reference_range_m: float | None = Field(
         None, ge=0, description="pe: one-way range of the reference mirror (m); None: measured in each frame "

@@ -63,9 +63,10 @@ class DopplerEstimate:
     #: refinement that cannot measure that phase itself; 0 otherwise
     shared_phase_gain: float = 0.0
     #: chi2 per degree of freedom of the refined lines' own Doppler corrections about their mean
-    #: (:func:`_combine_lines`): ~1 for the lines of one mover; far above where the line the search
-    #: found is two movers it could not resolve (each tone then carries both echoes' phases, mixed
-    #: differently: the lines disagree, and the range from them is neither's); 0 when not refined
+    #: (:func:`_combine_lines`): ~1 for the lines of one mover (up to ~90 with leakage and a laser's
+    #: phase-noise pedestal); far above where the line the search found is two movers it could not
+    #: resolve (each tone then carries both echoes' phases, mixed differently: the lines disagree,
+    #: and the range from them is neither's; ``ChainSettings.blended_lines_chi2``); 0 when not refined
     lines_chi2: float = 0.0
     #: one photodiode, echoes near the LO's power: the movers' beats with each other come near their
     #: own lines, and which line is a mover cannot be told (:data:`BEAT_AMBIGUOUS`)
@@ -663,10 +664,19 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     exclude = list(freqs) + list(near)
     s2 = spec.noise_variances(freqs, exclude)
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
-    var_phi = s2 * window_power(("kaiser", PHASE_WINDOW_BETA), length) / (2 * np.maximum(amp2, 1e-300))
+    wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
+    var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
     var_line = 2 * var_phi / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2 = _combine_lines(wt, slope, d_line, var_line)
+    # each line's amplitude across the parts: one mover's stays (a laser's phase noise moves its
+    # phase only); two movers the search could not resolve beat, and every line's amplitude with
+    # them -- equally strong ones a bin apart even agree in their phase steps (each line's phase is
+    # the mean of the two echoes'), and only this shows them. Radial noise per part: s2*wp/2
+    mag = np.abs(z)
+    if segments > 1:
+        amp_chi2 = float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(s2 * wp / 2, 1e-300)))
+        lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
     # what every line shares -- the laser's phase noise over the echo delay moves the carrier
     # phase of all of them alike, so their agreement cannot show it: the common phase's wander
     # across the record does (common_mode_error)

@@ -213,7 +213,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
         # movers the search could not resolve: the range from their mixed phases is neither's), or
         # the movers' beats come near their own lines (one photodiode, echoes near the LO's power)
-        blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_chi2
+        blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
