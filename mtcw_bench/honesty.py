@@ -303,9 +303,20 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
         "6 small Doppler": ("3.5 cm/s at 1550 nm, 10 kHz bins (45 kHz)", issue_scene(
             [_target(1.5, 0.035, 30.0)], 500_000, laser={"wavelength_m": 1.55e-6}), 12),
         "6 two small movers iq": ("20 and 65 kHz, 8/10 dB, coherent laser, IQ, 2^16 at 0.65536 GS/s (leakage between "
-                                  "sub-guard movers)", _two_small_movers("iq", 8.0), 6),
+                                  "sub-guard movers)", _movers((2.0, 6.5), (8.0, 10.0), "iq"), 6),
         "6 two small movers 1 pd": ("the same at 40/42 dB on one photodiode (their cross-beat at 45 kHz)",
-                                    _two_small_movers("single", 40.0), 6),
+                                    _movers((2.0, 6.5), (40.0, 42.0), "single"), 6),
+        # several movers beyond the guard, found by a probe of 599 such scenes (2026-11-26)
+        "movers: pair 2 bins apart 1 pd": ("40 and 42 bins (10 kHz), 40/42 dB, one photodiode: one Doppler line for two",
+                                           _movers((40.0, 42.0), (40.0, 42.0), "single"), 6),
+        "movers: equal pair 1 bin apart iq": ("40 and 41 bins, 40/40 dB, IQ: the lines agree in phase, beat in amplitude",
+                                              _movers((40.0, 41.0), (40.0, 40.0), "iq"), 6),
+        "movers: strong echoes 1 pd": ("12 and 300 bins, 0/2 dB, one photodiode: their beat at 288 bins as strong as "
+                                       "their own lines", _movers((12.0, 300.0), (0.0, 2.0), "single"), 6),
+        "movers: beat before its parent 1 pd": ("12 and 40 bins, 10/12 dB, one photodiode: their beat at 28 bins",
+                                                _movers((12.0, 40.0), (10.0, 12.0), "single"), 6),
+        "movers: one at the sum of two 1 pd": ("40, 60 and 100 bins, 40/42/44 dB, one photodiode: 100 - 40 = 60",
+                                               _movers((40.0, 60.0, 100.0), (40.0, 42.0, 44.0), "single"), 6),
         "7 timing jitter": ("60 ps trigger jitter (cw-bench, 1e6)", scene_variant(
             load_scene("cw-bench"), noise={"trigger_jitter_s": JITTER_S}), 12),
         "8 moving-target 60 dB": ("moving-target at 60 dB (sigma/CRB)", scene_variant(
@@ -320,11 +331,13 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
     }
 
 
-def _two_small_movers(receiver: str, loss_db: float) -> Scene:
-    """Two movers 2 and 6.5 record bins up (2^16 samples at 0.65536 GS/s, 1550 nm), a coherent laser."""
+def _movers(bins: tuple[float, ...], losses_db: tuple[float, ...], receiver: str) -> Scene:
+    """Movers ``bins`` record bins up (2^16 samples at 0.65536 GS/s, 1550 nm: 10 kHz, 7.75 mm/s a
+    bin) at 1.5, 3.7 and 2.6 m, 150/200/270 MHz, a coherent laser (sharp lines: any leakage shows)."""
     bin_mps = 0.65536e9 / 2**16 * 1.55e-6 / 2
-    return issue_scene([_target(1.5, 2.0 * bin_mps, loss_db), _target(3.7, 6.5 * bin_mps, loss_db + 2.0)], 2**16,
-                       (150e6, 200e6, 270e6), laser={"wavelength_m": 1.55e-6, "linewidth_hz": 0.0},
+    ranges = (1.5, 3.7, 2.6)
+    return issue_scene([_target(ranges[i], b * bin_mps, loss) for i, (b, loss) in enumerate(zip(bins, losses_db))],
+                       2**16, (150e6, 200e6, 270e6), laser={"wavelength_m": 1.55e-6, "linewidth_hz": 0.0},
                        digitizer={"sample_rate_hz": 0.65536e9}, receiver={"kind": receiver})
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from mtcw_bench.honesty import JITTER_S, PE_TONES, SIX_TONES, case_scenes, with_targets
+from mtcw_bench.honesty import _movers as movers
 from mtcw_bench.honesty import issue_scene as scene
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.evaluate import FrameVerdict, judge_frame, range_bound
@@ -250,16 +251,9 @@ def test_case9_beyond_coherence_reaches_40_db():
 
 
 # -------------------------------------------------------------------------------------------
-# beyond the nine: several movers, found by probing (/work/tools-style sweeps, 2^16 samples at
-# 0.65536 GS/s, 1550 nm, coherent laser; Dopplers in 10 kHz record bins)
-def movers(bins: tuple[float, ...], losses: tuple[float, ...], receiver: str) -> Scene:
-    bin_mps = 0.65536e9 / 2**16 * 1.55e-6 / 2
-    ranges = (1.5, 3.7, 2.6)
-    return scene([tgt(ranges[i], b * bin_mps, losses[i]) for i, b in enumerate(bins)], 2**16, (150e6, 200e6, 270e6),
-                 laser={"wavelength_m": 1.55e-6, "linewidth_hz": 0.0}, digitizer={"sample_rate_hz": 0.65536e9},
-                 receiver={"kind": receiver})
-
-
+# beyond the nine: several movers, found by a probe of 599 such scenes (the honesty map's "movers:"
+# rows of the cases slice; 2^16 samples at 0.65536 GS/s, 1550 nm, coherent laser, Dopplers in 10 kHz
+# record bins: mtcw_bench.honesty._movers)
 @pytest.mark.parametrize("receiver, bins, losses", [("single", (40, 42), (40.0, 42.0)), ("iq", (40, 42), (40.0, 42.0)),
                                                      ("iq", (40, 41), (40.0, 40.0))])
 def test_two_movers_the_search_cannot_resolve_are_flagged(receiver, bins, losses):

@@ -1149,8 +1149,20 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     # then taken out of the scan); those the search found beyond the guard are held in the joint fit
     in_band = any(abs(o) <= hi + SMALL_OTHER_BINS * dfr for o in others)
     fit = _SmallFit(x, fs, tones, iq, others) if in_band else None
-    fd0 = _small_scan(low, lo, hi, iq, fit, others)
-    if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, fit):
+    # movers beyond the band: their baseband lines' leakage (the rectangular window's 1/(pi*distance))
+    # taken out of the scan and the gate too, from one DFT at their lines (else a strong mover's
+    # sidelobes pass the gate and the joint fit runs, ~30 ms a 1e6-sample frame, to reject them)
+    leak = fit if fit is not None else (_FarMovers(x, fs, iq, others) if others else None)
+    # beside movers beyond the band, a line also stands out of the scan itself: their phase-noise
+    # pedestal fills the band (its floor, not the spectrum's rings about the band, is what a line
+    # there must beat; moving-target at 1e6: a 21 dB 'line' of pedestal, 5 dB after the fit)
+    contrast = SMALL_MIN_SNR / SMALL_SCAN_MARGIN if fit is None and others else None
+    fd0 = _small_scan(low, lo, hi, iq, leak, others, contrast)
+    if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, leak):
+        return None
+    # a coherent line, before the fit (tens of passes over the record): the decisive test's width
+    # rule at the scan's peak (a mover's phase-noise pedestal near 0 Hz passes the SNR gate beside it)
+    if widths_at(spec, [fd0 if spec.complex_input else abs(fd0)], half_span=16) > SMALL_MAX_WIDTH:
         return None
     fit = fit or _SmallFit(x, fs, tones, iq, others)
     fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, fd0, lo, hi)
@@ -1226,13 +1238,14 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
 
 
 def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | None" = None,
-                others: tuple[float, ...] = ()) -> float | None:
+                others: tuple[float, ...] = (), contrast: float | None = None) -> float | None:
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
     :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
     ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
     the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
     weaker), else None. ``others``: the movers already found; the points near them and their beats
-    are left out, and with ``fit`` (its ``others`` the same) their baseband lines taken out first."""
+    are left out, and with ``fit`` (its ``others`` the same) their baseband lines taken out first.
+    ``contrast``: the peak must stand this far above the scan's median power, else None."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
@@ -1243,6 +1256,8 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
         for f0 in near:
             p[np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr] = 0.0
     k = int(np.argmax(p))
+    if contrast is not None and not p[k] >= contrast * float(np.median(p)):
+        return None
     side = int(np.sum(grid > 0))
     i, count = (k, side) if k < side else (k - side, grid.size - side)
     return float(grid[k]) if 0 < i < count - 1 and p[k] > 0 else None
@@ -1269,11 +1284,14 @@ def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndar
     ``|X|`` raised by what the static lines may leak into it (:func:`_static_leakage`: the fit
     models them, the lone line does not), is at least that over :data:`SMALL_SCAN_MARGIN`. The
     fit's amplitude differs from the lone line's by the line's image and the mean's removal (at
-    most ~0.2 each a bin or more from 0 Hz: -2 dB), and its floor is the larger of the wide and
-    the near ring's: so 6 dB leaves every line the fit would keep. The joint fit (tens of passes
+    most ~0.2 each a bin or more from 0 Hz: -2 dB), and its floor, as the fit's, the larger of the
+    wide and the near ring's (beside a mover, its phase-noise pedestal): so 6 dB leaves every line
+    the fit would keep. The joint fit (tens of passes
     over the record) then runs only on a real line."""
     static = np.concatenate([[0.0], tones, -tones]) if iq else np.concatenate([[0.0], tones])
-    s2 = float(spec.noise_variances([fd if iq else abs(fd)], static)[0])
+    f_abs = [fd if iq else abs(fd)]
+    s2 = max(float(spec.noise_variances(f_abs, static)[0]),
+             float(spec.noise_variances(f_abs, static, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD)[0]))
     if not s2 > 0:
         return True
     x_fd = low.dft([fd])[0]
@@ -1298,6 +1316,17 @@ def _static_leakage(spec: Spectrum, low: LowBand, fd: float, tones: np.ndarray, 
     if not iq:
         kern = kern + np.abs(_dirichlet(2 * np.pi * (f + fd) / low.fs_hz, low.n))
     return float(np.sum(amp * kern))
+
+
+class _FarMovers:
+    """The baseband lines of movers found far from the sub-guard band, for :func:`_small_residual`:
+    each line's amplitude from the record's exact DFT at it (``2X/N`` for a real record, ``X/N``
+    for IQ; referred to the record's centre, as the fit's), its image and the other lines far off."""
+
+    def __init__(self, x: np.ndarray, fs: float, iq: bool, others: tuple[float, ...]):
+        self.x, self.fs, self.iq = x, fs, iq
+        self.other_base = np.array([o if iq else abs(o) for o in others], dtype=float)
+        self.other_amps = exact_dft(x, self.other_base, fs) * ((1.0 if iq else 2.0) / x.size)
 
 
 def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:
