@@ -918,6 +918,12 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
         if len(small) > 1 or (small and main):
             small = remeasure_small(x, frame, spec, small, *band, held=main)
         small.sort(key=lambda d: -d.score)
+        movers = [d for d in main_refined if d.detected] + small
+        if frame.receiver == "single" and len(movers) > 1 and not any(d.beat_ambiguous for d in movers) \
+                and _BeatModel(spec, _beat_scale(spec, settings)).ambiguous(movers):
+            # the search's own check saw its movers only: with those found below the guard too
+            movers = [replace(d, beat_ambiguous=True) for d in movers]
+            main_refined, small = movers[:len(movers) - len(small)], movers[len(movers) - len(small):]
         if not main:
             return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
                 spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
@@ -1333,11 +1339,11 @@ def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:
     """The Dopplers (Hz) at which movers ``fds`` beat with each other on a square-law detector:
     one echo is the other's LO, ``E_a*conj(E_b)`` at ``|f_a - f_b|`` with the tones' lines about it
     (the pattern of a mover there, :func:`target_lines`). None for IQ (a balanced coherent receiver
-    keeps only the LO's beats) and none within :data:`SMALL_OTHER_BINS` record bins (``bin_hz``) of
-    0 Hz, where they lie on the static lines."""
+    keeps only the LO's beats) and none within :data:`SMALL_MIN_BINS` record bins (``bin_hz``) of
+    0 Hz, where they lie on the static lines (two movers 2 bins apart beat 2 bins from them: fitted)."""
     if iq:
         return []
-    return [abs(a - b) for i, a in enumerate(fds) for b in fds[i + 1:] if abs(abs(a) - abs(b)) > SMALL_OTHER_BINS * bin_hz]
+    return [abs(a - b) for i, a in enumerate(fds) for b in fds[i + 1:] if abs(abs(a) - abs(b)) > SMALL_MIN_BINS * bin_hz]
 
 
 class _SmallFit:
