@@ -409,6 +409,47 @@ def _parabola_offset(score: np.ndarray, k: int) -> float:
     return float(np.clip(delta, -0.5, 0.5))
 
 
+def _take_lines(spec: Spectrum, results: dict, tones: np.ndarray, ghost_base: np.ndarray, min_bins: int,
+                threshold: float, max_targets: int, beats: "_BeatModel | None") -> list[DopplerEstimate]:
+    """The search's lines, strongest first: each candidate (``results``: :class:`_Scores` per sign)
+    a local maximum of its score above ``threshold`` that :func:`_allowed` leaves open; with
+    ``beats`` (one photodiode), a line found before both its parents is dropped once they are found,
+    and every line is marked ``beat_ambiguous`` when the beats come near the movers' own lines."""
+    df = spec.df_hz
+    found: list[DopplerEstimate] = []
+    taken: list[tuple[int, int]] = []  # (sign, bin)
+    # local maxima only: the skirt of a line inside the guard (a mover below it) is no candidate,
+    # and must not hide one beyond it
+    local = {s: np.concatenate([[False], (sc.score[1:-1] >= sc.score[:-2]) & (sc.score[1:-1] >= sc.score[2:]),
+                                [False]]) for s, sc in results.items()}
+    for _ in range(2 * max_targets):  # room for lines dropped as beats
+        if len(found) >= max_targets:
+            break
+        best = None
+        for s, sc in results.items():
+            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold,
+                          beats) & local[s]
+            if not ok.any():
+                continue
+            k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
+            if best is None or sc.score[k] > best[0]:
+                best = (float(sc.score[k]), k, s)
+        if best is None or best[0] < threshold:
+            break
+        peak, k, s = best
+        fd = s * (k + _parabola_offset(results[s].score, k)) * df
+        found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, _line_wander(spec, tones, fd)))
+        taken.append((s, k))
+        if beats is not None:
+            # a line found before both its parents: the beat of two others found since
+            keep = [i for i, d in enumerate(found) if i == len(found) - 1
+                    or not beats.explains(d, found[:i] + found[i + 1:], min_bins * df)]
+            found, taken = [found[i] for i in keep], [taken[i] for i in keep]
+    if beats is not None and beats.ambiguous(found):
+        found = [replace(d, beat_ambiguous=True) for d in found]
+    return found
+
+
 def search_doppler(
     spec: Spectrum,
     tones_hz: list[float],
@@ -465,41 +506,8 @@ def search_doppler(
     ghost_base = np.concatenate([[0.0], tones, -tones, intermod_frequencies(tuple(float(f) for f in tones),
                                                                             float(np.max(tones)) + fd_max_hz)])
     ghost_base = np.concatenate([ghost_base, -ghost_base])
-    found: list[DopplerEstimate] = []
-    taken: list[tuple[int, int]] = []  # (sign, bin)
-    # local maxima only: the skirt of a line inside the guard (a mover below it) is no candidate,
-    # and must not hide one beyond it
-    local = {s: np.concatenate([[False], (sc.score[1:-1] >= sc.score[:-2]) & (sc.score[1:-1] >= sc.score[2:]),
-                                [False]]) for s, sc in results.items()}
     beats = _BeatModel(spec, beat_scale) if beat_scale is not None and not spec.complex_input else None
-    for _ in range(2 * max_targets):  # room for lines dropped as beats
-        if len(found) >= max_targets:
-            break
-        best = None
-        for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold,
-                          beats) & local[s]
-            if not ok.any():
-                continue
-            k = int(np.flatnonzero(ok)[np.argmax(sc.score[ok])])
-            if best is None or sc.score[k] > best[0]:
-                best = (float(sc.score[k]), k, s)
-        if best is None:
-            break
-        peak, k, s = best
-        score = results[s].score
-        if peak < threshold:
-            break
-        fd = s * (k + _parabola_offset(score, k)) * df
-        found.append(DopplerEstimate(fd, True, peak, threshold, min_bins * df, 0.1 * df, _line_wander(spec, tones, fd)))
-        taken.append((s, k))
-        if beats is not None:
-            # a line found before both its parents: the beat of two others found since
-            keep = [i for i, d in enumerate(found) if i == len(found) - 1
-                    or not beats.explains(d, found[:i] + found[i + 1:], min_bins * df)]
-            found, taken = [found[i] for i in keep], [taken[i] for i in keep]
-    if beats is not None and beats.ambiguous(found):
-        found = [replace(d, beat_ambiguous=True) for d in found]
+    found = _take_lines(spec, results, tones, ghost_base, min_bins, threshold, max_targets, beats)
     return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
 
 
@@ -1150,10 +1158,31 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     hi = hi if below_hz is None else min(hi, below_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    low = low or LowBand.of(x, fs, hi / dfr)
+    found = _small_candidate(x, fs, spec, tones, others, low or LowBand.of(x, fs, hi / dfr), lo, hi)
+    if found is None:
+        return None
+    fd0, fit = found
+    fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, fd0, lo, hi)
+    if not _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz,
+                           threshold_factor):
+        return None
+    combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
+    if combined is None:
+        return None
+    gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
+    # a coherent line (the width test): no wander of its own
+    return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain,
+                           combined[2])
+
+
+def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray, others: tuple[float, ...],
+                     low: LowBand, lo: float, hi: float) -> "tuple[float, _SmallFit] | None":
+    """:func:`search_small_doppler`'s candidate: the scan's peak (Hz) where a joint fit could find a
+    decisive mover, and that fit (the movers already found held), or None."""
+    iq = np.iscomplexobj(x)
     # the movers already found, fitted first only where one lies in the band (its baseband line is
     # then taken out of the scan); those the search found beyond the guard are held in the joint fit
-    in_band = any(abs(o) <= hi + SMALL_OTHER_BINS * dfr for o in others)
+    in_band = any(abs(o) <= hi + SMALL_OTHER_BINS * fs / x.size for o in others)
     fit = _SmallFit(x, fs, tones, iq, others) if in_band else None
     # movers beyond the band: their baseband lines' leakage (the rectangular window's 1/(pi*distance))
     # taken out of the scan and the gate too, from one DFT at their lines (else a strong mover's
@@ -1170,18 +1199,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     # rule at the scan's peak (a mover's phase-noise pedestal near 0 Hz passes the SNR gate beside it)
     if widths_at(spec, [fd0 if spec.complex_input else abs(fd0)], half_span=16) > SMALL_MAX_WIDTH:
         return None
-    fit = fit or _SmallFit(x, fs, tones, iq, others)
-    fd, c, fm, dm, s2, snr, beats = _small_peak(fit, spec, fd0, lo, hi)
-    if not _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz,
-                           threshold_factor):
-        return None
-    combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
-    if combined is None:
-        return None
-    gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
-    # a coherent line (the width test): no wander of its own
-    return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain,
-                           combined[2])
+    return fd0, fit or _SmallFit(x, fs, tones, iq, others)
 
 
 def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: float
@@ -1346,6 +1364,17 @@ def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:
     return [abs(a - b) for i, a in enumerate(fds) for b in fds[i + 1:] if abs(abs(a) - abs(b)) > SMALL_MIN_BINS * bin_hz]
 
 
+def _add_apart(lines: np.ndarray, more: list[np.ndarray], tol_hz: float) -> np.ndarray:
+    """``lines`` (Hz) and those of ``more`` that lie more than ``tol_hz`` from every line kept before
+    them: a beat's line on a line already fitted (a mover at the sum of two others, a beat on a
+    static line) would make the least-squares Gram matrix singular; the line there takes both."""
+    out = list(np.asarray(lines, dtype=float))
+    for f in (np.concatenate(more) if more else np.empty(0)):
+        if not out or np.min(np.abs(np.asarray(out) - f)) > tol_hz:
+            out.append(float(f))
+    return np.asarray(out, dtype=float)
+
+
 class _SmallFit:
     """The whole record's least-squares lines: the static ones (``f_i`` and the DC; ``+-f_i`` and
     0 Hz for IQ), every line of the movers already found (``others``, Hz) and, on a square-law
@@ -1359,8 +1388,9 @@ class _SmallFit:
         static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
         self.n_static = static.size
         self.other_base = np.array([o if iq else abs(o) for o in self.others], dtype=float)
-        self.static = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others),
-                                      *(target_lines(tones, b, iq)[0] for b in cross_beats(self.others, iq, fs / x.size))])
+        held = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
+        self.static = _add_apart(held, [target_lines(tones, b, iq)[0] for b in cross_beats(self.others, iq, fs / x.size)],
+                                 0.5 * fs / x.size)
         self.d_static = exact_dft(x, self.static, fs)
         # the baseband amplitudes (V, at the record's centre) of the movers already found, fitted with
         # the static lines and all their lines, shape (len(others),)
@@ -1374,9 +1404,10 @@ class _SmallFit:
         (:func:`cross_beats`; none for IQ), and their exact DFTs."""
         fb = [target_lines(self.tones, abs(abs(fd) - abs(o)), self.iq)[0] for o in self.others
               if cross_beats((fd, o), self.iq, self.fs / self.x.size)]
-        if not fb:
+        base = np.concatenate([self.static, target_lines(self.tones, fd, self.iq)[0]])
+        fb = _add_apart(base, fb, 0.5 * self.fs / self.x.size)[base.size:]
+        if not fb.size:
             return np.empty(0), np.empty(0, dtype=np.complex128)
-        fb = np.concatenate(fb)
         return fb, exact_dft(self.x, fb, self.fs)
 
     def explained(self, fm: np.ndarray, dm: np.ndarray, beats: tuple[np.ndarray, np.ndarray] | None = None
