@@ -29,6 +29,7 @@ from tqdm import tqdm
 from mtcw_core.chain import process_frame
 from mtcw_core.evaluate import judge_frame
 from mtcw_core.profiles import get_profile
+from mtcw_core.scene import scene_variant
 from mtcw_core.simulate import Simulator
 
 from .honesty import _movers
@@ -108,7 +109,6 @@ SETS = ("main", "sweep", "near", "lw", "three", "equal", "long", "ctrl", "triple
 
 def run_config(cfg: dict, seed: int = 7) -> list[dict]:
     """One configuration's frames through every profile: a row per profile with its counts."""
-    from mtcw_core.scene import scene_variant
     sc = _movers(cfg["bins"], cfg["losses"], cfg["rx"])
     if cfg["n"] != 2**16 or cfg["lw"]:
         sc = scene_variant(sc, digitizer={"samples": cfg["n"]}, laser={"linewidth_hz": cfg["lw"]})

@@ -377,6 +377,13 @@ class _BeatModel:
         (always, with two movers or more, where the echoes hold half the record's mean)."""
         return any(p >= BEAT_AMBIGUOUS * min(self.power(a), self.power(b)) for a, b, p in self(found))
 
+    def mark(self, found: list[DopplerEstimate]) -> list[DopplerEstimate]:
+        """``found``, every one marked ``beat_ambiguous`` where they are :meth:`ambiguous` (and none
+        is marked yet: a set already marked was judged on its own)."""
+        if any(d.beat_ambiguous for d in found) or not self.ambiguous(found):
+            return found
+        return [replace(d, beat_ambiguous=True) for d in found]
+
 
 #: a candidate 1-2 guards from a line taken counts when the score between them falls this far
 #: below it (a valley, not a bump on the line's skirt) ...
@@ -445,9 +452,7 @@ def _take_lines(spec: Spectrum, results: dict, tones: np.ndarray, ghost_base: np
             keep = [i for i, d in enumerate(found) if i == len(found) - 1
                     or not beats.explains(d, found[:i] + found[i + 1:], min_bins * df)]
             found, taken = [found[i] for i in keep], [taken[i] for i in keep]
-    if beats is not None and beats.ambiguous(found):
-        found = [replace(d, beat_ambiguous=True) for d in found]
-    return found
+    return beats.mark(found) if beats is not None else found
 
 
 def search_doppler(
@@ -834,7 +839,7 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
     return replace(first, fd_hz=float(r.x))
 
 
-def _neighbour_beats(spec: Spectrum, settings: ChainSettings, main: list[DopplerEstimate],
+def _neighbour_beats(model: _BeatModel, main: list[DopplerEstimate],
                      small: list[DopplerEstimate]) -> tuple[list[DopplerEstimate], list[DopplerEstimate]]:
     """One photodiode: the movers found below the guard beside movers found beyond it, less those
     that may be such a mover's beat with a neighbour inside its guard.
@@ -846,7 +851,6 @@ def _neighbour_beats(spec: Spectrum, settings: ChainSettings, main: list[Doppler
     beyond the guard could make with what the spectrum holds at ``m -+ f_s``
     (:class:`_BeatModel`); a mover that could so hide a neighbour is marked ``beat_ambiguous``
     (its neighbour's self-beat may lie on the static lines)."""
-    model = _BeatModel(spec, _beat_scale(spec, settings))
     lw = model.lo_w(main + small)
     keep, suspect = [], set()
     for sm in small:
@@ -885,9 +889,11 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     :func:`small_doppler_floor_hz` as the smallest Doppler it could have measured.
     """
     width = line_width_bins(spec, frame.tones_hz)  # the lines' width, read once (search, guard, floor)
+    # one photodiode: the echoes' beats with each other, predicted once for the frame
+    beats = _BeatModel(spec, _beat_scale(spec, settings)) if frame.receiver == "single" else None
     ests = search_doppler(spec, list(frame.tones_hz), fd_max(frame.tones_hz, settings),
                           settings.doppler_min_bins, settings.doppler_threshold, max_targets=settings.max_targets,
-                          width=width, beat_scale=_beat_scale(spec, settings) if frame.receiver == "single" else None)
+                          width=width, beat_scale=beats.dc_w if beats is not None else None)
     # the movers beyond the guard, refined first: a mover below it is fitted with their lines held,
     # and a line held half a search bin off leaks into that fit (12 and 300 bins at 2^16 in fast:
     # the first's speed z 5-13 beside the second's parabola)
@@ -920,18 +926,15 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             if more is None:
                 break
             small.append(more)
-        if small and main and frame.receiver == "single":
-            main_refined, small = _neighbour_beats(spec, settings, main_refined, small)
-            main = tuple(e.fd_hz for e in main_refined if e.detected)
+        if small and main and beats is not None:
+            main_refined, small = _neighbour_beats(beats, main_refined, small)
         if len(small) > 1 or (small and main):
             small = remeasure_small(x, frame, spec, small, *band, held=main)
         small.sort(key=lambda d: -d.score)
-        movers = [d for d in main_refined if d.detected] + small
-        if frame.receiver == "single" and len(movers) > 1 and not any(d.beat_ambiguous for d in movers) \
-                and _BeatModel(spec, _beat_scale(spec, settings)).ambiguous(movers):
+        if beats is not None:
             # the search's own check saw its movers only: with those found below the guard too
-            movers = [replace(d, beat_ambiguous=True) for d in movers]
-            main_refined, small = movers[:len(movers) - len(small)], movers[len(movers) - len(small):]
+            movers = beats.mark([d for d in main_refined if d.detected] + small)
+            main_refined, small = movers[:len(movers) - len(small)] if main else main_refined, movers[len(movers) - len(small):]
         if not main:
             return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
                 spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
@@ -1217,8 +1220,7 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
     # the floor about each line: the spectrum's wide ring, or closer where more lies there (the
     # pedestal of a carrier beat only partly coherent at the echo's delay, tens of bins wide)
     excl = list(fit.static) + list(fm) + [0.0]
-    s2 = np.maximum(spec.noise_variances(fm, excl),
-                    spec.noise_variances(fm, excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD))
+    s2 = _small_floor(spec, fm, excl)
     snr = np.abs(c[fit.static.size:]) ** 2 * n / ((0.5 if iq else 2.0) * np.maximum(s2, 1e-300))
     return fd, c, fm, dm, s2, snr, beats
 
@@ -1301,6 +1303,14 @@ def _small_residual(fit: "_SmallFit", grid: np.ndarray) -> np.ndarray:
     return out
 
 
+def _small_floor(spec: Spectrum, freqs, exclude) -> np.ndarray:
+    """The sub-guard search's noise floor about each of ``freqs`` (Hz): the larger of the
+    spectrum's wide ring and its near one (:data:`SMALL_NEAR_HALF_WIDTH`, where a partly coherent
+    carrier's pedestal lies), ``exclude`` kept out of both. Shape (K,), V^2 per sample."""
+    return np.maximum(spec.noise_variances(freqs, exclude),
+                      spec.noise_variances(freqs, exclude, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD))
+
+
 def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndarray, iq: bool,
                          fit: "_SmallFit | None" = None) -> bool:
     """Whether the scan's peak at ``fd`` could pass :data:`SMALL_MIN_SNR` in the joint fit: its
@@ -1314,8 +1324,7 @@ def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndar
     over the record) then runs only on a real line."""
     static = np.concatenate([[0.0], tones, -tones]) if iq else np.concatenate([[0.0], tones])
     f_abs = [fd if iq else abs(fd)]
-    s2 = max(float(spec.noise_variances(f_abs, static)[0]),
-             float(spec.noise_variances(f_abs, static, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD)[0]))
+    s2 = float(_small_floor(spec, f_abs, static)[0])
     if not s2 > 0:
         return True
     x_fd = low.dft([fd])[0]
