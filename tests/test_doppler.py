@@ -277,6 +277,39 @@ class TestBeats:
         assert 10 * np.log10(measured / model.beat_power(f1, f2)) == pytest.approx(0.0, abs=2.0)
 
 
+class TestSelfBeatBound:
+    """One photodiode: how large the self-beat of Doppler lines no found mover explains could be on
+    the static lines (``self_beat_bound``), against a square-law record |E_LO + E_echo|^2."""
+
+    FD = 5.3e6 + 0.37 * DF
+    AM, AI = 0.05, 0.3  # the echo's field (LO: 1) and its tones' modulation
+
+    def record(self, noise=1e-4, seed=0):
+        t = np.arange(N)
+        m = 1.0 + sum(self.AI * np.cos(2 * np.pi * cyc(f) + 0.4 * i) for i, f in enumerate(TONES))
+        e = 1.0 + self.AM * m * np.exp(2j * np.pi * cyc(self.FD) + 0.7j)
+        return np.abs(e) ** 2 + noise * np.random.default_rng(seed).standard_normal(t.size)
+
+    def test_a_mover_not_found_bounds_its_own_self_beat(self):
+        """With one mover the Cauchy-Schwarz bound is its self-beat itself, ``2*A_m^2*a_i`` at every
+        tone (1.5e-3 V here): within 15 % (the record's mean holds the echo's DC too, the lines'
+        skirts below the 10x floor are not counted)."""
+        from mtcw_core.dsp.doppler import self_beat_bound
+        b = self_beat_bound(power_spectrum(self.record(), FS), TONES, FDMAX, 4, [])
+        assert b == pytest.approx(np.full(3, 2 * self.AM**2 * self.AI), rel=0.15)
+
+    def test_the_mover_found_leaves_nothing_unexplained(self):
+        from mtcw_core.dsp.doppler import self_beat_bound
+        b = self_beat_bound(power_spectrum(self.record(), FS), TONES, FDMAX, 4, [self.FD])
+        assert np.all(b < 1e-3 * 2 * self.AM**2 * self.AI)
+
+    def test_no_echo_no_bound(self):
+        """Noise and the static lines alone: nothing stands out of the floor in the Doppler bands."""
+        from mtcw_core.dsp.doppler import self_beat_bound
+        x = real_record(targets=(), static=0.5, noise=1e-3) + 1.0
+        assert np.all(self_beat_bound(power_spectrum(x, FS), TONES, FDMAX, 4, []) < 1e-6)
+
+
 class TestRefine:
     FD = 5.3e6 + 0.37 * DF
 

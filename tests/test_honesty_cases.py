@@ -288,3 +288,33 @@ def test_a_mover_at_the_sum_of_two_others_is_found():
     assert not confident(runs), confident(runs)
     for _, r, v in runs:
         assert sorted(p.truth_index for p in v.points if p.truth_index is not None) == [0, 1, 2]
+
+
+def test_the_self_beats_of_movers_the_search_merged_do_not_make_a_confident_static_point():
+    """``fast``, the same three movers (the map's seed): in its eighth-record spectrum the 40- and
+    60-bin movers make one line, and the three echoes' self-beats, which the extract stage cannot
+    take out for movers it did not find, made a static point 10 m away with a 5 mm sigma (range
+    z 1228, unflagged, the map's one confident-wrong frame). The Doppler bands hold lines no mover
+    found explains, whose self-beats could turn the static lines by 7-15 of their sigmas
+    (``self_beat_bound``): the static point is flagged ``blended``."""
+    runs = run(movers((40, 60, 100), (40.0, 42.0, 44.0), "single"), "fast", 2, seed=797948648)
+    assert not confident(runs), confident(runs)
+    statics = [p for _, r, _ in runs for p in r.targets if p.direction == "static"]
+    assert statics and all(p.blended for p in statics)
+
+
+@pytest.mark.parametrize("loss_db", [20.0, 40.0])
+def test_the_beat_of_a_mover_with_a_neighbour_not_taken_is_no_mover(loss_db):
+    """One photodiode, 2^18 samples: movers 8 record bins apart (the 40/42-bin pair of 2^16's bins),
+    inside two guards of each other, where the search takes the second only when a valley stands
+    between them. It took their beat instead, 8 bins from 0 Hz, as a mover: a ghost with a 2e-8 m/s
+    sigma, unflagged. A line no stronger than BEAT_MARGIN times the beat the mover found makes with
+    what the spectrum holds at their sum or difference is that beat (``_BeatModel.hidden_neighbour``):
+    dropped, and the mover flagged ``blended`` (it may hide the neighbour)."""
+    bin_mps = 0.65536e9 / 2**16 * 1.55e-6 / 2
+    sc = scene([tgt(1.5, 40 * bin_mps, loss_db), tgt(3.7, 42 * bin_mps, loss_db + 2)], 2**18, (150e6, 200e6, 270e6),
+               laser={"wavelength_m": 1.55e-6, "linewidth_hz": 0.0}, digitizer={"sample_rate_hz": 0.65536e9},
+               receiver={"kind": "single"})
+    runs = run(sc, "balanced", 1, seed=7)
+    assert not confident(runs), confident(runs)
+    assert runs[0][1].status == "ok" and any(p.truth_index == 0 for p in runs[0][2].points)

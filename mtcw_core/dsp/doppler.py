@@ -238,6 +238,8 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
     fd = sign * b * spec.df_hz
     score = np.zeros(b.size)
     base_p, base = line(fd if spec.complex_input else np.abs(fd))
+    # a real record's bands, what stands out of their floor (self_beat_bound reads it)
+    stand_out = {"guard": min_bins, "B": _standing_out(base_p, base)} if not spec.complex_input else None
     if use_baseband:
         score += base
     strongest_pair = np.zeros(b.size)  # raw power of the strongest sideband pair
@@ -246,6 +248,8 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
         up_p, up = line(fd + f)
         # the lower line: signed for IQ, folded through 0 Hz for a real detector
         down_p, down = line(fd - f if spec.complex_input else np.abs(f - fd))
+        if stand_out is not None:
+            stand_out["U", float(f)], stand_out["L", float(f)] = _standing_out(up_p, up), _standing_out(down_p, down)
         # a Doppler pair is symmetric; a spur (IMD product) usually sits on one side only
         pair = np.minimum(up, down)
         score += 2 * pair
@@ -266,7 +270,20 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
             # target's carrier beat is stronger than its own sidebands)
             near = _near(np.abs(fd), spurs, min_bins * spec.df_hz)
             valid &= ~near | (base_p > float(np.max(power(tones))))
+    if stand_out is not None:
+        spec.memo[_stand_out_key(tones, bmax)] = stand_out
     return _Scores(fd, score, valid, n_pairs, base_p)
+
+
+def _stand_out_key(tones: np.ndarray, bmax: int) -> tuple:
+    return ("stand_out", tuple(float(f) for f in tones), bmax)
+
+
+def _standing_out(p: np.ndarray, ratio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Of one band's shifts: those (indices) where its power ``p`` stands :data:`SELF_BEAT_LINE_RATIO`
+    above its floor (``ratio`` = power over floor), and the power above the floor there (V^2)."""
+    k = np.flatnonzero(ratio > SELF_BEAT_LINE_RATIO)
+    return k, p[k] * (1.0 - 1.0 / ratio[k])
 
 
 def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[tuple[int, int]],
@@ -372,6 +389,30 @@ class _BeatModel:
         return any(np.min(np.abs(abs(x.fd_hz) - np.abs([a + b, a - b]))) < tol_hz and
                    self.power(x.fd_hz) <= BEAT_MARGIN * p for a, b, p in self(others))
 
+    def hidden_neighbour(self, x: DopplerEstimate, found: list[DopplerEstimate], static_hz: np.ndarray,
+                         tol_hz: float) -> int | None:
+        """Which mover of ``found`` (index) ``x`` may be the beat of with a line the search did not
+        take -- whatever the spectrum holds at ``|f_m| +- |f_x|`` (a neighbour inside the mover's
+        two guards, where only a line standing apart counts) -- being no stronger than
+        :data:`BEAT_MARGIN` times that beat; None when none. Places within ``tol_hz`` of a mover
+        found (:meth:`explains` judges those) or of a static line ``static_hz`` (0 Hz, the tones'
+        products: no echo) are not such a neighbour, nor one whose beat with the mover is
+        :meth:`ambiguous` (every line is marked then)."""
+        lw = self.lo_w([*found, x])
+        px = self.power(x.fd_hz)
+        taken = np.abs(np.concatenate([[d.fd_hz for d in found], static_hz]))
+        worst, who = 0.0, None
+        for i, m in enumerate(found):
+            for nb in (abs(m.fd_hz) + abs(x.fd_hz), abs(m.fd_hz) - abs(x.fd_hz)):
+                if np.min(np.abs(taken - abs(nb))) < tol_hz:
+                    continue
+                p = self.beat_power(m.fd_hz, nb, lw)
+                if p >= BEAT_AMBIGUOUS * min(self.power(m.fd_hz), self.power(nb)):
+                    continue  # echoes near the LO's power: no line can be told for a beat (mark)
+                if p > worst:
+                    worst, who = p, i
+        return who if who is not None and px <= BEAT_MARGIN * worst else None
+
     def ambiguous(self, found: list[DopplerEstimate]) -> bool:
         """Whether a pair's predicted beat comes within :data:`BEAT_AMBIGUOUS` of the weaker line
         (always, with two movers or more, where the echoes hold half the record's mean)."""
@@ -425,6 +466,7 @@ def _take_lines(spec: Spectrum, results: dict, tones: np.ndarray, ghost_base: np
     df = spec.df_hz
     found: list[DopplerEstimate] = []
     taken: list[tuple[int, int]] = []  # (sign, bin)
+    blocked: list[tuple[int, int]] = []  # lines taken for a beat with a neighbour not found
     # local maxima only: the skirt of a line inside the guard (a mover below it) is no candidate,
     # and must not hide one beyond it
     local = {s: np.concatenate([[False], (sc.score[1:-1] >= sc.score[:-2]) & (sc.score[1:-1] >= sc.score[2:]),
@@ -434,7 +476,7 @@ def _take_lines(spec: Spectrum, results: dict, tones: np.ndarray, ghost_base: np
             break
         best = None
         for s, sc in results.items():
-            ok = _allowed(sc, s, found, taken, ghost_base, min_bins, df, spec.complex_input, threshold,
+            ok = _allowed(sc, s, found, taken + blocked, ghost_base, min_bins, df, spec.complex_input, threshold,
                           beats) & local[s]
             if not ok.any():
                 continue
@@ -452,7 +494,37 @@ def _take_lines(spec: Spectrum, results: dict, tones: np.ndarray, ghost_base: np
             keep = [i for i, d in enumerate(found) if i == len(found) - 1
                     or not beats.explains(d, found[:i] + found[i + 1:], min_bins * df)]
             found, taken = [found[i] for i in keep], [taken[i] for i in keep]
+            j = beats.hidden_neighbour(found[-1], found[:-1], ghost_base, min_bins * df) if len(found) > 1 else None
+            if j is not None:
+                # the beat of a mover found with a neighbour the search did not take (inside its
+                # 2 guards): no mover; that mover's line may hide the neighbour (its point, and the
+                # static point, blended)
+                found[j] = replace(found[j], beat_ambiguous=True)
+                blocked.append(taken.pop())
+                found.pop()
     return beats.mark(found) if beats is not None else found
+
+
+def search_bmax(spec: Spectrum, fd_max_hz: float) -> int:
+    """The search's largest shift (bins of ``spec``): two bins beyond the limit, so that a line
+    exactly at it is still a local maximum."""
+    return int(min(np.floor(fd_max_hz / spec.df_hz) + 2, spec.power.size // 2 - 1))
+
+
+def search_floor(spec: Spectrum, tones: np.ndarray, bmax: int) -> np.ndarray:
+    """The local noise floor (:func:`~.spectrum.local_floor`) where the search looks: about 0 Hz
+    and about every tone (+-f_i for IQ), +-``bmax`` bins; NaN elsewhere. Shape of ``spec.power``."""
+    centres = np.concatenate([[0.0], tones, -tones]) if spec.complex_input else np.concatenate([[0.0], tones])
+    around = [(int(b) - bmax - 2, int(b) + bmax + 3) for b in spec.bin_of(centres)]
+    return local_floor(spec.power, mirror_dc=not spec.complex_input, ranges=around)
+
+
+def _ghost_base(tones: np.ndarray, fd_max_hz: float) -> np.ndarray:
+    """The static lines a Doppler line's lines may fall on (Hz, both signs): 0 Hz, the tones and
+    their intermodulation products up to the highest tone plus ``fd_max_hz``."""
+    base = np.concatenate([[0.0], tones, -tones, intermod_frequencies(tuple(float(f) for f in tones),
+                                                                      float(np.max(tones)) + fd_max_hz)])
+    return np.concatenate([base, -base])
 
 
 def search_doppler(
@@ -495,22 +567,16 @@ def search_doppler(
     df = spec.df_hz
     width = line_width_bins(spec, tones_hz) if width is None else width
     min_bins = _guard_bins(spec, tones_hz, min_bins, width)
-    # two bins beyond the limit, so that a line exactly at it is still a local maximum
-    bmax = int(min(np.floor(fd_max_hz / df) + 2, spec.power.size // 2 - 1))
+    bmax = search_bmax(spec, fd_max_hz)
     tones = np.asarray(tones_hz, dtype=float)
     if bmax <= min_bins + 1:
         return [DopplerEstimate(0.0, False, 0.0, 0.0, min_bins * df)]
     signs = (1, -1) if spec.complex_input else (1,)
-    # the floor where the search looks: about 0 Hz and about every tone (+-f_i for IQ), +-bmax bins
-    centres = np.concatenate([[0.0], tones, -tones]) if spec.complex_input else np.concatenate([[0.0], tones])
-    around = [(int(b) - bmax - 2, int(b) + bmax + 3) for b in spec.bin_of(centres)]
-    floor = local_floor(spec.power, mirror_dc=not spec.complex_input, ranges=around)
+    floor = search_floor(spec, tones, bmax)
     results = {s: _score_candidates(spec, floor, tones, s, bmax, min_bins, fd_max_hz, threshold_factor, use_baseband)
                for s in signs}
     threshold = threshold_factor * (2 * tones.size + (1 if use_baseband else 0))
-    ghost_base = np.concatenate([[0.0], tones, -tones, intermod_frequencies(tuple(float(f) for f in tones),
-                                                                            float(np.max(tones)) + fd_max_hz)])
-    ghost_base = np.concatenate([ghost_base, -ghost_base])
+    ghost_base = _ghost_base(tones, fd_max_hz)
     beats = _BeatModel(spec, beat_scale) if beat_scale is not None and not spec.complex_input else None
     found = _take_lines(spec, results, tones, ghost_base, min_bins, threshold, max_targets, beats)
     return found or [DopplerEstimate(0.0, False, 0.0, threshold, min_bins * df)]
@@ -872,6 +938,86 @@ def _beat_scale(spec: Spectrum, settings: ChainSettings) -> float:
     # the window the spectrum was taken with, in its dtype (the same cached array)
     return float(spec.total) / spec.n * window_sum(("kaiser", settings.window_beta), spec.n,
                                                      "float32" if settings.spectrum_single else "float64")
+
+
+#: a bin of the Doppler bands counts as part of a line when it stands this far above its local
+#: floor (white noise exceeds it with odds e^-10, ~4.5e-5 a bin)
+SELF_BEAT_LINE_RATIO = 10.0
+
+
+def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float]) -> np.ndarray:
+    """One photodiode: per tone, the largest amplitude (V, a cosine's) that the self-beats of
+    Doppler lines no mover found explains could put on the static line at ``f_i``.
+
+    Every echo also beats with itself, ``|E_m|^2``, onto lines at the tones with no Doppler:
+    ``S_i = sum_m U_im * conj(B_m) / A_L^2`` over the movers (``B_m`` a mover's baseband line,
+    ``U_im`` its sideband at ``f_i + f_dm``, :func:`~.extract.self_beat_lines`). The extract
+    stage takes out those of the movers found; movers the search could not resolve or did not
+    find leave theirs. By Cauchy-Schwarz, ``|S_i| <= sqrt(sum_m |U_im|^2 * sum_m |B_m|^2) / A_L^2``,
+    and the two sums are the energy of what stands out of the local floor
+    (:data:`SELF_BEAT_LINE_RATIO`) in the Doppler bands -- ``guard_bins`` to ``fd_max_hz`` above
+    0 Hz, and on both sides of ``f_i`` (the search's guard, :func:`_guard_bins`, at least
+    ``min_bins``) -- away from every line that is explained: the found
+    movers' lines, their beats with each other, 0 Hz, the tones and their intermodulation
+    products (each within ``guard_bins``). A line's energy over its bins is ``N*sum(w^2)*A^2/4``
+    (Parseval). ``A_L^2`` is taken as the record's mean (the LO's DC and the echoes', slightly
+    more: the bound is then slightly low).
+
+    Parameters
+    ----------
+    spec : the search spectrum (real record)
+    tones_hz : shape (T,), Hz
+    min_bins : the search's least guard (bins of ``spec``, ``doppler_min_bins``)
+    fds : the Doppler lines found (Hz)
+
+    Returns
+    -------
+    ndarray, shape (T,), V (zeros for a complex record, or one without its sum or a positive mean)
+    """
+    tones = np.asarray(tones_hz, dtype=float)
+    if spec.complex_input or spec.total is None or not float(spec.total) > 0:
+        return np.zeros(tones.size)
+    bmax = search_bmax(spec, fd_max_hz)
+    key = _stand_out_key(tones, bmax)
+    if key not in spec.memo:  # the search did not look at this spectrum (its scores note them)
+        if bmax <= min_bins + 1:
+            return np.zeros(tones.size)
+        _score_candidates(spec, search_floor(spec, tones, bmax), tones, 1, bmax, _guard_bins(spec, tones, min_bins),
+                          fd_max_hz, 1.0, True)
+    bands = spec.memo[key]
+    guard_bins = bands["guard"]
+    df = spec.df_hz
+    fds = [abs(f) for f in fds]
+    explained = [_ghost_base(tones, fd_max_hz)]
+    for i, fa in enumerate(fds):
+        explained.append(target_lines(tones, fa, False)[0])
+        explained.append(_ghost_base(tones, fd_max_hz)[:, None] + np.array([-fa, fa])[None, :])
+        for fb in fds[i + 1:]:
+            beats = np.array([fa - fb, fa + fb])
+            explained.append(np.concatenate([beats, (tones[:, None] + beats[None, :]).ravel(),
+                                             (tones[:, None] - beats[None, :]).ravel()]))
+    explained = np.sort(np.abs(np.concatenate([np.ravel(e) for e in explained])))
+    scale = 4.0 / (spec.n * spec.window_power)
+
+    def energy(band, at) -> float:
+        """Amplitude^2 (V^2) of what stands out of the floor in a band beyond the guard, less the
+        explained; ``at(b)``: the band's frequency at shift ``b`` (Hz)."""
+        k, excess = bands[band]
+        keep = k >= guard_bins
+        if not keep.any():
+            return 0.0
+        k, excess = k[keep], excess[keep]
+        f = np.abs(at(k * df))
+        j = np.clip(np.searchsorted(explained, f), 1, explained.size - 1)
+        near = np.minimum(np.abs(f - explained[j - 1]), np.abs(f - explained[j]))
+        return float(np.sum(excess[near > guard_bins * df])) * scale
+
+    base = energy("B", lambda d: d)
+    if base <= 0:
+        return np.zeros(tones.size)
+    side = np.array([0.5 * (energy(("U", float(f)), lambda d, f=f: f + d) + energy(("L", float(f)), lambda d, f=f: f - d))
+                     for f in tones])
+    return np.sqrt(side * base) / (float(spec.total) / spec.n)
 
 
 def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: ChainSettings,

@@ -20,7 +20,7 @@ from scipy import signal as sps
 from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
-from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families
+from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
@@ -47,6 +47,11 @@ class LineFamily:
     target : int
         Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
         k-th Doppler line.
+    self_beat_bound_v : ndarray, shape (T,), or None
+        The static lines of one photodiode: the largest amplitude (V) the self-beats of Doppler
+        lines no found mover explains could add to each
+        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`); None where there are none (balanced,
+        IQ, quasi-CW windows).
     """
 
     name: str
@@ -56,6 +61,7 @@ class LineFamily:
     seg_centre_s: np.ndarray
     phase_var: np.ndarray
     target: int = 0
+    self_beat_bound_v: np.ndarray | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -224,14 +230,21 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
         zs[target, name] = z
+    sb_bound = None
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
-            and not windows and any(d.detected for d in dops)):
-        # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
-        # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
-        # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
-        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        pred = self_beat_lines(zs, z_all, uniq, [d.fd_hz for d in dops if d.detected], dc)
-        zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
+            and not windows):
+        found = [d.fd_hz for d in dops if d.detected]
+        if found:
+            # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
+            # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
+            # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
+            dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
+            pred = self_beat_lines(zs, z_all, uniq, found, dc)
+            zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
+        # ... and the movers it did not find or resolve leave theirs: how large they could be
+        sb_bound = self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings),
+                                   settings.doppler_min_bins, found)
+        spec.memo.clear()  # TEMP
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq)
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
@@ -242,7 +255,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         s2 = s2_all[first[i]:first[i + 1]]
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
-        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target))
+        out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
+                              sb_bound if target == 0 else None))
     return out
 
 

@@ -7,7 +7,7 @@ no phase is ever taken from it (the line fits are float64 exact DFTs, :mod:`.ton
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -59,6 +59,10 @@ class Spectrum:
     complex_input: bool
     total: float | complex | None = None
     record_n: int | None = None
+    #: what a later stage reads of what an earlier one found in this spectrum (the Doppler search's
+    #: bins standing out of their floor, for the static lines' self-beat bound), keyed by what it
+    #: was computed for
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)

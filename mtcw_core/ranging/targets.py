@@ -202,6 +202,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
+    self_beat = self_beat_sigmas(fams, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
                                        shared_phase_psd(settings, sol.range_m))
@@ -212,12 +213,37 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         cycle_ambiguous=bool(ambiguous or p_slip > settings.cycle_slip_max), cycle_slip_prob=p_slip,
         # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
         # movers the search could not resolve: the range from their mixed phases is neither's), or
-        # the movers' beats come near their own lines (one photodiode, echoes near the LO's power)
+        # the movers' beats come near their own lines (one photodiode, echoes near the LO's power), or
+        # (the static lines, one photodiode) Doppler lines no mover found explains could have put
+        # their self-beats on them, as large as several of their sigmas
         blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_lines_chi2
-                     or dop.beat_ambiguous),
+                     or dop.beat_ambiguous or self_beat > SELF_BEAT_BOUND_SIGMAS),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
+
+
+#: the static lines of one photodiode are taken for a blend when the self-beats of Doppler lines
+#: no mover found explains could turn one of them by more than this many of its phase sigmas
+SELF_BEAT_BOUND_SIGMAS = 3.0
+
+
+def self_beat_sigmas(fams: list[LineFamily], min_snr_db: float) -> float:
+    """The largest phase turn (in the line's phase sigmas) that the unexplained self-beats could
+    give a used line of ``fams``: ``bound / (|z| * sigma_phase)`` (a phasor of size ``b`` added
+    to one of size ``a`` turns it by up to ``asin(b/a)``), over the lines at ``min_snr_db`` or
+    more of the families that carry a bound (:attr:`LineFamily.self_beat_bound_v`); 0 if none."""
+    worst = 0.0
+    for f in fams:
+        if f.self_beat_bound_v is None:
+            continue
+        use = f.snr_db >= min_snr_db
+        if not use.any():
+            continue
+        amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
+        turn = np.arcsin(np.minimum(f.self_beat_bound_v[use] / np.maximum(amp, 1e-300), 1.0))
+        worst = max(worst, float(np.max(turn / np.sqrt(f.phase_var[use]))))
+    return worst
 
 
 #: a candidate this much weaker than a mover (amplitude) may be a copy of its lines
