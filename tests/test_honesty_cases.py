@@ -299,8 +299,9 @@ def test_the_self_beats_of_movers_the_search_merged_do_not_make_a_confident_stat
     (``self_beat_bound``): the static point is flagged ``blended``."""
     runs = run(movers((40, 60, 100), (40.0, 42.0, 44.0), "single"), "fast", 2, seed=797948648)
     assert not confident(runs), confident(runs)
-    statics = [p for _, r, _ in runs for p in r.targets if p.direction == "static"]
-    assert statics and all(p.blended for p in statics)
+    # (the 40-bin mover is found beside the merged line since, and the static point then mostly
+    # goes; where one is reported, it is flagged)
+    assert all(p.blended for _, r, _ in runs for p in r.targets if p.direction == "static")
 
 
 @pytest.mark.parametrize("loss_db", [20.0, 40.0])
@@ -337,3 +338,18 @@ def test_a_sub_guard_fit_takes_no_bump_beside_a_held_line_for_a_mover(receiver):
         fits = [d.fd_hz for d in run_stages(fr, "fast", until="doppler").dopplers if d.detected and d.method == "fit"]
         assert fits and all(min(abs(abs(f) - t) for t in truth) < 0.1 * bin_hz for f in fits), \
             [round(abs(f) / bin_hz, 3) for f in fits]
+
+
+@pytest.mark.parametrize("receiver, loss_db", [("balanced", 30.0), ("iq", 40.0)])
+def test_fast_finds_a_mover_hidden_in_the_search_lobe_of_another(receiver, loss_db):
+    """``fast``, movers at 30, 90 and 120 record bins (2^16): 90 and 120 are one line in its
+    eighth-record spectrum (3.75 of its bins apart), so 120 was never found, and its lines leaked
+    through the rectangular window into the 30-bin mover's sub-guard fit: speed z -35 (balanced)
+    and -38 (IQ), unflagged. Beside each mover the search found, within two guards, the whole
+    record is searched as below the guard (``_lobe_neighbours``): all three are found, each within
+    its sigma. (A balanced record has no echo-echo beats: its sub-guard fit no longer holds them --
+    120 - 90 sat on the 30-bin mover's own line and made the fit singular.)"""
+    runs = run(movers((30, 90, 120), (loss_db, loss_db + 2, loss_db + 4), receiver), "fast", 2, seed=7)
+    assert not confident(runs), confident(runs)
+    for _, r, v in runs:
+        assert sorted(p.truth_index for p in v.points if p.truth_index is not None) == [0, 1, 2]

@@ -71,6 +71,12 @@ class DopplerEstimate:
     #: one photodiode, echoes near the LO's power: the movers' beats with each other come near their
     #: own lines, and which line is a mover cannot be told (:data:`BEAT_AMBIGUOUS`)
     beat_ambiguous: bool = False
+    #: found inside the search lobe of a mover the search found (:func:`_lobe_neighbours`): at that
+    #: mover's range it is that mover's phase-noise pedestal (``resolve`` drops it), not a target
+    beside: bool = False
+    #: the search's line hid another mover (one found inside its lobe, closer than the phase
+    #: refinement's parts can tell apart): its refinement saw both, its point is ``blended``
+    unresolved: bool = False
 
     @property
     def refined(self) -> bool:
@@ -945,43 +951,29 @@ def _beat_scale(spec: Spectrum, settings: ChainSettings) -> float:
 SELF_BEAT_LINE_RATIO = 10.0
 
 
-def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float]) -> np.ndarray:
-    """One photodiode: per tone, the largest amplitude (V, a cosine's) that the self-beats of
-    Doppler lines no mover found explains could put on the static line at ``f_i``.
-
-    Every echo also beats with itself, ``|E_m|^2``, onto lines at the tones with no Doppler:
-    ``S_i = sum_m U_im * conj(B_m) / A_L^2`` over the movers (``B_m`` a mover's baseband line,
-    ``U_im`` its sideband at ``f_i + f_dm``, :func:`~.extract.self_beat_lines`). The extract
-    stage takes out those of the movers found; movers the search could not resolve or did not
-    find leave theirs. By Cauchy-Schwarz, ``|S_i| <= sqrt(sum_m |U_im|^2 * sum_m |B_m|^2) / A_L^2``,
-    and the two sums are the energy of what stands out of the local floor
-    (:data:`SELF_BEAT_LINE_RATIO`) in the Doppler bands -- ``guard_bins`` to ``fd_max_hz`` above
-    0 Hz, and on both sides of ``f_i`` (the search's guard, :func:`_guard_bins`, at least
-    ``min_bins``) -- away from every line that is explained: the found
-    movers' lines, their beats with each other, 0 Hz, the tones and their intermodulation
-    products (each within ``guard_bins``). A line's energy over its bins is ``N*sum(w^2)*A^2/4``
-    (Parseval). ``A_L^2`` is taken as the record's mean (the LO's DC and the echoes', slightly
-    more: the bound is then slightly low).
-
-    Parameters
-    ----------
-    spec : the search spectrum (real record)
-    tones_hz : shape (T,), Hz
-    min_bins : the search's least guard (bins of ``spec``, ``doppler_min_bins``)
-    fds : the Doppler lines found (Hz)
+def unexplained_lines(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float]
+                      ) -> dict | None:
+    """What stands out of the local floor (:data:`SELF_BEAT_LINE_RATIO`) in the Doppler bands and no
+    line explains, per band: ``"B"`` (``guard`` to ``fd_max_hz`` above 0 Hz) and ``("U", f_i)``,
+    ``("L", f_i)`` (the same offsets above and below each tone) -- the guard the search's
+    (:func:`_guard_bins`, at least ``min_bins``). Explained: the found movers' lines (``fds``, Hz),
+    their beats with each other, 0 Hz, the tones and their intermodulation products, each within
+    the guard. The search notes the bins as it scores (:func:`_standing_out`, ``spec.memo``).
 
     Returns
     -------
-    ndarray, shape (T,), V (zeros for a complex record, or one without its sum or a positive mean)
+    dict: band -> (frequencies (Hz), shape (K,); each bin's amplitude^2 above the floor (V^2, a
+    cosine's: a line's energy over its bins is ``N*sum(w^2)*A^2/4``, Parseval), shape (K,)), and
+    ``"guard"`` (bins); None for a complex record
     """
     tones = np.asarray(tones_hz, dtype=float)
-    if spec.complex_input or spec.total is None or not float(spec.total) > 0:
-        return np.zeros(tones.size)
+    if spec.complex_input:
+        return None
     bmax = search_bmax(spec, fd_max_hz)
     key = _stand_out_key(tones, bmax)
     if key not in spec.memo:  # the search did not look at this spectrum (its scores note them)
         if bmax <= min_bins + 1:
-            return np.zeros(tones.size)
+            return None
         _score_candidates(spec, search_floor(spec, tones, bmax), tones, 1, bmax, _guard_bins(spec, tones, min_bins),
                           fd_max_hz, 1.0, True)
     bands = spec.memo[key]
@@ -999,24 +991,58 @@ def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, f
     explained = np.sort(np.abs(np.concatenate([np.ravel(e) for e in explained])))
     scale = 4.0 / (spec.n * spec.window_power)
 
-    def energy(band, at) -> float:
-        """Amplitude^2 (V^2) of what stands out of the floor in a band beyond the guard, less the
-        explained; ``at(b)``: the band's frequency at shift ``b`` (Hz)."""
-        k, excess = bands[band]
+    def band(name, at) -> tuple[np.ndarray, np.ndarray]:
+        k, excess = bands[name]
         keep = k >= guard_bins
-        if not keep.any():
-            return 0.0
         k, excess = k[keep], excess[keep]
         f = np.abs(at(k * df))
         j = np.clip(np.searchsorted(explained, f), 1, explained.size - 1)
         near = np.minimum(np.abs(f - explained[j - 1]), np.abs(f - explained[j]))
-        return float(np.sum(excess[near > guard_bins * df])) * scale
+        far = near > guard_bins * df
+        return f[far], excess[far] * scale
 
-    base = energy("B", lambda d: d)
+    out = {"guard": guard_bins, "B": band("B", lambda d: d)}
+    for f in tones:
+        out["U", float(f)] = band(("U", float(f)), lambda d, f=f: f + d)
+        out["L", float(f)] = band(("L", float(f)), lambda d, f=f: f - d)
+    return out
+
+
+def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float],
+                    lines: dict | None = None) -> np.ndarray:
+    """One photodiode: per tone, the largest amplitude (V, a cosine's) that the self-beats of
+    Doppler lines no mover found explains could put on the static line at ``f_i``.
+
+    Every echo also beats with itself, ``|E_m|^2``, onto lines at the tones with no Doppler:
+    ``S_i = sum_m U_im * conj(B_m) / A_L^2`` over the movers (``B_m`` a mover's baseband line,
+    ``U_im`` its sideband at ``f_i + f_dm``, :func:`~.extract.self_beat_lines`). The extract
+    stage takes out those of the movers found; movers the search could not resolve or did not
+    find leave theirs. By Cauchy-Schwarz, ``|S_i| <= sqrt(sum_m |U_im|^2 * sum_m |B_m|^2) / A_L^2``,
+    and the two sums are the energy of the Doppler bands' unexplained lines
+    (:func:`unexplained_lines`, ``lines`` if already read). ``A_L^2`` is taken as the record's mean
+    (the LO's DC and the echoes', slightly more: the bound is then slightly low).
+
+    Parameters
+    ----------
+    spec : the search spectrum (real record)
+    tones_hz : shape (T,), Hz
+    min_bins : the search's least guard (bins of ``spec``, ``doppler_min_bins``)
+    fds : the Doppler lines found (Hz)
+
+    Returns
+    -------
+    ndarray, shape (T,), V (zeros for a complex record, or one without its sum or a positive mean)
+    """
+    tones = np.asarray(tones_hz, dtype=float)
+    if spec.complex_input or spec.total is None or not float(spec.total) > 0:
+        return np.zeros(tones.size)
+    lines = unexplained_lines(spec, tones, fd_max_hz, min_bins, fds) if lines is None else lines
+    if lines is None:
+        return np.zeros(tones.size)
+    base = float(np.sum(lines["B"][1]))
     if base <= 0:
         return np.zeros(tones.size)
-    side = np.array([0.5 * (energy(("U", float(f)), lambda d, f=f: f + d) + energy(("L", float(f)), lambda d, f=f: f - d))
-                     for f in tones])
+    side = np.array([0.5 * (np.sum(lines["U", float(f)][1]) + np.sum(lines["L", float(f)][1])) for f in tones])
     return np.sqrt(side * base) / (float(spec.total) / spec.n)
 
 
@@ -1072,6 +1098,19 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             if more is None:
                 break
             small.append(more)
+        if main and spec.record_n is not None:
+            # the search's bins are coarse (fast: an eighth of the record): a mover inside the
+            # lobe of one it found is one line there, and its lines leak into every other fit
+            near = _lobe_neighbours(x, frame, spec, guard, f_max, settings.doppler_threshold, main, small,
+                                    band[1], settings.max_targets - len(main) - len(small))
+            # ... and where it lies closer than the refinement's quarters resolve, the line the
+            # search found was both: its refined Doppler is neither's, and the neighbour's fit held
+            # that line where no mover is
+            sep = PHASE_SEPARATION_BINS * 4 * frame.fs_hz / x.size
+            found = [m for m in main_refined if m.detected]
+            main_refined = [replace(m, unresolved=True) if m.detected and _within(m, near, sep) else m
+                            for m in main_refined]
+            small += [replace(d, unresolved=True) if _within(d, found, sep) else d for d in near]
         if small and main and beats is not None:
             main_refined, small = _neighbour_beats(beats, main_refined, small)
         if len(small) > 1 or (small and main):
@@ -1205,8 +1244,10 @@ SMALL_LINE_SNR = 30.0
 SMALL_CURVATURE_STEP = 0.02
 #: ... and of the last parabola step (the vertex's bias), as a fraction of it
 SMALL_FINAL_STEP_FRACTION = 0.02
-#: a sub-guard fit's peak is a line's when its shape (:func:`_small_peak`) lies within these
-SMALL_SHAPE = (0.5, 1.5)
+#: a sub-guard fit's peak is a line's when its shape (:func:`_small_peak`) lies within these: a line
+#: a few bins from 0 Hz and its image beat (1.2 record bins: 1.55, 1.3: 1.46, 1.7: 1.31, 2.0: 0.90,
+#: from 2.5 bins up 0.81-1.02); a bump beside a held line or at a band's edge: ~3
+SMALL_SHAPE = (0.5, 2.0)
 #: the local floor's effect on a line's frequency, over white noise's: up to 2 when the floor is the
 #: line's own phase-noise pedestal (all of it in the phase quadrature, half of white noise)
 PEDESTAL_FACTOR = 2.0
@@ -1256,7 +1297,8 @@ def small_band(spec: Spectrum, guard_bins: int, fd_max_hz: float, fs: float, n: 
 
 def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
                          threshold_factor: float, others: tuple[float, ...] = (),
-                         low: LowBand | None = None, below_hz: float | None = None) -> DopplerEstimate | None:
+                         low: LowBand | None = None, below_hz: float | None = None,
+                         band: tuple[float, float] | None = None) -> DopplerEstimate | None:
     """A mover whose Doppler lies below the search's guard, measured on the whole record.
 
     The search keeps ``guard_bins`` from the static lines, whose Kaiser main lobes would pass for
@@ -1296,6 +1338,9 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     low : the record's block sums for this search's band (:func:`small_band`), if already taken
     below_hz : the band's top (Hz) when lower than :func:`small_band`'s (a guard short of a mover
         the search found beyond the guard)
+    band : ``(lo, hi)`` (Hz) instead of :func:`small_band`'s: beside a mover the search found, inside
+        its search lobe (:func:`_lobe_neighbours`); the spectrum's width test then does not apply (it
+        reads the found mover's lobe), and the scan's peak must stand out of the scan itself
 
     Returns
     -------
@@ -1305,17 +1350,20 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     fs, n = frame.fs_hz, x.size
     dfr = fs / n
     tones = np.asarray(frame.tones_hz, float)
-    lo, hi = small_band(spec, guard_bins, fd_max_hz, fs, n)
+    lo, hi = small_band(spec, guard_bins, fd_max_hz, fs, n) if band is None else band
     hi = hi if below_hz is None else min(hi, below_hz)
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
-    found = _small_candidate(x, fs, spec, tones, others, low or LowBand.of(x, fs, hi / dfr), lo, hi)
+    beside = band is not None
+    found = _small_candidate(x, fs, spec, tones, others, low or LowBand.of(x, fs, hi / dfr), lo, hi, beside,
+                             beats=frame.receiver == "single")
     if found is None:
         return None
     fd0, fit = found
     fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, fd0, lo, hi)
-    if not SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] or not _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz,
-                           threshold_factor):
+    if not SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] or not _small_decisive(
+            spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz, threshold_factor,
+            width_test=not beside):
         return None
     combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
     if combined is None:
@@ -1327,14 +1375,19 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
 
 
 def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray, others: tuple[float, ...],
-                     low: LowBand, lo: float, hi: float) -> "tuple[float, _SmallFit] | None":
+                     low: LowBand, lo: float, hi: float, beside: bool = False, beats: bool = True
+                     ) -> "tuple[float, _SmallFit] | None":
     """:func:`search_small_doppler`'s candidate: the scan's peak (Hz) where a joint fit could find a
-    decisive mover, and that fit (the movers already found held), or None."""
+    decisive mover, and that fit (the movers already found held), or None. ``beside``: the band lies
+    about a mover found (its lobe in the search spectrum): the peak must stand out of the scan, and
+    the spectrum's width test is not made."""
     iq = np.iscomplexobj(x)
     # the movers already found, fitted first only where one lies in the band (its baseband line is
     # then taken out of the scan); those the search found beyond the guard are held in the joint fit
     in_band = any(abs(o) <= hi + SMALL_OTHER_BINS * fs / x.size for o in others)
-    fit = _SmallFit(x, fs, tones, iq, others) if in_band else None
+    # beside a mover found (its lobe), the joint fit waits for a candidate: the scan takes the
+    # movers' baseband lines out from one DFT at them (each frame with a mover in ``fast`` scans there)
+    fit = _SmallFit(x, fs, tones, iq, others, beats) if in_band and not beside else None
     # movers beyond the band: their baseband lines' leakage (the rectangular window's 1/(pi*distance))
     # taken out of the scan and the gate too, from one DFT at their lines (else a strong mover's
     # sidelobes pass the gate and the joint fit runs, ~30 ms a 1e6-sample frame, to reject them)
@@ -1342,15 +1395,15 @@ def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray
     # beside movers beyond the band, a line also stands out of the scan itself: their phase-noise
     # pedestal fills the band (its floor, not the spectrum's rings about the band, is what a line
     # there must beat; moving-target at 1e6: a 21 dB 'line' of pedestal, 5 dB after the fit)
-    contrast = SMALL_MIN_SNR / SMALL_SCAN_MARGIN if fit is None and others else None
-    fd0 = _small_scan(low, lo, hi, iq, leak, others, contrast)
+    contrast = SMALL_MIN_SNR / SMALL_SCAN_MARGIN if (fit is None and others) or beside else None
+    fd0 = _small_scan(low, lo, hi, iq, leak, others, contrast, beats)
     if fd0 is None or not _small_worth_fitting(low, spec, fd0, tones, iq, leak):
         return None
     # a coherent line, before the fit (tens of passes over the record): the decisive test's width
     # rule at the scan's peak (a mover's phase-noise pedestal near 0 Hz passes the SNR gate beside it)
-    if widths_at(spec, [fd0 if spec.complex_input else abs(fd0)], half_span=16) > SMALL_MAX_WIDTH:
+    if not beside and widths_at(spec, [fd0 if spec.complex_input else abs(fd0)], half_span=16) > SMALL_MAX_WIDTH:
         return None
-    return fd0, fit or _SmallFit(x, fs, tones, iq, others)
+    return fd0, fit or _SmallFit(x, fs, tones, iq, others, beats)
 
 
 def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: float
@@ -1358,9 +1411,10 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
     """The joint energy's maximum within half a scan step of ``fd0`` (Hz, inside ``[lo, hi]`` in
     ``|f_d|``), and there: the fit's amplitudes ``c`` (held lines first), the mover's lines ``fm``
     (Hz), their exact DFTs ``dm``, the noise variance ``s2`` about each, each line's SNR, the beats
-    held (:meth:`_SmallFit.beats`), and the peak's shape: its curvature over a line's of the energy
-    the mover's lines add (1 for lines, 0.81-1.02 at SNR >= 100 on 474 case-6-like fits; ~3 for
-    a bump that two nearly collinear fits make beside a held line, or a slope's edge)."""
+    held (:meth:`_SmallFit.beats`), and the peak's shape: its curvature over a lone line's of the
+    energy the mover's lines add (0.81-1.02 at SNR >= 100 on 474 case-6-like fits, up to 1.55 a
+    bin or two from 0 Hz, where the line's image bends it; ~3 for a bump that two nearly collinear
+    fits make beside a held line, or a slope's edge: :data:`SMALL_SHAPE`)."""
     fs, n, iq = fit.fs, fit.x.size, fit.iq
     dfr = fs / n
     a_, b_ = abs(fd0) - 0.5 * SMALL_SCAN_STEP * dfr, abs(fd0) + 0.5 * SMALL_SCAN_STEP * dfr
@@ -1378,6 +1432,44 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
     s2 = _small_floor(spec, fm, excl)
     snr = np.abs(c[fit.static.size:]) ** 2 * n / ((0.5 if iq else 2.0) * np.maximum(s2, 1e-300))
     return fd, c, fm, dm, s2, snr, beats, shape
+
+
+def _within(d: DopplerEstimate, others: list[DopplerEstimate], sep_hz: float) -> bool:
+    """Whether ``d``'s Doppler lies within ``sep_hz`` of one of ``others``' (in ``|f_d|``)."""
+    return any(abs(abs(d.fd_hz) - abs(o.fd_hz)) < sep_hz for o in others)
+
+
+#: the search may miss a mover this many guards either side of one it found (its own rule takes a
+#: line 1-2 guards away only with a valley between them)
+LOBE_GUARDS = 2.0
+
+
+def _lobe_neighbours(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: int, fd_max_hz: float,
+                     threshold_factor: float, main: tuple[float, ...], small: list[DopplerEstimate],
+                     below_hz: float, room: int) -> list[DopplerEstimate]:
+    """Movers beside those the search found, within :data:`LOBE_GUARDS` guards of them, found on the
+    whole record (:func:`search_small_doppler` on that band, every mover found held) where the
+    search spectrum covers part of it (``fast``: movers 90 and 120 record bins up at 2^16 are one
+    line in its eighth-record spectrum, and the hidden one's lines leak through the rectangular
+    window into every fit of the whole record: a mover at 30 bins came out 35 sigma off).
+    ``below_hz``: the top of the band already searched below the guard; ``room``: how many more
+    movers may be reported."""
+    fs, n = frame.fs_hz, x.size
+    w = LOBE_GUARDS * guard_bins * spec.df_hz
+    bands = [(max(abs(m) - w, below_hz), min(abs(m) + w, fd_max_hz)) for m in main]
+    bands = [(a, b) for a, b in bands if b > a]
+    if not bands or room <= 0:
+        return []
+    low = LowBand.of(x, fs, max(b for _, b in bands) * n / fs)
+    found: list[DopplerEstimate] = []
+    for a, b in bands:
+        if len(found) >= room:
+            break
+        more = search_small_doppler(x, frame, spec, guard_bins, fd_max_hz, threshold_factor,
+                                    (*main, *(d.fd_hz for d in small), *(d.fd_hz for d in found)), low, band=(a, b))
+        if more is not None:
+            found.append(replace(more, beside=True))
+    return found
 
 
 def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[DopplerEstimate], lo: float,
@@ -1407,7 +1499,8 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
     for _ in range(SMALL_REMEASURE_ROUNDS):
         moved = False
         for i, est in enumerate(out):
-            fit = _SmallFit(x, fs, tones, iq, (*held, *(o.fd_hz for j, o in enumerate(out) if j != i)))
+            fit = _SmallFit(x, fs, tones, iq, (*held, *(o.fd_hz for j, o in enumerate(out) if j != i)),
+                            frame.receiver == "single")
             fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, est.fd_hz, lo, hi)
             combined = (_small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
                         if SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] else None)
@@ -1420,13 +1513,14 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
 
 
 def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | None" = None,
-                others: tuple[float, ...] = (), contrast: float | None = None) -> float | None:
+                others: tuple[float, ...] = (), contrast: float | None = None, beats: bool = True) -> float | None:
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
     :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
     ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
     the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
     weaker), else None. ``others``: the movers already found; the points near them and their beats
-    are left out, and with ``fit`` (its ``others`` the same) their baseband lines taken out first.
+    are left out (their beats only where the echoes beat with each other, ``beats``: one
+    photodiode), and with ``fit`` (its ``others`` the same) their baseband lines taken out first.
     ``contrast``: the peak must stand this far above the scan's median power, else None."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
@@ -1434,7 +1528,8 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     p = np.abs(xs - _small_residual(fit, grid)) ** 2 if fit is not None else np.abs(xs) ** 2
     if others:
         dfr = low.fs_hz / low.n
-        near = [*others, *(a + sg * b for i, a in enumerate(others) for b in others[i + 1:] for sg in (1, -1))]
+        near = [*others, *(a + sg * b for i, a in enumerate(others) for b in others[i + 1:] for sg in (1, -1)
+                           if beats)]
         for f0 in near:
             p[np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr] = 0.0
     k = int(np.argmax(p))
@@ -1547,15 +1642,21 @@ class _SmallFit:
     (``static`` holds them all, the static ones' ``n_static`` first, the movers' next), with a
     mover's at a trial Doppler (:func:`target_lines`)."""
 
-    def __init__(self, x: np.ndarray, fs: float, tones: np.ndarray, iq: bool, others: tuple[float, ...] = ()):
+    def __init__(self, x: np.ndarray, fs: float, tones: np.ndarray, iq: bool, others: tuple[float, ...] = (),
+                 cross: bool | None = None):
         self.x, self.fs, self.tones, self.iq, self.others = x, fs, tones, iq, tuple(others)
+        # the movers' beats with each other: a square-law record's (one photodiode; ``cross``, default
+        # any real record), never a balanced or IQ one's -- held there, a beat that is no line sits on
+        # a mover's own (90 and 120 record bins: their difference at a third mover's 30) and the fit
+        # is singular
+        self.cross = (not iq) if cross is None else bool(cross) and not iq
         self.total = 0.0 if iq else float(np.sum(x))
         static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
         self.n_static = static.size
         self.other_base = np.array([o if iq else abs(o) for o in self.others], dtype=float)
         held = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
-        self.static = _add_apart(held, [target_lines(tones, b, iq)[0] for b in cross_beats(self.others, iq, fs / x.size)],
-                                 0.5 * fs / x.size)
+        crossed = cross_beats(self.others, iq, fs / x.size) if self.cross else []
+        self.static = _add_apart(held, [target_lines(tones, b, iq)[0] for b in crossed], 0.5 * fs / x.size)
         self.d_static = exact_dft(x, self.static, fs)
         # the baseband amplitudes (V, at the record's centre) of the movers already found, fitted with
         # the static lines and all their lines, shape (len(others),)
@@ -1566,9 +1667,9 @@ class _SmallFit:
 
     def beats(self, fd: float) -> tuple[np.ndarray, np.ndarray]:
         """The lines (Hz) of a mover at ``fd`` beating with the movers already found
-        (:func:`cross_beats`; none for IQ), and their exact DFTs."""
+        (:func:`cross_beats`; none but on one photodiode), and their exact DFTs."""
         fb = [target_lines(self.tones, abs(abs(fd) - abs(o)), self.iq)[0] for o in self.others
-              if cross_beats((fd, o), self.iq, self.fs / self.x.size)]
+              if self.cross and cross_beats((fd, o), self.iq, self.fs / self.x.size)]
         base = np.concatenate([self.static, target_lines(self.tones, fd, self.iq)[0]])
         fb = _add_apart(base, fb, 0.5 * self.fs / self.x.size)[base.size:]
         if not fb.size:
@@ -1602,7 +1703,8 @@ class _SmallFit:
 
 
 def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_fixed: int, n_static: int,
-                    tones: np.ndarray, guard_bins: int, fd_max_hz: float, threshold_factor: float) -> bool:
+                    tones: np.ndarray, guard_bins: int, fd_max_hz: float, threshold_factor: float,
+                    width_test: bool = True) -> bool:
     """Whether a sub-guard fit at ``fd`` is a mover: the baseband line's SNR (``snr[0]``) at least
     :data:`SMALL_MIN_SNR` and stronger than every sideband, :data:`SMALL_MIN_PAIRS` tones with both
     sidebands above ``threshold_factor``, a coherent line (:data:`SMALL_MAX_WIDTH`), and on a static
@@ -1615,7 +1717,7 @@ def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n
     if not (snr[0] >= SMALL_MIN_SNR and base_pw > float(np.max(np.abs(cm[1:]) ** 2))
             and pairs >= min(SMALL_MIN_PAIRS, t)):
         return False
-    if widths_at(spec, [fd if spec.complex_input else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
+    if width_test and widths_at(spec, [fd if spec.complex_input else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
         return False
     spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz))
     on_spur = np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz)

@@ -47,11 +47,11 @@ class LineFamily:
     target : int
         Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
         k-th Doppler line.
-    self_beat_bound_v : ndarray, shape (T,), or None
-        The static lines of one photodiode: the largest amplitude (V) the self-beats of Doppler
-        lines no found mover explains could add to each
-        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`); None where there are none (balanced,
-        IQ, quasi-CW windows).
+    unexplained_v : ndarray, shape (T,), or None
+        The static lines of one photodiode: the largest amplitude (V) that the self-beats of
+        Doppler lines no found mover explains could add to each
+        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`); None where not measured (balanced, IQ,
+        quasi-CW windows).
     """
 
     name: str
@@ -61,7 +61,7 @@ class LineFamily:
     seg_centre_s: np.ndarray
     phase_var: np.ndarray
     target: int = 0
-    self_beat_bound_v: np.ndarray | None = None
+    unexplained_v: np.ndarray | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -242,8 +242,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
             pred = self_beat_lines(zs, z_all, uniq, found, dc)
             zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
         # ... and the movers it did not find or resolve leave theirs: how large they could be
-        sb_bound = self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings),
-                                   settings.doppler_min_bins, found)
+        sb_bound = self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
+                                   found)
         spec.memo.clear()  # TEMP
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq)

@@ -202,7 +202,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
-    self_beat = self_beat_sigmas(fams, settings.min_line_snr_db)
+    unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
                                        shared_phase_psd(settings, sol.range_m))
@@ -214,34 +214,35 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
         # movers the search could not resolve: the range from their mixed phases is neither's), or
         # the movers' beats come near their own lines (one photodiode, echoes near the LO's power), or
-        # (the static lines, one photodiode) Doppler lines no mover found explains could have put
-        # their self-beats on them, as large as several of their sigmas
+        # the search's line hid a second mover found since (its refinement saw both), or (the static
+        # lines, one photodiode) Doppler lines no mover found explains could have put their
+        # self-beats on them, as large as several of their sigmas
         blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_lines_chi2
-                     or dop.beat_ambiguous or self_beat > SELF_BEAT_BOUND_SIGMAS),
+                     or dop.beat_ambiguous or dop.unresolved or unexplained > UNEXPLAINED_SIGMAS),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
 
 
-#: the static lines of one photodiode are taken for a blend when the self-beats of Doppler lines
-#: no mover found explains could turn one of them by more than this many of its phase sigmas
-SELF_BEAT_BOUND_SIGMAS = 3.0
+#: the static lines (one photodiode) are taken for a blend when the self-beats of Doppler lines no
+#: mover found explains could turn one of them by more than this many of its phase sigmas
+UNEXPLAINED_SIGMAS = 3.0
 
 
-def self_beat_sigmas(fams: list[LineFamily], min_snr_db: float) -> float:
-    """The largest phase turn (in the line's phase sigmas) that the unexplained self-beats could
+def unexplained_sigmas(fams: list[LineFamily], min_snr_db: float) -> float:
+    """The largest phase turn (in the line's phase sigmas) that the unexplained Doppler lines could
     give a used line of ``fams``: ``bound / (|z| * sigma_phase)`` (a phasor of size ``b`` added
     to one of size ``a`` turns it by up to ``asin(b/a)``), over the lines at ``min_snr_db`` or
-    more of the families that carry a bound (:attr:`LineFamily.self_beat_bound_v`); 0 if none."""
+    more of the families that carry a bound (:attr:`LineFamily.unexplained_v`); 0 if none."""
     worst = 0.0
     for f in fams:
-        if f.self_beat_bound_v is None:
+        if f.unexplained_v is None:
             continue
         use = f.snr_db >= min_snr_db
         if not use.any():
             continue
         amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
-        turn = np.arcsin(np.minimum(f.self_beat_bound_v[use] / np.maximum(amp, 1e-300), 1.0))
+        turn = np.arcsin(np.minimum(f.unexplained_v[use] / np.maximum(amp, 1e-300), 1.0))
         worst = max(worst, float(np.max(turn / np.sqrt(f.phase_var[use]))))
     return worst
 
@@ -296,7 +297,8 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
 
     Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line. A Doppler
     candidate whose lines are a scaled copy of a stronger mover's (:func:`is_scaled_copy`: that
-    mover's phase-noise pedestal) gets no point.
+    mover's phase-noise pedestal) gets no point; nor does one found inside a mover's search lobe
+    (``DopplerEstimate.beside``) at that mover's range (the bumps of its pedestal there).
     """
     moving = [d for d in dops if d.detected]
     # the static candidate's smallest measurable speed: the search's; beside a mover found below
@@ -318,7 +320,10 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
         if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
             continue  # the phase-noise pedestal of a stronger mover, not a target
         lu = unambiguous_range(obs.df_hz)
-        points.append((k, solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)))
+        point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
+        if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
+            continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)
+        points.append((k, point))
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
     return points, l_unamb
 
