@@ -1501,7 +1501,9 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
         for i, est in enumerate(out):
             fit = _SmallFit(x, fs, tones, iq, (*held, *(o.fd_hz for j, o in enumerate(out) if j != i)),
                             frame.receiver == "single")
-            fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, est.fd_hz, lo, hi)
+            # a mover found beside another beyond the guard keeps its own band
+            fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, est.fd_hz, *((0.0, np.inf) if est.beside
+                                                                                      else (lo, hi)))
             combined = (_small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
                         if SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] else None)
             if combined is not None:

@@ -14,12 +14,12 @@ high SNR is the skirt of an incoherent line.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max
+from ..dsp.doppler import MIN_CARRIER_COHERENCE, PHASE_SEPARATION_BINS, DopplerEstimate, fd_max
 from ..dsp.extract import LineFamily
 from ..frame import Frame
 from ..phase import C
@@ -315,16 +315,27 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
                              beat_ambiguous=single and any(d.beat_ambiguous for d in moving))
     points: list[tuple[int, TargetPoint]] = []
     l_unamb = None
+    solved = {}
     for k, obs in sorted(observations.items()):
         fam_k = [f for f in families if f.target == k]
         if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
             continue  # the phase-noise pedestal of a stronger mover, not a target
         lu = unambiguous_range(obs.df_hz)
+        solved[k] = (fam_k, obs, lu)
         point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
         if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
             continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)
         points.append((k, point))
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+    # a mover flagged for a neighbour that gave no point of its own (its pedestal, a copy, lines it
+    # could not have alone) is not a blend
+    kept = [moving[k - 1] for k, _ in points if k and moving[k - 1].beside]
+    sep = PHASE_SEPARATION_BINS * 4 * frame.fs_hz / frame.n
+    points = [(k, solve_target(solved[k][0], solved[k][1], replace(moving[k - 1], unresolved=False), frame,
+                               settings, ref, coarse, solved[k][2]))
+              if k and moving[k - 1].unresolved and not moving[k - 1].beside
+              and not any(abs(abs(moving[k - 1].fd_hz) - abs(d.fd_hz)) < sep for d in kept) else (k, p)
+              for k, p in points]
     return points, l_unamb
 
 
