@@ -233,18 +233,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     sb_bound = None
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
-        found = [d.fd_hz for d in dops if d.detected]
-        if found:
-            # a single photodiode also sees each mover's echo beating with itself: lines at f_i,
-            # with no Doppler, on top of the static target's (issue 12 cases 3 and 5); the prediction
-            # holds for an unmodulated LO (a modulated reference adds its own sidebands to every product)
-            dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-            pred = self_beat_lines(zs, z_all, uniq, found, dc)
-            zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
-        # ... and the movers it did not find or resolve leave theirs: how large they could be
-        sb_bound = self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
-                                   found)
-        spec.memo.clear()  # TEMP
+        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
+        sb_bound = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings)
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq)
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
@@ -258,6 +248,20 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None))
     return out
+
+
+def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
+                spec: Spectrum, frame: Frame, settings: ChainSettings) -> np.ndarray:
+    """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
+    top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
+    ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
+    adding its own sidebands to every product), and the bound on those of movers the search did not
+    find or resolve is returned (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,))."""
+    found = [d.fd_hz for d in dops if d.detected]
+    if found:
+        pred = self_beat_lines(zs, z_all, uniq, found, dc)
+        zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
+    return self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins, found)
 
 
 #: the static lines' envelope is taken as varying when the segments' amplitudes less their mean
