@@ -980,10 +980,11 @@ def unexplained_lines(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int,
     guard_bins = bands["guard"]
     df = spec.df_hz
     fds = [abs(f) for f in fds]
-    explained = [_ghost_base(tones, fd_max_hz)]
+    ghosts = _ghost_base(tones, fd_max_hz)
+    explained = [ghosts]
     for i, fa in enumerate(fds):
         explained.append(target_lines(tones, fa, False)[0])
-        explained.append(_ghost_base(tones, fd_max_hz)[:, None] + np.array([-fa, fa])[None, :])
+        explained.append(ghosts[:, None] + np.array([-fa, fa])[None, :])
         for fb in fds[i + 1:]:
             beats = np.array([fa - fb, fa + fb])
             explained.append(np.concatenate([beats, (tones[:, None] + beats[None, :]).ravel(),
@@ -1008,8 +1009,7 @@ def unexplained_lines(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int,
     return out
 
 
-def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float],
-                    lines: dict | None = None) -> np.ndarray:
+def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, fds: list[float]) -> np.ndarray:
     """One photodiode: per tone, the largest amplitude (V, a cosine's) that the self-beats of
     Doppler lines no mover found explains could put on the static line at ``f_i``.
 
@@ -1019,7 +1019,7 @@ def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, f
     stage takes out those of the movers found; movers the search could not resolve or did not
     find leave theirs. By Cauchy-Schwarz, ``|S_i| <= sqrt(sum_m |U_im|^2 * sum_m |B_m|^2) / A_L^2``,
     and the two sums are the energy of the Doppler bands' unexplained lines
-    (:func:`unexplained_lines`, ``lines`` if already read). ``A_L^2`` is taken as the record's mean
+    (:func:`unexplained_lines`). ``A_L^2`` is taken as the record's mean
     (the LO's DC and the echoes', slightly more: the bound is then slightly low).
 
     Parameters
@@ -1036,7 +1036,7 @@ def self_beat_bound(spec: Spectrum, tones_hz, fd_max_hz: float, min_bins: int, f
     tones = np.asarray(tones_hz, dtype=float)
     if spec.complex_input or spec.total is None or not float(spec.total) > 0:
         return np.zeros(tones.size)
-    lines = unexplained_lines(spec, tones, fd_max_hz, min_bins, fds) if lines is None else lines
+    lines = unexplained_lines(spec, tones, fd_max_hz, min_bins, fds)
     if lines is None:
         return np.zeros(tones.size)
     base = float(np.sum(lines["B"][1]))
@@ -1106,11 +1106,11 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             # ... and where it lies closer than the refinement's quarters resolve, the line the
             # search found was both: its refined Doppler is neither's, and the neighbour's fit held
             # that line where no mover is
-            sep = PHASE_SEPARATION_BINS * 4 * frame.fs_hz / x.size
+            sep = quarters_resolve_hz(frame.fs_hz, x.size)
             found = [m for m in main_refined if m.detected]
-            main_refined = [replace(m, unresolved=True) if m.detected and _within(m, near, sep) else m
+            main_refined = [replace(m, unresolved=True) if m.detected and within(m, near, sep) else m
                             for m in main_refined]
-            small += [replace(d, unresolved=True) if _within(d, found, sep) else d for d in near]
+            small += [replace(d, unresolved=True) if within(d, found, sep) else d for d in near]
         if small and main and beats is not None:
             main_refined, small = _neighbour_beats(beats, main_refined, small)
         if len(small) > 1 or (small and main):
@@ -1434,7 +1434,13 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
     return fd, c, fm, dm, s2, snr, beats, shape
 
 
-def _within(d: DopplerEstimate, others: list[DopplerEstimate], sep_hz: float) -> bool:
+def quarters_resolve_hz(fs_hz: float, n: int) -> float:
+    """Two movers closer than this (Hz) are one line to the phase refinement's quarters
+    (:data:`PHASE_SEPARATION_BINS` bins of a quarter of the ``n``-sample record)."""
+    return PHASE_SEPARATION_BINS * 4 * fs_hz / n
+
+
+def within(d: DopplerEstimate, others: list[DopplerEstimate], sep_hz: float) -> bool:
     """Whether ``d``'s Doppler lies within ``sep_hz`` of one of ``others``' (in ``|f_d|``)."""
     return any(abs(abs(d.fd_hz) - abs(o.fd_hz)) < sep_hz for o in others)
 

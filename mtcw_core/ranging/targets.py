@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..dsp.doppler import MIN_CARRIER_COHERENCE, PHASE_SEPARATION_BINS, DopplerEstimate, fd_max
+from ..dsp.doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max, quarters_resolve_hz, within
 from ..dsp.extract import LineFamily
 from ..frame import Frame
 from ..phase import C
@@ -330,12 +330,11 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     # a mover flagged for a neighbour that gave no point of its own (its pedestal, a copy, lines it
     # could not have alone) is not a blend
     kept = [moving[k - 1] for k, _ in points if k and moving[k - 1].beside]
-    sep = PHASE_SEPARATION_BINS * 4 * frame.fs_hz / frame.n
+    sep = quarters_resolve_hz(frame.fs_hz, frame.n)
     points = [(k, solve_target(solved[k][0], solved[k][1], replace(moving[k - 1], unresolved=False), frame,
                                settings, ref, coarse, solved[k][2]))
-              if k and moving[k - 1].unresolved and not moving[k - 1].beside
-              and not any(abs(abs(moving[k - 1].fd_hz) - abs(d.fd_hz)) < sep for d in kept) else (k, p)
-              for k, p in points]
+              if k and moving[k - 1].unresolved and not moving[k - 1].beside and not within(moving[k - 1], kept, sep)
+              else (k, p) for k, p in points]
     return points, l_unamb
 
 
