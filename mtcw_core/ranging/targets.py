@@ -214,11 +214,11 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
         # movers the search could not resolve: the range from their mixed phases is neither's), or
         # the movers' beats come near their own lines (one photodiode, echoes near the LO's power), or
-        # the search's line hid a second mover found since (its refinement saw both), or (the static
-        # lines, one photodiode) Doppler lines no mover found explains could have put their
-        # self-beats on them, as large as several of their sigmas
+        # (the static lines, one photodiode) Doppler lines no mover found explains could have put
+        # their self-beats on them, as large as several of their sigmas; a Doppler line that hid a
+        # second mover (``dop.unresolved``) is judged in resolve_targets, once the second is known
         blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_lines_chi2
-                     or dop.beat_ambiguous or dop.unresolved or unexplained > UNEXPLAINED_SIGMAS),
+                     or dop.beat_ambiguous or unexplained > UNEXPLAINED_SIGMAS),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
@@ -315,26 +315,23 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
                              beat_ambiguous=single and any(d.beat_ambiguous for d in moving))
     points: list[tuple[int, TargetPoint]] = []
     l_unamb = None
-    solved = {}
     for k, obs in sorted(observations.items()):
         fam_k = [f for f in families if f.target == k]
         if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
             continue  # the phase-noise pedestal of a stronger mover, not a target
         lu = unambiguous_range(obs.df_hz)
-        solved[k] = (fam_k, obs, lu)
         point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
         if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
             continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)
         points.append((k, point))
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
-    # a mover flagged for a neighbour that gave no point of its own (its pedestal, a copy, lines it
-    # could not have alone) is not a blend
+    # a Doppler line that hid a second mover (one found beside it, closer than the refinement
+    # resolves: its refinement saw both) is a blend, and so is that neighbour -- unless the
+    # neighbour gave no point of its own (its pedestal, a copy, lines it could not have alone)
     kept = [moving[k - 1] for k, _ in points if k and moving[k - 1].beside]
     sep = quarters_resolve_hz(frame.fs_hz, frame.n)
-    points = [(k, solve_target(solved[k][0], solved[k][1], replace(moving[k - 1], unresolved=False), frame,
-                               settings, ref, coarse, solved[k][2]))
-              if k and moving[k - 1].unresolved and not moving[k - 1].beside and not within(moving[k - 1], kept, sep)
-              else (k, p) for k, p in points]
+    points = [(k, replace(p, blended=True)) if k and moving[k - 1].unresolved and (
+        moving[k - 1].beside or within(moving[k - 1], kept, sep)) else (k, p) for k, p in points]
     return points, l_unamb
 
 
