@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_core.dsp.doppler import (DopplerEstimate, cross_beats, doppler_families, estimate_doppler, fd_max,
-                                   intermod_frequencies, phase_advance, refine_by_phase, refine_exact,
-                                   refine_reassigned,
-                                   search_doppler, sideband_freqs, target_lines)
+from mtcw_core.dsp.doppler import (DopplerEstimate, _combine_lines, cross_beats, doppler_families, estimate_doppler,
+                                   fd_max, intermod_frequencies, phase_advance, refine_by_phase, refine_exact,
+                                   refine_reassigned, search_doppler, sideband_freqs, step_sum_phase_variance,
+                                   target_lines)
 from mtcw_core.dsp.spectrum import power_spectrum
 from mtcw_core.frame import Frame
 from mtcw_core.profiles import ChainSettings, get_profile
@@ -390,6 +390,38 @@ class TestRefine:
         assert np.max(np.abs(z)) < 4 and 0.3 < np.std(z) < 2, np.round(z, 2)
 
 
+class TestLineErrors:
+    """The stated error of a combined Doppler correction, against Monte Carlo."""
+
+    @pytest.mark.parametrize("parts", [4, 8, 16])
+    @pytest.mark.parametrize("snr", [1.5, 3.0, 10.0, 100.0])
+    def test_step_sum_phase_variance_matches_monte_carlo(self, parts, snr):
+        """The phase of ``sum z[s+1]*conj(z[s])`` over noisy part phasors (part SNR ``|A|^2/sigma^2``),
+        each trial's ``var_phi`` from its own measured power as the refinement takes it. At a part
+        SNR of 3 on eight parts the noise-noise products double the variance: the first-order
+        ``2*var_phi/(S-1)^2`` was 3.4x low there (a speed sigma too small at 13 dB)."""
+        rng = np.random.default_rng(int(snr * 10) + parts)
+        trials = 20000
+        z = np.sqrt(snr) * np.exp(0.7j) + (rng.standard_normal((trials, parts))
+                                           + 1j * rng.standard_normal((trials, parts))) / np.sqrt(2)
+        measured = np.var(np.angle(np.sum(z[:, 1:] * np.conj(z[:, :-1]), axis=1)))
+        var_phi = 1.0 / (2.0 * np.mean(np.abs(z) ** 2, axis=1))
+        stated = float(np.mean(step_sum_phase_variance(var_phi, parts)))
+        if snr >= 10 or (snr >= 3 and parts >= 8):
+            assert 0.93 < stated / measured < 1.12
+        else:  # the threshold region: never below what happens, and within 2x of it
+            assert 1.0 < stated / measured < 2.0
+        assert stated <= np.pi**2 / 3
+
+    def test_lines_that_carry_the_estimate_scale_it_by_their_scatter(self):
+        wt = np.array([1.0, 0.5])
+        delta, err, chi2 = _combine_lines(wt, np.ones(2), np.array([0.0, 90.0]), np.array([10.0, 10.0]) ** 2)
+        stat = np.sqrt(1.0 + 0.25) * 10.0 / 1.5
+        assert delta == pytest.approx(30.0)
+        assert chi2 == pytest.approx((30.0**2 + 60.0**2) / 100.0)
+        assert err == pytest.approx(stat * np.sqrt(chi2))
+
+
 class TestReassigned:
     """A mover a few record bins from the static lines: too close for the phase advance's parts,
     refined over the whole record by frequency reassignment."""
@@ -422,6 +454,19 @@ class TestReassigned:
             z.append((out.fd_hz - self.FD) / out.refine_error_hz)
         z = np.array(z)
         assert np.max(np.abs(z)) < 4 and 0.6 < np.sqrt(np.mean(z**2)) < 1.5, np.round(z, 2)
+
+    def test_lines_at_the_noise_do_not_enter(self):
+        """Sidebands at the noise (post-integration SNR ~1): their reassigned frequencies are
+        ratios with noise in the denominator, heavy-tailed; they are left out
+        (:data:`LINE_FREQUENCY_SNR`), and the estimate and its error are the baseband line's, as
+        on the same record without them."""
+        for seed in range(6):
+            base = real_record(((self.FD, 0.02, 0.0),), static=0.3, noise=0.05, seed=seed) + 1.0
+            weak = base + real_record(((self.FD, 0.0, 2e-4),), static=0.0, noise=0.0)
+            a, b = (refine_reassigned(x, frame_of(x), self.est(self.FD - 0.25 * DF), False, [],
+                                      power_spectrum(x, FS)) for x in (base, weak))
+            assert b.refine_error_hz == pytest.approx(a.refine_error_hz, rel=0.05)
+            assert abs(b.fd_hz - a.fd_hz) < 0.05 * a.refine_error_hz
 
     def test_shared_phase_gain_is_the_window_s(self):
         """var(fd) per unit PSD of a phase every line shares: 1.5 fs^3*sum(w'^2)/(4 pi^2 (sum w)^2)
@@ -502,6 +547,29 @@ class TestCommonMode:
             quiet.append(out.refine_error_hz)
             assert abs(out.fd_hz - self.FD) < 5 * out.refine_error_hz
         assert np.median(stated) > 5 * np.median(quiet)
+
+    def test_a_declared_laser_counts_phase_noise_below_significance(self):
+        """Weak phase noise (1 kHz laser) beside white noise: in some records the common phase's
+        scatter falls below the 1 % significance that a coherent record needs before it counts,
+        and the undeclared refinement states the white-noise error alone (the map's `static+mover`
+        2^16 row, 100 kHz: a speed z of 5.3). With the laser declared its excess always counts;
+        a coherent record's stated error hardly grows."""
+        def both(lw, seed):
+            x = self.pn_record(self.FD, lag=40, linewidth_hz=lw, seed=seed, noise=0.03)
+            spec = power_spectrum(x, FS)
+            e = DopplerEstimate(self.FD + 0.2 * DF, True, 1e3, 56.0, 4 * DF, 0.1 * DF)
+            return (refine_by_phase(x, frame_of(x), e, False, [], spec),
+                    refine_by_phase(x, frame_of(x), e, False, [], spec, phase_noise=True))
+
+        grown, z = 0, []
+        for seed in range(12):
+            plain, declared = both(1e3, seed)
+            assert declared.fd_hz == plain.fd_hz and declared.refine_error_hz >= plain.refine_error_hz
+            grown += declared.refine_error_hz > 1.05 * plain.refine_error_hz
+            z.append((declared.fd_hz - self.FD) / declared.refine_error_hz)
+        assert grown >= 1 and np.max(np.abs(z)) < 4
+        ratio = [d.refine_error_hz / p.refine_error_hz for p, d in (both(0.0, seed) for seed in range(6))]
+        assert np.median(ratio) < 1.3, np.round(ratio, 2)
 
     def test_a_coarse_start_takes_a_first_step_instead_of_slipping_a_cycle(self):
         """A start 1.3 record bins off with a stated 0.5-bin uncertainty: quarters' phase advance is

@@ -665,7 +665,8 @@ MAX_FIRST_PARTS = 32
 
 
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                    spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
+                    spec: Spectrum, max_lines: int | None = None, segments: int = 4,
+                    phase_noise: bool = False) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts
     (:func:`phase_advance`), starting close enough for the advance not to wrap.
 
@@ -685,8 +686,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     while WRAP_SIGMAS * start_err > fs * parts / (2 * n) and parts < MAX_FIRST_PARTS:
         parts *= 2
     if parts == segments:
-        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments)
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts)
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, phase_noise)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, phase_noise)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -694,7 +695,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # the other targets' lines, not this one's own at its former estimate (which would sit a
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
-    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
+    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, phase_noise)
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
@@ -704,7 +705,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                  spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
+                  spec: Spectrum, max_lines: int | None = None, segments: int = 4,
+                  phase_noise: bool = False) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -751,7 +753,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
     wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
-    var_line = 2 * var_phi / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
+    var_line = step_sum_phase_variance(var_phi, segments) / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2 = _combine_lines(wt, slope, d_line, var_line)
     # each line's amplitude across the parts: one mover's stays (a laser's phase noise moves its
@@ -767,7 +769,8 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     # across the record does (common_mode_error)
     if segments >= 3:
         all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
-        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
+        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq,
+                                 phase_noise)
         if fine is not None:
             spread = math.hypot(spread, fine)
         else:
@@ -779,13 +782,36 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2)
 
 
+def step_sum_phase_variance(var_phi: np.ndarray, segments: int) -> np.ndarray:
+    """The variance (rad^2) of the phase of ``sum_s z[s+1]*conj(z[s])`` over ``segments`` parts, each
+    line's part phasor with white-noise phase variance ``var_phi`` (rad^2, ``sigma^2/(2|A|^2)``, the
+    noise power over the measured power), shape (K,).
+
+    The signal-noise terms telescope to the two end parts: ``2*var_phi/(S-1)^2``. The noise-noise
+    terms ``n[s+1]*conj(n[s])`` do not: ``S-1`` of them add ``2*var_phi^2/(S-1)`` -- at a part
+    SNR of 4 dB on eight parts, more than the first. A measured power is signal plus noise, so
+    ``|A|^2`` is taken as the measured power less the noise's. At most ``pi^2/3``: a line at the
+    noise has a uniform phase.
+    """
+    v = np.asarray(var_phi, dtype=float)
+    v = v / np.maximum(1.0 - 2.0 * v, 1e-12)  # sigma^2/(2(|Z|^2 - sigma^2))
+    steps = max(segments - 1, 1)
+    return np.minimum(2.0 * v / steps**2 * (1.0 + v * steps), np.pi**2 / 3.0)
+
+
 def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_line: np.ndarray
                    ) -> tuple[float, float, float]:
     """The lines' Doppler corrections combined: the weighted mean of ``slope*d_line`` (Hz; the
     local floors that inverse-variance weights would trust are rough next to the strongest lines,
     so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean, scaled
     by the lines' scatter about it when that exceeds what noise explains (Birge ratio: leakage,
-    skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,)."""
+    skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,).
+
+    A weak line hardly moves the mean, but its disagreement with the strong one still scales the
+    error: it may be the only witness of a bias the strong line carries alone (issue 12 case 1 in
+    ``accurate``: a baseband line 5 of its sigmas off, its six sidebands agreeing with the truth).
+    Each line's variance must then be its real one (:func:`step_sum_phase_variance`), or noise
+    alone inflates the error."""
     delta = float(np.sum(wt * slope * d_line) / np.sum(wt))
     stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
     chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
@@ -823,7 +849,7 @@ def common_mode_margin(dof: int) -> float:
 
 def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
                       var_phi: np.ndarray, segments: int, length: int, all_freqs: np.ndarray, near: np.ndarray,
-                      iq: bool) -> float | None:
+                      iq: bool, expected: bool = False) -> float | None:
     """The Doppler error (Hz) of :func:`refine_by_phase` from the phase all its lines share.
 
     The laser's phase noise over the echo delay moves the carrier phase of every line alike; the
@@ -834,9 +860,12 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     :data:`COMMON_MODE_MAX_PHASE_VAR` of white noise). The scatter of the common phase about a
     straight line, less what white noise explains (the refinement states that part already), is
     the phase noise per part -- counted when white noise alone would leave less scatter only with
-    odds :data:`COMMON_MODE_SIGNIFICANCE`. Scaled to the refinement's segments (the estimate is
-    about ``(phi_S - phi_1)/(S - 1)``) and widened by :func:`common_mode_margin` for its degrees
-    of freedom.
+    odds :data:`COMMON_MODE_SIGNIFICANCE`; when a laser with a linewidth is declared (``expected``:
+    the phase noise is there), an excess below significance counts too, as measured (a low draw
+    of its few degrees of freedom would otherwise count it as none: a speed 5.3 of its sigmas off
+    in the map's `static+mover` 2^16 row). Scaled to the refinement's segments (the estimate is
+    about ``(phi_S - phi_1)/(S - 1)``) and, when significant, widened by
+    :func:`common_mode_margin` for its degrees of freedom.
 
     Parameters
     ----------
@@ -872,15 +901,16 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     res = _common_residual(np.angle(prod), slope[use], wt[use])
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof
-    if scatter <= white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof:
+    significant = scatter > white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof
+    if not (significant or expected):
         return 0.0
-    per_segment = (scatter - white) * lc / length  # a segment averages length/lc parts' phase noise
+    per_segment = max(scatter - white, 0.0) * lc / length  # a segment averages length/lc parts' phase noise
     var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
-    return common_mode_margin(dof) * math.sqrt(var_hz)
+    return (common_mode_margin(dof) if significant else 1.0) * math.sqrt(var_hz)
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                 spec: Spectrum) -> DopplerEstimate:
+                 spec: Spectrum, phase_noise: bool = False) -> DopplerEstimate:
     """The Doppler that maximises the exact windowed power of the target's lines.
 
     Starts from :func:`refine_by_phase` (whose error it keeps as its stated error, an upper bound:
@@ -889,7 +919,7 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
     (:data:`PHASE_WINDOW_BETA`) so that the DC and the lines' images do not pull the maximum --
     within three of its sigmas.
     """
-    first = refine_by_phase(x, frame, est, iq, others, spec)
+    first = refine_by_phase(x, frame, est, iq, others, spec, phase_noise=phase_noise)
     if first is est:
         return est
     fd0, sig = first.fd_hz, first.refine_error_hz
@@ -1074,9 +1104,10 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     if ests[0].detected and not (settings.doppler_refine == "parabolic" or (gated and settings.doppler_refine == "phase")):
         others = [e.fd_hz for e in ests]
         if settings.doppler_refine == "phase":
-            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
+            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines,
+                                   phase_noise=settings.laser_linewidth_hz > 0) for est in ests]
         else:
-            out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
+            out = [refine_exact(x, frame, est, iq, others, spec, settings.laser_linewidth_hz > 0) for est in ests]
         main_refined = [replace(new, method="phase") if new is not old else
                         (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
                         for new, old in zip(out, ests)]
@@ -1134,6 +1165,10 @@ REASSIGN_STEPS = 3
 REASSIGN_BETA = 14.0
 #: ... and every line used at least this many record bins from every other (its main lobe: 4.6)
 REASSIGN_SEPARATION_BINS = 5.0
+#: a line's own frequency enters a combined estimate from this post-integration SNR (15 dB): below
+#: it the line's frequency leaves its Cramér-Rao bound (the threshold effect) and its scatter would
+#: inflate the combination's error by Birge's ratio for nothing
+LINE_FREQUENCY_SNR = 30.0
 
 
 @lru_cache(maxsize=4)
@@ -1143,6 +1178,18 @@ def _window_and_slope(n: int) -> tuple[np.ndarray, np.ndarray]:
     dw = np.gradient(w)
     dw.setflags(write=False)
     return w, dw
+
+
+def _above_threshold(snr: np.ndarray) -> np.ndarray:
+    """Which lines (post-integration SNR ``snr``, shape (K,)) a frequency estimate may use: those
+    at :data:`LINE_FREQUENCY_SNR` or more -- below it a line's frequency leaves its Cramér-Rao
+    bound (the threshold effect: a ratio with noise in its denominator has heavy tails), and its
+    scatter would move the combination and inflate its error by Birge's ratio for nothing -- or
+    the strongest line alone when none is; shape (K,), bool."""
+    keep = snr >= LINE_FREQUENCY_SNR
+    if not keep.any():
+        keep[int(np.argmax(snr))] = True
+    return keep
 
 
 def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
@@ -1179,23 +1226,25 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     w, dw = _window_and_slope(n)
     xm = x - x.mean()
     xw, xd = xm * w, xm * dw
+    s2 = spec.noise_variances(freqs[use], list(freqs[use]) + list(near))
+    strong = None
     for _ in range(REASSIGN_STEPS):
         freqs, slope = target_lines(frame.tones_hz, fd, iq)
         zw = exact_dft(xw, freqs[use], fs)
         zd = exact_dft(xd, freqs[use], fs)
         if not np.all(np.abs(zw) > 0):
             return est
-        d_line = -fs / (2 * np.pi) * np.imag(zd / zw)  # Hz, per line
-        wt = np.abs(zw) ** 2
-        delta = float(np.sum(wt * slope[use] * d_line) / np.sum(wt))
+        if strong is None:
+            strong = _above_threshold(np.abs(zw) ** 2 / (s2 * float(np.sum(w**2))))
+        d_line = -fs / (2 * np.pi) * np.imag(zd[strong] / zw[strong])  # Hz, per line
+        wt = np.abs(zw[strong]) ** 2
+        delta = float(np.sum(wt * slope[use][strong] * d_line) / np.sum(wt))
         if not math.isfinite(delta) or abs(fd + delta - est.fd_hz) > REASSIGN_SEPARATION_BINS * fs / n:
             return est  # walked off the line the search found
         fd += delta
-    f_used = freqs[use]
-    s2 = spec.noise_variances(f_used, list(f_used) + list(near))
     sdw2 = float(np.sum(dw**2))
-    var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
-    _, spread, lines_chi2 = _combine_lines(wt, slope[use], d_line, var_line)
+    var_line = (fs / (2 * np.pi)) ** 2 * s2[strong] * sdw2 / (2 * wt)
+    _, spread, lines_chi2 = _combine_lines(wt, slope[use][strong], d_line, var_line)
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
@@ -1236,10 +1285,6 @@ SMALL_MIN_PAIRS = 2
 SMALL_NEAR_HALF_WIDTH = 32
 #: ... less those within this many bins of a modelled line (the Kaiser(14) main lobe: +-4.6)
 SMALL_NEAR_GUARD = 5
-#: a line's own frequency is fitted, and enters the estimate, from this SNR (15 dB): below it a
-#: line's frequency leaves its Cramér-Rao bound (the threshold effect) and its scatter would
-#: inflate the combination's error by Birge's ratio for nothing
-SMALL_LINE_SNR = 30.0
 #: the step (record bins) of the energy's second difference about each line's fitted frequency
 SMALL_CURVATURE_STEP = 0.02
 #: ... and of the last parabola step (the vertex's bias), as a fraction of it
@@ -1741,7 +1786,7 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     line has no peak of its own."""
     dfr = fit.fs / fit.x.size
     h = SMALL_CURVATURE_STEP * dfr
-    use = snr >= SMALL_LINE_SNR
+    use = snr >= LINE_FREQUENCY_SNR
     use[0] = True
     d_line, curv = np.zeros(fm.size), np.zeros(fm.size)
     for j in np.flatnonzero(use):
