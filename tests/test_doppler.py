@@ -410,7 +410,8 @@ class TestLineErrors:
         if snr >= 10 or (snr >= 3 and parts >= 8):
             assert 0.93 < stated / measured < 1.12
         else:  # the threshold region: never below what happens, and within 2x of it
-            assert 1.0 < stated / measured < 2.0
+            assert stated > measured, (stated, measured)
+            assert stated < 2.0 * measured, (stated, measured)
         assert stated <= np.pi**2 / 3
 
     def test_lines_that_carry_the_estimate_scale_it_by_their_scatter(self):
