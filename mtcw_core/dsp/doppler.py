@@ -1103,11 +1103,12 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     main_refined = ests
     if ests[0].detected and not (settings.doppler_refine == "parabolic" or (gated and settings.doppler_refine == "phase")):
         others = [e.fd_hz for e in ests]
+        noisy = settings.laser_linewidth_hz > 0  # a declared laser: its shared phase is there
         if settings.doppler_refine == "phase":
-            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines,
-                                   phase_noise=settings.laser_linewidth_hz > 0) for est in ests]
+            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines, phase_noise=noisy)
+                   for est in ests]
         else:
-            out = [refine_exact(x, frame, est, iq, others, spec, settings.laser_linewidth_hz > 0) for est in ests]
+            out = [refine_exact(x, frame, est, iq, others, spec, phase_noise=noisy) for est in ests]
         main_refined = [replace(new, method="phase") if new is not old else
                         (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
                         for new, old in zip(out, ests)]
@@ -1227,24 +1228,25 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     xm = x - x.mean()
     xw, xd = xm * w, xm * dw
     s2 = spec.noise_variances(freqs[use], list(freqs[use]) + list(near))
-    strong = None
-    for _ in range(REASSIGN_STEPS):
+    for step in range(REASSIGN_STEPS):
         freqs, slope = target_lines(frame.tones_hz, fd, iq)
         zw = exact_dft(xw, freqs[use], fs)
         zd = exact_dft(xd, freqs[use], fs)
         if not np.all(np.abs(zw) > 0):
             return est
-        if strong is None:
-            strong = _above_threshold(np.abs(zw) ** 2 / (s2 * float(np.sum(w**2))))
-        d_line = -fs / (2 * np.pi) * np.imag(zd[strong] / zw[strong])  # Hz, per line
-        wt = np.abs(zw[strong]) ** 2
-        delta = float(np.sum(wt * slope[use][strong] * d_line) / np.sum(wt))
+        if step == 0:  # lines at the noise leave the estimate (the threshold effect)
+            keep = _above_threshold(np.abs(zw) ** 2 / (s2 * window_power(("kaiser", REASSIGN_BETA), n)))
+            use[np.flatnonzero(use)[~keep]] = False
+            zw, zd, s2 = zw[keep], zd[keep], s2[keep]
+        d_line = -fs / (2 * np.pi) * np.imag(zd / zw)  # Hz, per line
+        wt = np.abs(zw) ** 2
+        delta = float(np.sum(wt * slope[use] * d_line) / np.sum(wt))
         if not math.isfinite(delta) or abs(fd + delta - est.fd_hz) > REASSIGN_SEPARATION_BINS * fs / n:
             return est  # walked off the line the search found
         fd += delta
     sdw2 = float(np.sum(dw**2))
-    var_line = (fs / (2 * np.pi)) ** 2 * s2[strong] * sdw2 / (2 * wt)
-    _, spread, lines_chi2 = _combine_lines(wt, slope[use][strong], d_line, var_line)
+    var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
+    _, spread, lines_chi2 = _combine_lines(wt, slope[use], d_line, var_line)
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)

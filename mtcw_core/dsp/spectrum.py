@@ -136,6 +136,7 @@ def window_sum(window: tuple | str, m: int, dtype: str = "float64") -> float:
 
 
 @lru_cache(maxsize=8)
+@lru_cache(maxsize=16)
 def window_power(window: tuple | str, m: int) -> float:
     """``sum(w^2)`` of :func:`cached_window` (cached)."""
     return float(np.sum(cached_window(window, m) ** 2))
