@@ -665,8 +665,7 @@ MAX_FIRST_PARTS = 32
 
 
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                    spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                    phase_noise: bool = False) -> DopplerEstimate:
+                    spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts
     (:func:`phase_advance`), starting close enough for the advance not to wrap.
 
@@ -686,8 +685,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     while WRAP_SIGMAS * start_err > fs * parts / (2 * n) and parts < MAX_FIRST_PARTS:
         parts *= 2
     if parts == segments:
-        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, phase_noise)
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, phase_noise)
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -695,7 +694,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # the other targets' lines, not this one's own at its former estimate (which would sit a
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
-    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, phase_noise)
+    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
@@ -705,8 +704,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                  spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                  phase_noise: bool = False) -> DopplerEstimate:
+                  spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -769,8 +767,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     # across the record does (common_mode_error)
     if segments >= 3:
         all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
-        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq,
-                                 phase_noise)
+        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
         if fine is not None:
             spread = math.hypot(spread, fine)
         else:
@@ -849,7 +846,7 @@ def common_mode_margin(dof: int) -> float:
 
 def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
                       var_phi: np.ndarray, segments: int, length: int, all_freqs: np.ndarray, near: np.ndarray,
-                      iq: bool, expected: bool = False) -> float | None:
+                      iq: bool) -> float | None:
     """The Doppler error (Hz) of :func:`refine_by_phase` from the phase all its lines share.
 
     The laser's phase noise over the echo delay moves the carrier phase of every line alike; the
@@ -859,13 +856,13 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     every other line and its image, and each part's combined phase within
     :data:`COMMON_MODE_MAX_PHASE_VAR` of white noise). The scatter of the common phase about a
     straight line, less what white noise explains (the refinement states that part already), is
-    the phase noise per part -- counted when white noise alone would leave less scatter only with
-    odds :data:`COMMON_MODE_SIGNIFICANCE`; when a laser with a linewidth is declared (``expected``:
-    the phase noise is there), an excess below significance counts too, as measured (a low draw
-    of its few degrees of freedom would otherwise count it as none: a speed 5.3 of its sigmas off
-    in the map's `static+mover` 2^16 row). Scaled to the refinement's segments (the estimate is
-    about ``(phi_S - phi_1)/(S - 1)``) and, when significant, widened by
-    :func:`common_mode_margin` for its degrees of freedom.
+    the phase noise per part. Scaled to the refinement's segments (the estimate is about
+    ``(phi_S - phi_1)/(S - 1)``); where white noise alone would leave the scatter with odds below
+    :data:`COMMON_MODE_SIGNIFICANCE`, widened by :func:`common_mode_margin` for its degrees of
+    freedom; below that, counted as measured -- a low draw of a real laser's few degrees of
+    freedom counted as none had left a speed 5.2-5.3 of its sigmas off (the map's `static+mover`
+    2^16 row, 100 kHz laser, declared or not), while a coherent record's chance excess adds little
+    (no margin on it).
 
     Parameters
     ----------
@@ -902,15 +899,13 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof
     significant = scatter > white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof
-    if not (significant or expected):
-        return 0.0
     per_segment = max(scatter - white, 0.0) * lc / length  # a segment averages length/lc parts' phase noise
     var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
     return (common_mode_margin(dof) if significant else 1.0) * math.sqrt(var_hz)
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                 spec: Spectrum, phase_noise: bool = False) -> DopplerEstimate:
+                 spec: Spectrum) -> DopplerEstimate:
     """The Doppler that maximises the exact windowed power of the target's lines.
 
     Starts from :func:`refine_by_phase` (whose error it keeps as its stated error, an upper bound:
@@ -919,7 +914,7 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
     (:data:`PHASE_WINDOW_BETA`) so that the DC and the lines' images do not pull the maximum --
     within three of its sigmas.
     """
-    first = refine_by_phase(x, frame, est, iq, others, spec, phase_noise=phase_noise)
+    first = refine_by_phase(x, frame, est, iq, others, spec)
     if first is est:
         return est
     fd0, sig = first.fd_hz, first.refine_error_hz
@@ -1103,12 +1098,10 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     main_refined = ests
     if ests[0].detected and not (settings.doppler_refine == "parabolic" or (gated and settings.doppler_refine == "phase")):
         others = [e.fd_hz for e in ests]
-        noisy = settings.laser_linewidth_hz > 0  # a declared laser: its shared phase is there
         if settings.doppler_refine == "phase":
-            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines, phase_noise=noisy)
-                   for est in ests]
+            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
         else:
-            out = [refine_exact(x, frame, est, iq, others, spec, phase_noise=noisy) for est in ests]
+            out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
         main_refined = [replace(new, method="phase") if new is not old else
                         (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
                         for new, old in zip(out, ests)]
