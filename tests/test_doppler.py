@@ -560,12 +560,9 @@ class TestCommonMode:
         def stated(lw, seed, tail):
             x = self.pn_record(self.FD, lag=40, linewidth_hz=lw, seed=seed, noise=0.03)
             e = DopplerEstimate(self.FD + 0.2 * DF, True, 1e3, 56.0, 4 * DF, 0.1 * DF)
-            old = doppler.COMMON_MODE_SIGNIFICANCE
-            doppler.COMMON_MODE_SIGNIFICANCE = tail
-            try:
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(doppler, "COMMON_MODE_SIGNIFICANCE", tail)
                 return refine_by_phase(x, frame_of(x), e, False, [], power_spectrum(x, FS))
-            finally:
-                doppler.COMMON_MODE_SIGNIFICANCE = old
 
         grown, z = 0, []
         for seed in range(12):

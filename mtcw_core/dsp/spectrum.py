@@ -135,7 +135,6 @@ def window_sum(window: tuple | str, m: int, dtype: str = "float64") -> float:
     return float(np.sum(cached_window(window, m, dtype), dtype=np.float64))
 
 
-@lru_cache(maxsize=8)
 @lru_cache(maxsize=16)
 def window_power(window: tuple | str, m: int) -> float:
     """``sum(w^2)`` of :func:`cached_window` (cached)."""
