@@ -114,7 +114,8 @@ def _ghost_marks(s: FrameState, marks: list[dict]) -> list[dict]:
         return []
     tones = tuple(float(t) for t in frame.tones_hz)
     fmax = spec.f0_hz + spec.df_hz * (spec.power.size - 1)
-    base = np.concatenate([[0.0], tones, intermod_frequencies(tones, max(float(fmax), max(tones) + fd_max(tones, st)))])
+    base = np.concatenate([[0.0], tones, intermod_frequencies(tones, max(float(fmax), max(tones) + fd_max(tones, st)),
+                                                                  fs_hz=spec.fs_hz)])
     found = [d.fd_hz for d in s.dopplers if d.detected]
     shifts = [(0.0, "product", None)] + [(fd, "ghost", k) for k, fd in enumerate(found, start=1)]
     shifts += [(a + sg * b, "ghost", None) for i, a in enumerate(found) for b in found[i + 1:] for sg in (1, -1)]

@@ -355,6 +355,37 @@ def test_fast_finds_a_mover_hidden_in_the_search_lobe_of_another(receiver, loss_
         assert sorted(p.truth_index for p in v.points if p.truth_index is not None) == [0, 1, 2]
 
 
+def test_movers_with_weak_sidebands_beside_a_stronger_one_are_found():
+    """The map's ``targets`` row, three movers on one photodiode (40, 120, 250 record bins at 2^16,
+    20/23/26 dB apart), the rung where the first's lines are at 20 dB (its seed): the second and
+    third movers' baseband lines stand 33-36 dB over the floor, their sidebands 3-12 dB, so
+    fewer than two of their pairs passed the search's per-line test and they were missed (22 of
+    48 truths in the cell; frame 0 found only the first). A baseband line that alone passes the
+    search's threshold makes a mover: all three are answered, none confidently wrong (a weak
+    mover's wrong cycle is flagged)."""
+    from mtcw_bench.honesty import base_scene
+    sc = with_targets(base_scene(2**16), [tgt(1.7, 1.62, 69.09552585074661), tgt(3.9, 4.87, 72.09552585074661),
+                                          tgt(5.3, 10.15, 75.09552585074661)])
+    runs = run(sc, "balanced", 2, seed=73794386)
+    assert not confident(runs), confident(runs)
+    for _, r, v in runs:
+        assert sorted(p.truth_index for p in v.points if p.truth_index is not None) == [0, 1, 2]
+
+
+def test_a_folded_intermodulation_product_is_no_mover():
+    """Movers 12 and 40 bins up, 10/12 dB, one photodiode (the map's ``beat before its parent``
+    case, its seed): their strong echoes carry the tones' products, and 270 + 2*200 MHz, above
+    Nyquist at 0.65536 GS/s, shows at 14.64 MHz with a baseband-strong line about it. Once a
+    second mover could be taken by its baseband line alone, that product became a third "mover"
+    at 1460-1468 bins in 4 of 6 frames (flagged, still a false target): the search's spur test
+    now folds the products at the sample rate, and nothing answers no truth."""
+    runs = run(movers((12, 40), (10.0, 12.0), "single"), "balanced", 3, seed=1325783376)
+    assert not confident(runs), confident(runs)
+    for i, (_, r, v) in enumerate(runs):
+        assert v.false_targets == 0, (i, [(q.range_m, q.velocity_mps) for q in r.targets])
+        assert not v.missed
+
+
 def test_a_fast_movers_own_broad_line_does_not_flag_it():
     """The map's ``receiver`` row, balanced, 0.45 x the tone spacing (47.88 m/s, 100 kHz laser, 2^16,
     59 dB, its seed): the search beside the mover finds its own broadened line again a few bins

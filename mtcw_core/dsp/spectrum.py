@@ -64,6 +64,11 @@ class Spectrum:
     #: was computed for
     memo: dict = field(default_factory=dict, repr=False, compare=False)
 
+    @property
+    def fs_hz(self) -> float:
+        """The record's sample rate (Hz): the bin spacing times the samples transformed."""
+        return self.df_hz * self.n
+
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
 
