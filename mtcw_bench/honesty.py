@@ -532,11 +532,13 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
     Range z-statistics over every matched point (flagged or not); speed z mean/std over matched
     points that measured a speed (a ``static`` point's speed is a bound, not an estimate), the
     largest speed ``|z|`` over all matched points (a ``static`` claim far below the truth counts).
+    ``*_z_unflagged_*``: the same over the unflagged points alone (a flag says the number may be
+    wrong -- a cycle in doubt, a blend --, so only an unflagged point's sigma is a claim).
     ``missed_must_find``: the missed truths that ``must`` (:func:`must_find`, by truth index) says
     the chain had to find (all missed when ``must`` is None).
     """
     status: dict[str, int] = {}
-    rz, sz_meas, sz_all = [], [], []
+    rz, sz_meas, sz_all, rz_clean, sz_clean = [], [], [], [], []
     for v in verdicts:
         status[v.status] = status.get(v.status, 0) + 1
         for p in v.points:
@@ -546,7 +548,12 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
             sz_all.append(p.speed_z)
             if p.speed_measured:
                 sz_meas.append(p.speed_z)
+            if not p.flagged:
+                rz_clean.append(p.range_z)
+                if p.speed_measured:
+                    sz_clean.append(p.speed_z)
     r, s = _stats(rz), _stats(sz_meas)
+    rc, sc = _stats(rz_clean), _stats(sz_clean)
     sa = np.asarray(sz_all, float)
     return {
         "frames": len(verdicts), "ok": status.get("ok", 0), "no_target": status.get("no_target", 0),
@@ -565,6 +572,8 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
         "range_z_max": r["max_abs"],
         "speed_z_n": s["n"], "speed_z_mean": s["mean"], "speed_z_std": s["std"], "speed_z_std_robust": s["std_robust"],
         "speed_z_max": float(np.max(np.abs(sa))) if sa.size else None,
+        "range_z_unflagged_n": rc["n"], "range_z_unflagged_mean": rc["mean"], "range_z_unflagged_std": rc["std"],
+        "speed_z_unflagged_n": sc["n"], "speed_z_unflagged_mean": sc["mean"], "speed_z_unflagged_std": sc["std"],
     }
 
 

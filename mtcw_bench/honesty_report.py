@@ -31,6 +31,8 @@ CELL_COLS = ["slice", "config", "rung", "profile", "samples", "receiver", "linew
              "truths", "missed", "missed_must_find", "false_targets", "flagged_points", "confident_wrong",
              "confident_false", "confident_any", "flagged_wrong", "range_z_n", "range_z_mean", "range_z_std",
              "range_z_std_robust", "range_z_max", "speed_z_n", "speed_z_mean", "speed_z_std", "speed_z_std_robust", "speed_z_max",
+             "range_z_unflagged_n", "range_z_unflagged_mean", "range_z_unflagged_std", "speed_z_unflagged_n",
+             "speed_z_unflagged_mean", "speed_z_unflagged_std",
              "range_std_m", "crb_range_m", "range_std_over_crb", "crb_pn_range_m", "range_std_over_crb_pn", "crb_speed_mps", "chain_ms_median",
              "sim_ms_per_frame", "seed", "misses"]
 
@@ -217,6 +219,24 @@ def z_scatter_inconsistent(n: int, mean: float, std: float | None, alpha: float 
     return bool(chi2.cdf(q, n) < alpha / 2 or chi2.sf(q, n) < alpha / 2)
 
 
+def _unflagged_row(above: list[dict], k: str, name: str) -> str:
+    """The z target's diagnostic twin over each cell's unflagged points alone (``*_z_unflagged_*``:
+    a flag says the number may be wrong, so only an unflagged point's sigma is a claim); absent
+    from maps made before those columns."""
+    u = f"{k}_unflagged"
+    judged = [c for c in above if c.get(f"{u}_n", 0) >= 5 and c.get(f"{u}_std") is not None]
+    if not judged:
+        return f"| ... {name}, unflagged points only | not in this map's cells | (diagnostic) |"
+    within = [c for c in judged if abs(c[f"{u}_mean"]) < Z_MEAN_MAX and Z_STD_RANGE[0] <= c[f"{u}_std"] <= Z_STD_RANGE[1]]
+    chance = sum(1 - z_band_probability(c[f"{u}_n"]) for c in judged)
+    odd = [c for c in judged if z_scatter_inconsistent(c[f"{u}_n"], c[f"{u}_mean"], c[f"{u}_std"])]
+    return (f"| ... {name}, unflagged points only (a flag says the number may be wrong: only an unflagged "
+            f"point's sigma is a claim) | {len(within)} of {len(judged)} cells within (median z std "
+            f"{_fmt(float(np.median([c[f'{u}_std'] for c in judged])))}); by chance {chance:.0f} outside; "
+            f"{len(odd)} inconsistent with 1 at 1 % ({sum(1 for c in odd if c[f'{u}_std'] < 1)} conservative) "
+            f"| (diagnostic) |")
+
+
 def write_honesty_report(result: dict, out: Path) -> Path:
     """Tables, heat maps and ``report.md`` under ``out``; returns the report's path."""
     write_tables(result, out)
@@ -294,6 +314,7 @@ def write_honesty_report(result: dict, out: Path) -> Path:
                  f"{len(odd)} cells' z scatter is inconsistent with 1 at 1 % "
                  f"({sum(1 for c in odd if c[f'{k}_std'] < 1)} too small: sigma conservative) | "
                  f"{'met' if not bad else f'missed in {len(bad)} cells'} |")
+        L.append(_unflagged_row(above, k, name))
     mm = [c for c in grid_cells if "missed" in c["misses"]]
     L.append(f"| no missed target at line SNR ≥ {MUST_FIND_SNR_DB:g} dB (each target's own) | "
              f"{sum(c.get('missed_must_find', c['missed']) for c in mm)} targets "

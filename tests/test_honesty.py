@@ -140,6 +140,19 @@ class TestSummarise:
         assert s["range_z_max"] == pytest.approx(12.0)
         assert s["speed_z_n"] == 5 and s["speed_z_std"] == pytest.approx(0.0)
 
+    def test_unflagged_points_have_z_statistics_of_their_own(self):
+        """A flagged wrong cycle (z 40) counts in the cell's range z std, not in the unflagged one's."""
+        truths = [TruthTarget(1.0, 0.0)]
+        zs = [0.5, -1.0, 2.0]
+        verdicts = [judge_frame(res(pt(1.0 + z * 1e-3)), truths) for z in zs]
+        verdicts.append(judge_frame(res(pt(1.04, cycle_ambiguous=True)), truths))
+        s = summarise(verdicts, 1)
+        assert s["range_z_n"] == 4 and s["range_z_std"] == pytest.approx(np.std(zs + [40.0], ddof=1))
+        assert s["range_z_unflagged_n"] == 3
+        assert s["range_z_unflagged_mean"] == pytest.approx(np.mean(zs))
+        assert s["range_z_unflagged_std"] == pytest.approx(np.std(zs, ddof=1))
+        assert s["speed_z_unflagged_n"] == 3 and s["speed_z_n"] == 4
+
     def test_static_claims_count_for_the_largest_speed_z_only(self):
         truths = [TruthTarget(1.0, 0.1)]
         v = [judge_frame(res(pt(1.0, 0.0, v_sigma=0.01, direction="static")), truths) for _ in range(3)]
@@ -277,6 +290,7 @@ class TestQuickMap:
         path = write_honesty_report({**result, "command": "mtcw-bench-honesty --quick", "machine": "test"}, tmp_path)
         text = path.read_text()
         assert "mtcw-bench-honesty --quick" in text and "| target | measured | met? |" in text
+        assert "| ... range, unflagged points only" in text and "| ... speed, unflagged points only" in text
         for png in ("confident_wrong.png", "range_z_std.png", "speed_z_std.png", "missed.png"):
             assert (tmp_path / png).stat().st_size > 5000
         back = list(csv.DictReader(gzip.open(tmp_path / "frames.csv.gz", "rt")))
