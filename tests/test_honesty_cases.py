@@ -386,51 +386,17 @@ def test_a_folded_intermodulation_product_is_no_mover():
         assert not v.missed
 
 
-def test_fast_measures_the_lines_noise_as_the_whole_record_does():
-    """The map's six-tone mover (1.62 m/s, 100 kHz laser, 2^16, its 30 dB rung): ``fast`` reads the
-    lines' noise floors in its eighth-record spectrum, ``balanced`` in the whole record's; the
-    lines, and so their noise, are the same. With the floor's guard 12 of the eighth's bins (96
-    record bins) ``fast``'s range sigmas came out 15 % below ``balanced``'s (median over 24 frames:
-    0.85; its range z std 1.6-1.7 in the map) -- the noise rises toward the lines; with the guard in
-    record bins (at least the window's main lobe) they agree within 10 %."""
-    sc = issue_scene_six_tone_mover()
-    fast, bal = (get_profile(p, laser_linewidth_hz=100e3) for p in ("fast", "balanced"))
-    sig_f, sig_b = [], []
-    for fr in Simulator(sc, 11).frames(24):
-        rf, rb = process_frame(fr, fast), process_frame(fr, bal)
-        sig_f.append(rf.targets[0].range_sigma_m)
-        sig_b.append(rb.targets[0].range_sigma_m)
-    ratio = float(np.median(sig_f) / np.median(sig_b))
-    assert 0.9 <= ratio <= 1.1, ratio
-
-
-def issue_scene_six_tone_mover() -> Scene:
-    """The map's ``six-tone N=2^16 v=1.62 m/s`` row at its 30 dB rung (loss 59.0 dB)."""
-    six16 = scene_variant(load_scene("six-tone"), digitizer={"samples": 2**16})
-    return with_targets(six16, [tgt(7.89, 1.62, 59.0019352261902)])
-
-
 def test_a_fast_movers_own_broad_line_does_not_flag_it():
     """The map's ``receiver`` row, balanced, 0.45 x the tone spacing (47.88 m/s, 100 kHz laser, 2^16,
     59 dB, its seed): the search beside the mover finds its own broadened line again a few bins
     off (or, refitted in the sub-guard band's bounds, a "mover" at the band's top). Such a neighbour
     gives no point of its own (a copy of the mover's lines, or at its range), so the mover is no
     blend: in the first map with the lobe search, 8 of its 16 frames were flagged ``blended``
-    although right (|z| < 2.4); then only the frame whose neighbour is a point of its own.
-
-    Since ``fast`` reads its floors 48 record bins from the lines (not 96: its range sigmas were
-    15 % small), such neighbours' lines pass the line threshold in 3 frames (12.6-15 dB; with the
-    old guard their ring fell back to every bin in reach, the mover's lobes included): 3 frames
-    are flagged, each beside a point of its own (itself flagged), never a flag with nothing to
-    explain it. A trade measured on the map (notes), not a wish: telling such a neighbour from a
-    second mover is not done yet."""
+    although right (|z| < 2.4); now at most the one frame whose neighbour is a point of its own."""
     from mtcw_bench.honesty import base_scene
     sc = with_targets(scene_variant(base_scene(2**16), receiver={"kind": "balanced"}),
                       [tgt(1.234, 47.88, 59.14207736364128)])
     runs = run(sc, get_profile("fast", laser_linewidth_hz=100e3), 16, seed=645609409)
     assert not confident(runs), confident(runs)
     flagged = [i for i, (_, r, _) in enumerate(runs) if any(p.blended for p in r.targets)]
-    assert len(flagged) <= 3, flagged
-    for i in flagged:
-        _, r, v = runs[i]
-        assert len(r.targets) >= 2 and all(p.flagged for p in v.points), i
+    assert len(flagged) <= 2, flagged

@@ -20,12 +20,6 @@ EULER_GAMMA = float(np.euler_gamma)
 
 #: the noise floor's ring around a line, in bins of the whole record (:meth:`Spectrum.floor_half_width`)
 FLOOR_HALF_WIDTH_RECORD_BINS = 256
-#: the bins kept clear of every line in the floor's ring, in bins of the whole record
-#: (:meth:`Spectrum.floor_guard`) ...
-FLOOR_GUARD_RECORD_BINS = 12
-#: ... and at least this many of the spectrum's own bins: the search window's main lobe (Kaiser(14):
-#: first null 4.6 bins out)
-FLOOR_GUARD_MIN_BINS = 6
 
 
 @dataclass(frozen=True)
@@ -78,16 +72,6 @@ class Spectrum:
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
 
-    def floor_guard(self) -> int:
-        """The bins (of this spectrum) kept clear of every line in the floor's ring:
-        :data:`FLOOR_GUARD_RECORD_BINS` bins of the whole record, at least :data:`FLOOR_GUARD_MIN_BINS`.
-        For ``fast``'s eighth-record spectrum that is 6 of its bins (48 record bins), not 12 (96): the
-        noise rises toward the lines (the static lines' and the movers' pedestals), and a guard of 96
-        record bins measured its floors ~15 % low and 35 % scattered -- range z std 1.6-1.7 on the
-        six-tone movers, 1.0 with the whole record's floors."""
-        scale = self.n / self.record_n if self.record_n else 1.0
-        return max(int(round(FLOOR_GUARD_RECORD_BINS * scale)), FLOOR_GUARD_MIN_BINS)
-
     def floor_half_width(self, guard: int = 12) -> int:
         """The noise floor ring's half width in this spectrum's bins: :data:`FLOOR_HALF_WIDTH_RECORD_BINS`
         bins of the whole record (the same band in Hz for a spectrum of part of the record, whose
@@ -96,15 +80,13 @@ class Spectrum:
         scale = self.n / self.record_n if self.record_n else 1.0
         return max(int(round(FLOOR_HALF_WIDTH_RECORD_BINS * scale)), 2 * guard + 8)
 
-    def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int | None = None) -> np.ndarray:
+    def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int = 12) -> np.ndarray:
         """:meth:`noise_variance` at every frequency of ``f_hz`` (shape (L,)) at once, V^2.
 
         The same statistic, row by row: each line's ``+-half_width`` bins (default
-        :meth:`floor_half_width`) less those within ``guard`` (default :meth:`floor_guard`) of an
-        excluded frequency (all of them kept when that leaves none), median of the rest.
+        :meth:`floor_half_width`) less those within ``guard`` of an excluded frequency (all of
+        them kept when that leaves none), median of the rest.
         """
-        if guard is None:
-            guard = self.floor_guard()
         if half_width is None:
             half_width = self.floor_half_width(guard)
         f = np.atleast_1d(np.asarray(f_hz, dtype=float))
@@ -133,10 +115,10 @@ class Spectrum:
         return np.where(count > 0, med, np.nan) / LN2 / self.window_power
 
     def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int | None = None,
-                       guard: int | None = None) -> float:
+                       guard: int = 12) -> float:
         """Per-sample noise variance (V^2) equivalent to the local noise density around f.
 
-        Median of the periodogram over ``+-half_width`` bins (default :meth:`floor_half_width`), excluding ``+-guard`` bins (default :meth:`floor_guard`) around
+        Median of the periodogram over ``+-half_width`` bins (default :meth:`floor_half_width`), excluding ``+-guard`` bins around
         every frequency in ``exclude_hz`` (the lines); the median of an exponential variable is
         ``ln 2`` times its mean. One line of :meth:`noise_variances`.
         """
