@@ -386,6 +386,26 @@ def test_a_folded_intermodulation_product_is_no_mover():
         assert not v.missed
 
 
+@pytest.mark.xfail(strict=True, reason="fast reads its lines' noise floors 96 record bins from the lines (12 of its "
+                   "eighth-record bins), where the noise is lower than at the lines: its range sigmas on this cell are "
+                   "0.85x balanced's (median of 24 frames), unflagged range z std 1.6-1.7 in the map. A guard of 48 "
+                   "record bins gave 0.95 but 2 confident-wrong + 1 confident-false frames in the movers probe "
+                   "(fast's lobe neighbours), so it was taken back (notes)")
+def test_fast_measures_the_lines_noise_as_the_whole_record_does():
+    """The map's six-tone mover (1.62 m/s, 100 kHz laser, 2^16, its 30 dB rung): ``fast`` reads the
+    lines' noise floors in its eighth-record spectrum, ``balanced`` in the whole record's; the
+    lines, and so their noise, are the same, and their range sigmas should agree within 10 %."""
+    six16 = scene_variant(load_scene("six-tone"), digitizer={"samples": 2**16})
+    sc = with_targets(six16, [tgt(7.89, 1.62, 59.0019352261902)])
+    fast, bal = (get_profile(p, laser_linewidth_hz=100e3) for p in ("fast", "balanced"))
+    sig_f, sig_b = [], []
+    for fr in Simulator(sc, 11).frames(24):
+        sig_f.append(process_frame(fr, fast).targets[0].range_sigma_m)
+        sig_b.append(process_frame(fr, bal).targets[0].range_sigma_m)
+    ratio = float(np.median(sig_f) / np.median(sig_b))
+    assert 0.9 <= ratio <= 1.1, ratio
+
+
 def test_a_fast_movers_own_broad_line_does_not_flag_it():
     """The map's ``receiver`` row, balanced, 0.45 x the tone spacing (47.88 m/s, 100 kHz laser, 2^16,
     59 dB, its seed): the search beside the mover finds its own broadened line again a few bins
