@@ -577,6 +577,11 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
     }
 
 
+def z_in_band(mean: float, std: float) -> bool:
+    """A cell's z values meet issue 12's target: ``|mean| < Z_MEAN_MAX``, std within ``Z_STD_RANGE``."""
+    return abs(mean) < Z_MEAN_MAX and Z_STD_RANGE[0] <= std <= Z_STD_RANGE[1]
+
+
 def check_targets(cell: dict) -> list[str]:
     """Issue 12's targets this cell misses: ``confident_wrong``, ``confident_false``, ``missed``
     (a target whose own predicted line SNR is >= 13 dB not found in every frame: ``missed_must_find``), ``range_z``/``speed_z``
@@ -593,7 +598,7 @@ def check_targets(cell: dict) -> list[str]:
     if above:
         for k in ("range_z", "speed_z"):
             n, m, s = cell[f"{k}_n"], cell[f"{k}_mean"], cell[f"{k}_std"]
-            if n >= 5 and s is not None and (abs(m) >= Z_MEAN_MAX or not Z_STD_RANGE[0] <= s <= Z_STD_RANGE[1]):
+            if n >= 5 and s is not None and not z_in_band(m, s):
                 miss.append(k)
     r = cell.get("range_std_over_crb")
     if (cell["profile"] == "balanced" and r is not None and cell.get("first_moves")

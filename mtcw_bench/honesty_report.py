@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import chi2, norm  # noqa: E402
 
-from .honesty import MUST_FIND_SNR_DB, Z_MEAN_MAX, Z_STD_RANGE, Z_WRONG, _rung_order  # noqa: E402
+from .honesty import MUST_FIND_SNR_DB, Z_MEAN_MAX, Z_STD_RANGE, Z_WRONG, _rung_order, z_in_band  # noqa: E402
 
 CELL_COLS = ["slice", "config", "rung", "profile", "samples", "receiver", "linewidth_hz", "jitter_s", "n_targets",
              "loss_db", "velocity_mps", "predicted_snr_db", "frames", "ok", "no_target", "rejected", "points",
@@ -219,17 +219,25 @@ def z_scatter_inconsistent(n: int, mean: float, std: float | None, alpha: float 
     return bool(chi2.cdf(q, n) < alpha / 2 or chi2.sf(q, n) < alpha / 2)
 
 
+def _z_scatter(cells: list[dict], p: str) -> tuple[list[dict], float, list[dict]]:
+    """Of ``cells``, those with at least 5 z-values of prefix ``p`` (``range_z``, ``speed_z_unflagged``
+    ...), how many of them a sigma exactly right would leave outside the band by chance, and those
+    whose z scatter is inconsistent with 1 at 1 %. Cells without the columns (older maps) are left out."""
+    judged = [c for c in cells if (c.get(f"{p}_n") or 0) >= 5 and c.get(f"{p}_std") is not None]
+    chance = sum(1 - z_band_probability(c[f"{p}_n"]) for c in judged)
+    odd = [c for c in judged if z_scatter_inconsistent(c[f"{p}_n"], c[f"{p}_mean"], c[f"{p}_std"])]
+    return judged, chance, odd
+
+
 def _unflagged_row(above: list[dict], k: str, name: str) -> str:
     """The z target's diagnostic twin over each cell's unflagged points alone (``*_z_unflagged_*``:
     a flag says the number may be wrong, so only an unflagged point's sigma is a claim); absent
     from maps made before those columns."""
     u = f"{k}_unflagged"
-    judged = [c for c in above if c.get(f"{u}_n", 0) >= 5 and c.get(f"{u}_std") is not None]
+    judged, chance, odd = _z_scatter(above, u)
     if not judged:
         return f"| ... {name}, unflagged points only | not in this map's cells | (diagnostic) |"
-    within = [c for c in judged if abs(c[f"{u}_mean"]) < Z_MEAN_MAX and Z_STD_RANGE[0] <= c[f"{u}_std"] <= Z_STD_RANGE[1]]
-    chance = sum(1 - z_band_probability(c[f"{u}_n"]) for c in judged)
-    odd = [c for c in judged if z_scatter_inconsistent(c[f"{u}_n"], c[f"{u}_mean"], c[f"{u}_std"])]
+    within = [c for c in judged if z_in_band(c[f"{u}_mean"], c[f"{u}_std"])]
     return (f"| ... {name}, unflagged points only (a flag says the number may be wrong: only an unflagged "
             f"point's sigma is a claim) | {len(within)} of {len(judged)} cells within (median z std "
             f"{_fmt(float(np.median([c[f'{u}_std'] for c in judged])))}); by chance {chance:.0f} outside; "
@@ -303,10 +311,8 @@ def write_honesty_report(result: dict, out: Path) -> Path:
              f"simulated) | {'met' if s['processed_frames'] >= 20000 else 'missed'} |")
     above = [c for c in grid_cells if c.get("predicted_snr_db") is not None and c["predicted_snr_db"] >= MUST_FIND_SNR_DB]
     for k, name in (("range_z", "range"), ("speed_z", "speed")):
-        judged = [c for c in above if c[f"{k}_n"] >= 5 and c[f"{k}_std"] is not None]
+        judged, chance, odd = _z_scatter(above, k)
         bad = [c for c in judged if k in c["misses"]]
-        chance = sum(1 - z_band_probability(c[f"{k}_n"]) for c in judged)
-        odd = [c for c in judged if z_scatter_inconsistent(c[f"{k}_n"], c[f"{k}_mean"], c[f"{k}_std"])]
         L.append(f"| {name}: abs(mean z) < {Z_MEAN_MAX} and z std {Z_STD_RANGE[0]}–{Z_STD_RANGE[1]} in every cell "
                  f"above threshold | {len(judged) - len(bad)} of {len(judged)} cells within (median z std "
                  f"{_fmt(float(np.median([c[f'{k}_std'] for c in judged])) if judged else None)}); a sigma exactly "

@@ -172,6 +172,13 @@ def intermod_frequencies(tones_hz: tuple[float, ...], f_max_hz: float, order: in
     return np.array(sorted(out))
 
 
+def blind_spurs(spec: Spectrum, tones, fd_max_hz: float) -> np.ndarray:
+    """The static products a Doppler line may sit on (Hz, up to ``2*fd_max_hz``): the tones' products
+    as ``spec``'s record shows them, folded at its sample rate. The spur tests of the search and of
+    the sub-guard fit read this one list (the ghost list does not fold: :func:`_ghost_base`)."""
+    return intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz), fs_hz=spec.fs_hz)
+
+
 def _near(x: np.ndarray, marks: np.ndarray, tol: float) -> np.ndarray:
     """``|x - nearest mark| < tol`` for every x, by sorted search (x: many bins, marks: a few hundred)."""
     m = np.sort(np.asarray(marks, float))
@@ -278,7 +285,7 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
         # and ignore candidates sitting on a static intermodulation product
         valid &= (base > threshold_factor) & (base_p > strongest_pair)
         # one cached enumeration per tone plan and search range (min_bins varies per frame)
-        spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz), fs_hz=spec.fs_hz)
+        spurs = blind_spurs(spec, tones, fd_max_hz)
         spurs = spurs[spurs <= (bmax + min_bins) * spec.df_hz]
         if spurs.size:
             # on a static intermodulation product, a candidate counts only when its line is
@@ -1792,7 +1799,7 @@ def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n
         return False
     if width_test and widths_at(spec, [fd if spec.complex_input else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
         return False
-    spurs = intermod_frequencies(tuple(float(f) for f in tones), 2.0 * float(fd_max_hz), fs_hz=spec.fs_hz)
+    spurs = blind_spurs(spec, tones, fd_max_hz)
     on_spur = np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz)
     return not (on_spur and base_pw <= float(np.max(np.abs(c[:n_static]) ** 2)))
 
