@@ -20,7 +20,7 @@ slice      rows                                                             rung
 length     record 2^16, 2^18, 2^20 x speed (5)                              9
 receiver   balanced, iq x speed (5)                                         7
 laser      ideal, 5.3 GHz at 500x L_coh x speed (5); 5.3 GHz static at      7
-           2^18, 2^20
+           2^18, 2^20; 5.3 GHz static at 2^16-2^20 at 30-70 dB loss        (5)
 targets    static + mover, two movers, three movers x (single 2^16, iq       7
            2^16, single 2^18)
 six-tone   the 6-tone plan at 2^16, 2^18, 2^20 x speed (0, 40 bins,          9
@@ -92,6 +92,9 @@ RUNGS_DB: tuple[float, ...] = (45.0, 30.0, 20.0, 13.0, 10.0, 5.0, 0.0)
 #: Extra rungs for slices whose losses are those of the 2^16 row at every record length.
 LONG_RUNGS_DB: tuple[float, ...] = RUNGS_DB + (-6.0, -12.0)
 QUICK_RUNGS_DB: tuple[float, ...] = (30.0, 10.0)
+#: the 5.3 GHz static rows past the self-beat's ladder (which ends at ~26 dB): echo losses (dB)
+#: toward the squared record's one-frame reach (issue 12's target: sigma <= 1 cm to >= 40 dB)
+FAR_LOSSES_DB: tuple[float, ...] = (30.0, 40.0, 50.0, 60.0, 70.0)
 PROFILES: tuple[str, ...] = ("fast", "balanced", "accurate")
 #: line SNR (dB) above which a target must be found: the chain's 10 dB line threshold + 3 dB
 MUST_FIND_SNR_DB = 13.0
@@ -231,6 +234,11 @@ def grid(quick: bool = False, slices: list[str] | None = None) -> list[Config]:
             for n in (2**18, 2**20):
                 out.append(Config("laser", f"5.3 GHz N=2^{int(math.log2(n))} v=0", with_targets(mk(base_scene(n)),
                                   [_target(1.234, 0.0, 5.0)]), calibrate=cal, self_beat=True, rungs_db=rungs))
+            # past the self-beat's ladder: the chain's square stage (the laser declared) to its reach
+            for n in (2**16, 2**18, 2**20):
+                out.append(Config("laser", f"5.3 GHz{'' if n == 2**16 else f' N=2^{int(math.log2(n))}'} v=0 far",
+                                  with_targets(mk(base_scene(n)), [_target(1.234, 0.0, 5.0)]),
+                                  fixed_losses_db=FAR_LOSSES_DB, note="beyond the self-beat: the squared record"))
     # several targets (speeds fixed in m/s: 40, 120, 250 bins at 2^16)
     v1, v2, v3 = (round(bin_speed_mps(b16, k), 2) for k in (40, 120, 250))
     sets = {"static+mover": [_target(0.81, 0.0, 20.0), _target(2.46, v1, 26.0)],

@@ -46,7 +46,7 @@ def measure(loss_db: float, samples: int, k: int, runs: int) -> dict:
             p = res.targets[0]
             z = (p.range_m - truth[0].range_m) / p.range_sigma_m
             out.append({"status": "ok", "sigma_m": p.range_sigma_m, "z": z, "frames": p.accumulated_frames,
-                        "flagged": bool(p.cycle_ambiguous or p.blended or p.near_edge)})
+                        "flagged": p.flagged})
         else:
             out.append({"status": res.status, "reason": res.reason})
         chain.append(process_frame(fr, prof).status)

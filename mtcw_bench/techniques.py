@@ -101,7 +101,7 @@ def run_fig11(frames: int, samples: int) -> dict:
                 depth.append(fit.beta / fit.alpha)
                 r2.append(fit.r2)
                 res = process_frame(fr, st, cal)
-                if res.status == "ok" and not _flagged(res.targets[0]):
+                if res.status == "ok" and not res.targets[0].flagged:
                     ok += 1
                     t = res.targets[0]
                     wrong += abs(t.range_m - fr.truth[0].range_m) > 5 * t.range_sigma_m
@@ -112,10 +112,6 @@ def run_fig11(frames: int, samples: int) -> dict:
                          "r2_mean": float(np.mean(r2)), "confident": ok, "confident_wrong": int(wrong),
                          "frames": frames})
     return {"rows": rows}
-
-
-def _flagged(t) -> bool:
-    return bool(t.cycle_ambiguous or t.near_edge or t.blended)
 
 
 def _stage_positions(n: int) -> np.ndarray:
@@ -142,9 +138,9 @@ def run_bench(steps: int, trials: int, samples: int, loss_db: float | None = Non
         sc = scene_variant(base, seed=100 + k, targets=[{"range_m": L_REF + dl}])
         frames = list(Simulator(sc).frames(trials))
         res = [process_frame(fr, st, cal) for fr in frames]
-        unbounded_flagged = sum(r.status != "ok" or _flagged(r.targets[0])
+        unbounded_flagged = sum(r.status != "ok" or r.targets[0].flagged
                                 for r in (process_frame(fr, AB, cal) for fr in frames))
-        good = [r.targets[0] for r in res if r.status == "ok" and not _flagged(r.targets[0])]
+        good = [r.targets[0] for r in res if r.status == "ok" and not r.targets[0].flagged]
         rng = np.array([t.range_m - L_REF for t in good])  # as path differences
         r2 = np.array([t.fit_r2 for t in good])
         sig = np.array([t.range_sigma_m for t in good])
@@ -176,7 +172,7 @@ def r2_matched_loss(samples: int, frames: int, target_r2: float = 0.918) -> tupl
         for fr in Simulator(sc).frames(frames):
             r2_all.append(run_stages(fr, st, cal, until="ab_fit").technique_state.fit.r2)
             r = process_frame(fr, st, cal)
-            if r.status == "ok" and not _flagged(r.targets[0]):
+            if r.status == "ok" and not r.targets[0].flagged:
                 r2_ok.append(r.targets[0].fit_r2)
                 err.append(r.targets[0].range_m - fr.truth[0].range_m)
         table.append({"loss_db": float(loss), "r2_all": float(np.mean(r2_all)),

@@ -24,7 +24,7 @@ import numpy as np
 from .dsp.tones import fit_lines
 from .frame import TruthTarget
 from .ranging.triangulation import fisher_sigma
-from .results import FrameResult, TargetPoint
+from .results import FLAGS, FrameResult, TargetPoint
 from .scene import Scene, scene_variant
 from .simulate import Simulator
 
@@ -222,8 +222,6 @@ class ErrorLog:
         }
 
 
-#: The flags of a point that tell the user not to trust its number as stated.
-FLAGS: tuple[str, ...] = ("near_edge", "cycle_ambiguous", "blended")
 #: |z| above which an error is "wrong" (issue 12: a confident wrong answer is |z| > 5, unflagged).
 Z_WRONG = 5.0
 

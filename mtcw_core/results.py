@@ -31,6 +31,10 @@ class NoTarget(Exception):
     """A valid frame in which nothing can be ranged (no echo pulse, too few lines); the message says why."""
 
 
+#: The flags of a point that tell the user not to trust its number as stated.
+FLAGS: tuple[str, ...] = ("near_edge", "cycle_ambiguous", "blended")
+
+
 @dataclass
 class TargetPoint:
     """One target's range and speed with their one-sigma uncertainties.
@@ -102,6 +106,11 @@ class TargetPoint:
     seed_sigma_k_m: float | None = None
     fit_r2: float | None = None
     accumulated_frames: int = 1
+
+    @property
+    def flagged(self) -> bool:
+        """The point says its number may be wrong (any of :data:`FLAGS`)."""
+        return any(getattr(self, f) for f in FLAGS)
 
 
 @dataclass

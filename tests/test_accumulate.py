@@ -9,6 +9,7 @@ coherence length), target at 0.55 m, shortened to 2^16 samples.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,10 +19,11 @@ from scipy.special import j0, j1
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.evaluate import judge_frame
 from mtcw_core.phase import C
-from mtcw_core.ranging.accumulate import (AccumulateSettings, Accumulator, mean_truth, same_phasors_p, square_lines,
-                                          square_can_range, square_point, weighted_mean)
+from mtcw_core.ranging.accumulate import (AccumulateSettings, Accumulator, better_point, mean_truth, same_phasors_p,
+                                          square_can_range, square_lines, square_point, square_rivals,
+                                          weighted_mean)
 from mtcw_core.ranging.targets import Reference
-from mtcw_core.results import NoTarget
+from mtcw_core.results import NoTarget, TargetPoint
 from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
@@ -103,6 +105,17 @@ def test_the_square_stage_is_skipped_where_the_declared_laser_is_coherent_over_t
     # coherent at the near end, not at the far end of a long interval (1 MHz, 150 m: 1 us)
     far = get_profile("balanced", laser_linewidth_hz=1e6, range_max_m=150.0)
     assert square_can_range(far, tones) and not square_can_range(far.model_copy(update={"range_max_m": 3.0}), tones)
+
+
+def test_which_point_the_squared_record_may_replace():
+    """Only one point, at a range where the declared laser is incoherent (the echo's self-beat);
+    it is replaced by an unflagged point against a flagged one, else by a smaller sigma."""
+    pt = TargetPoint(1.234, 0.01, 0.0, 1.0, "unknown", 15.0, 0.2)
+    assert square_rivals([pt], PROFILE) and not square_rivals([pt, pt], PROFILE)
+    assert not square_rivals([pt], get_profile("balanced", laser_linewidth_hz=1e5))  # coherent at 1.234 m
+    assert better_point(pt, replace(pt, range_sigma_m=0.004)) and not better_point(pt, replace(pt, range_sigma_m=0.02))
+    flagged = replace(pt, range_sigma_m=0.004, cycle_ambiguous=True)
+    assert flagged.flagged and not better_point(pt, flagged) and better_point(flagged, replace(pt, range_sigma_m=0.05))
 
 
 def test_the_square_stage_refuses_a_range_where_the_declared_laser_is_coherent():

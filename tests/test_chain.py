@@ -262,6 +262,27 @@ def test_no_target_when_echo_is_lost():
     assert res.status == "no_target" and "squared lines" in res.reason and "square" in res.stage_seconds
 
 
+def test_the_squared_record_replaces_the_self_beats_flagged_point():
+    """5.3 GHz laser, LO 9 m longer, 12 dB of echo loss at 2^16: the chain's own lines are the
+    echo's self-beat near its threshold -- flagged cycles, 1-2 cm sigmas, some 36 sigma off (the
+    honesty map's 5.3 GHz rows at 12-20 dB). The squared record's lines (LO power x echo
+    intensity) range the same echo to ~4 mm: their point replaces the chain's, unflagged, within
+    5 sigma, speed unknown."""
+    sc = make_scene(laser={"linewidth_hz": 5.3e9}, paths={"lo_path_difference_m": 9.0},
+                    targets=[{"range_m": 1.234, "loss_db": 12.0}], digitizer={"samples": 2**16},
+                    noise={"shot": True, "thermal": True})
+    known = get_profile("balanced", laser_linewidth_hz=5.3e9, lo_path_difference_m=9.0)
+    for fr in Simulator(sc, seed=5).frames(6):
+        res = process_frame(fr, known)
+        assert res.status == "ok" and res.reason.startswith("squared record"), res.reason
+        p = res.targets[0]
+        assert not p.flagged and p.range_sigma_m < 0.01 and p.direction == "unknown"
+        assert abs(p.range_m - 1.234) < 5 * p.range_sigma_m
+    # the same frame with the laser declared coherent: the chain's own point, no square stage
+    res = process_frame(fr, get_profile("balanced", laser_linewidth_hz=1e5))
+    assert "square" not in res.stage_seconds
+
+
 def test_the_square_stage_does_not_run_on_gated_frames():
     """A quasi-CW frame whose echo windows hold no lines ends at select: squaring the whole record
     would mix the pulse's off-time in (the accumulator refuses gated frames for the same reason)."""

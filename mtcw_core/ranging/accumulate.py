@@ -300,6 +300,26 @@ def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Refe
     return [point], l_unamb, f"squared record (whole-band IF mixing): {why} in the chain's own; speed unknown"
 
 
+def square_rivals(targets: list[TargetPoint], settings: ChainSettings) -> bool:
+    """Whether the chain's own answer is one point at a range where the declared laser is
+    incoherent (its lines are then the echo's self-beat, ``|E_echo|^2``, which scales with the
+    echo power squared): the squared record's lines, ``~sqrt(8)*I_LO/sigma`` stronger than the
+    self-beat, may range it better (:func:`better_point`). Several points are left alone (the
+    squared lines hold the sum of every target's intensity)."""
+    return len(targets) == 1 and carrier_coherence(settings, targets[0].range_m) < MIN_CARRIER_COHERENCE
+
+
+def better_point(own: TargetPoint, squared: TargetPoint) -> bool:
+    """Whether the squared record's point should replace the chain's own (:func:`square_rivals`).
+
+    Both rest on the echo's intensity, Doppler-free, and state sigmas that cover their errors; an
+    unflagged point is preferred to a flagged one (``cycle_ambiguous``, ``near_edge``, ``blended``),
+    then the smaller range sigma. Near the self-beat's threshold the chain's own lines pick wrong
+    cycles (flagged, cm sigmas: the honesty map's 5.3 GHz rows at 12-20 dB) where the squared
+    lines give mm -- the smaller sigma is the one the lines' SNR supports, not a lucky draw of it."""
+    return (squared.flagged, squared.range_sigma_m) < (own.flagged, own.range_sigma_m)
+
+
 # -------------------------------------------------------------------------------------------
 # accumulation over frames
 def _key(frame: Frame, ref: Reference) -> tuple:
