@@ -390,7 +390,8 @@ def test_a_folded_intermodulation_product_is_no_mover():
                    "eighth-record bins), where the noise is lower than at the lines: its range sigmas on this cell are "
                    "0.85x balanced's (median of 24 frames), unflagged range z std 1.6-1.7 in the map. A guard of 48 "
                    "record bins gave 0.95 but 2 confident-wrong + 1 confident-false frames in the movers probe "
-                   "(fast's lobe neighbours), so it was taken back (notes)")
+                   "(fast's lobe neighbours), so it was taken back; the same guard on the extracted lines' "
+                   "floors alone (the search's kept) did the same (notes)")
 def test_fast_measures_the_lines_noise_as_the_whole_record_does():
     """The map's six-tone mover (1.62 m/s, 100 kHz laser, 2^16, its 30 dB rung): ``fast`` reads the
     lines' noise floors in its eighth-record spectrum, ``balanced`` in the whole record's; the
