@@ -48,6 +48,11 @@ class ChainSettings(BaseModel):
                                                      "line phases are fitted in float64 regardless)")
     # -- doppler
     doppler_min_bins: int = Field(4, ge=1)
+    sideband_direction: bool = Field(False, description=(
+        "a single or balanced photodiode: report the direction of motion where the sidebands' own Doppler "
+        "shift (f_i*f_d/f0: the RF tones are Doppler-shifted too) decides its sign (receding/approaching); off, "
+        "such a detector reports direction 'unknown' as the interface states. Measured on the honesty map "
+        "(notes), not yet on a bench"))
     doppler_threshold: float = Field(8.0, gt=0)
     fd_max_hz: float | None = Field(None, gt=0, description="default: half the smallest tone spacing")
     doppler_phase_lines: int | None = Field(None, ge=1, description="phase refinement: the strongest lines only")
@@ -102,9 +107,12 @@ class ChainSettings(BaseModel):
                                                                "lines is taken for their self-beat")
     incoherent_residual_rad: float = Field(0.25, gt=0, description="a moving candidate whose line phases miss one "
                                                                    "range by this much (rms) at > 25 dB is noise")
-    # -- square (only when select found no target, the laser is declared and the frame is CW)
+    # -- square (CW frames, a laser declared incoherent: when select found no target, or one point where the laser
+    # is incoherent)
     squared_lines: bool = Field(True, description=(
-        "when the chain's own lines give no target and a laser is declared (laser_linewidth_hz > 0), range "
+        "when the chain's own lines give no target, or one point where the declared laser (laser_linewidth_hz > 0) "
+        "is incoherent (the echo's self-beat; replaced when the squared record's point is unflagged against a "
+        "flagged one or has the smaller sigma), range "
         "from the lines of the squared record (whole-band digital IF mixing: LO power x echo intensity, no "
         "laser phase, no Doppler), which reach beyond the laser's coherence, where that laser is incoherent at "
         "the range they give; the point's speed is unknown. A calibration taken through the chain's lines holds "

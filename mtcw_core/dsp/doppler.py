@@ -23,6 +23,7 @@ from scipy.stats import chi2 as chi2_dist
 from scipy.stats import t as student_t
 
 from ..frame import Frame
+from ..phase import C
 from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
                        window_sum)
@@ -77,6 +78,10 @@ class DopplerEstimate:
     #: the search's line hid another mover (one found inside its lobe, closer than the phase
     #: refinement's parts can tell apart): its refinement saw both, its point is ``blended``
     unresolved: bool = False
+    #: a real detector: the sign of the carrier Doppler ``f_d`` that its sidebands' modulation
+    #: Doppler decides (:func:`_combine_lines`: +1, ``f_d > 0``, approaching; -1 receding), 0 when
+    #: undecided; IQ: 0 (``fd_hz`` carries its sign)
+    motion_sign: int = 0
 
     @property
     def refined(self) -> bool:
@@ -113,6 +118,29 @@ def target_lines(tones, fd: float, iq: bool) -> tuple[np.ndarray, np.ndarray]:
         freqs.extend(f)
         slope.extend(np.where(conj, 1.0, -1.0) if (name == "L" and not iq) else np.ones(len(f)))
     return np.asarray(freqs, float), np.asarray(slope)
+
+
+def modulation_doppler(tones, fd: float, iq: bool, wavelength_m: float) -> np.ndarray:
+    """How far each line of :func:`target_lines` lies from where ``fd`` puts it, times its slope
+    (Hz), per sign of the motion: the RF tones are Doppler-shifted too.
+
+    The echo's field is the transmitted one at ``t - tau(t)``: its sideband at ``f0 + f_i`` comes
+    back at ``(f0 + f_i)*(1 - 2v/c)``, so the U line lies at ``f_i + f_d*(1 + f_i/f0)`` and the L
+    line at ``f_d*(1 - f_i/f0) - f_i`` (``f_d = -2v*f0/c``, ``f0 = c/lambda``; spec physics.md).
+    In the units the refinement combines (``slope*(line error)``): 0 for the baseband line,
+    ``+f_i*F/f0`` for U and ``-f_i*F/f0`` for L, ``F`` = ``fd`` for IQ (signed, the sign known),
+    ``|fd|`` times the unknown sign of ``f_d`` for a real detector. 0.4-300 Hz on the honesty
+    map's movers (6 bins at 2^16 to 0.45x the tone spacing): far above the phase advance's
+    per-line error at high SNR, where ignoring it made the lines disagree (chi2/dof up to ~1400)
+    and inflated the stated error 4-40x by Birge's ratio.
+
+    Returns
+    -------
+    ndarray, shape (1 + 2T,), Hz
+    """
+    t = np.asarray(tones, float)
+    f = (fd if iq else abs(fd)) * wavelength_m / C
+    return np.concatenate([[0.0], t * f, -t * f])
 
 
 def sideband_freqs(tones, fd: float, iq: bool) -> np.ndarray:
@@ -761,14 +789,15 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if length < 64:
         return est
     freqs, slope = target_lines(frame.tones_hz, fd, iq)
+    shift = modulation_doppler(frame.tones_hz, fd, iq, frame.wavelength_m)
     near = _other_lines(frame.tones_hz, fd, others, iq)
     use = _separable(freqs, freqs, near, PHASE_SEPARATION_BINS * fs / length, iq)
     if not use.any():
         return est
-    freqs, slope = freqs[use], slope[use]
+    freqs, slope, shift = freqs[use], slope[use], shift[use]
     if max_lines is not None and freqs.size > max_lines:
         top = np.argsort(spec.power[np.clip(spec.bin_of(freqs), 0, spec.power.size - 1)])[::-1][:max_lines]
-        freqs, slope = freqs[top], slope[top]
+        freqs, slope, shift = freqs[top], slope[top], shift[top]
     z, prod = _part_steps(x, segments, length, freqs, fs)
     if not np.any(np.abs(prod) > 0):
         return est
@@ -782,7 +811,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
     var_line = step_sum_phase_variance(var_phi, segments) / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
-    delta, spread, lines_chi2 = _combine_lines(wt, slope, d_line, var_line)
+    delta, spread, lines_chi2, sign = _combine_lines(wt, slope, d_line, var_line, shift, iq)
     # each line's amplitude across the parts: one mover's stays (a laser's phase noise moves its
     # phase only); two movers the search could not resolve beat, and every line's amplitude with
     # them -- equally strong ones a bin apart even agree in their phase steps (each line's phase is
@@ -805,7 +834,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
             res = _common_residual(np.angle(prod), slope, wt)
             var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
             spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
-    return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2)
+    return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign)
 
 
 def step_sum_phase_variance(var_phi: np.ndarray, segments: int) -> np.ndarray:
@@ -825,24 +854,50 @@ def step_sum_phase_variance(var_phi: np.ndarray, segments: int) -> np.ndarray:
     return np.minimum(2.0 * v / steps**2 * (1.0 + v * steps), np.pi**2 / 3.0)
 
 
-def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_line: np.ndarray
-                   ) -> tuple[float, float, float]:
-    """The lines' Doppler corrections combined: the weighted mean of ``slope*d_line`` (Hz; the
-    local floors that inverse-variance weights would trust are rough next to the strongest lines,
-    so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean, scaled
-    by the lines' scatter about it when that exceeds what noise explains (Birge ratio: leakage,
-    skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,).
+def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_line: np.ndarray,
+                   shift: np.ndarray | None = None, sign_known: bool = True) -> tuple[float, float, float, int]:
+    """The lines' Doppler corrections combined: the weighted mean of ``slope*d_line - shift`` (Hz;
+    the local floors that inverse-variance weights would trust are rough next to the strongest
+    lines, so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean,
+    scaled by the lines' scatter about it when that exceeds what noise explains (Birge ratio:
+    leakage, skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,).
+
+    ``shift``: the lines' modulation Doppler (:func:`modulation_doppler`) for ``f_d > 0``. With
+    ``sign_known`` false (a real detector: the sign of the motion is unknown) both signs are
+    tried and the one whose lines agree better (smaller chi2) is taken; unless the other's chi2 is
+    larger by :data:`DIRECTION_DECISIVE_CHI2`, the two answers' half difference is added to the
+    error. The sign is returned (the fourth value: +1 or -1, the sign of ``f_d``) where it is
+    decisive and the lines agree under it (chi2/dof at most :data:`DIRECTION_MAX_CHI2`), else 0.
 
     A weak line hardly moves the mean, but its disagreement with the strong one still scales the
     error: it may be the only witness of a bias the strong line carries alone (issue 12 case 1 in
     ``accurate``: a baseband line 5 of its sigmas off, its six sidebands agreeing with the truth).
     Each line's variance must then be its real one (:func:`step_sum_phase_variance`), or noise
     alone inflates the error."""
-    delta = float(np.sum(wt * slope * d_line) / np.sum(wt))
+    y = slope * d_line
+    dof = max(len(wt) - 1, 1)
     stat = float(np.sqrt(np.sum(wt**2 * var_line)) / np.sum(wt))
-    chi2 = float(np.sum((slope * d_line - delta) ** 2 / var_line))
-    dof_chi2 = chi2 / max(len(wt) - 1, 1)
-    return delta, stat * math.sqrt(max(dof_chi2, 1.0)), dof_chi2
+    fits = []
+    for sign in ((1, ) if shift is None or sign_known else (1, -1)):
+        yy = y if shift is None else y - sign * shift
+        delta = float(np.sum(wt * yy) / np.sum(wt))
+        fits.append((float(np.sum((yy - delta) ** 2 / var_line)), delta, sign))
+    chi2, delta, sign = min(fits)
+    dof_chi2 = chi2 / dof
+    err = stat * math.sqrt(max(dof_chi2, 1.0))
+    if len(fits) < 2:
+        return delta, err, dof_chi2, 0
+    if abs(fits[0][0] - fits[1][0]) < DIRECTION_DECISIVE_CHI2:
+        return delta, math.hypot(err, 0.5 * abs(fits[0][1] - fits[1][1])), dof_chi2, 0
+    return delta, err, dof_chi2, (sign if dof_chi2 <= DIRECTION_MAX_CHI2 else 0)
+
+
+#: the lines' chi2 under the two signs of the motion must differ by this much for one sign's
+#: Doppler to stand alone (a likelihood ratio of e^12.5, ~3e5) ...
+DIRECTION_DECISIVE_CHI2 = 25.0
+#: ... and, to say the direction, the lines agree under it within this chi2 per dof (a blend or
+#: leakage that makes them disagree may also tilt them)
+DIRECTION_MAX_CHI2 = 4.0
 
 
 #: the common phase is measured on up to this many parts of the record, and at least this many
@@ -1268,12 +1323,13 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
         fd += delta
     sdw2 = float(np.sum(dw**2))
     var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
-    _, spread, lines_chi2 = _combine_lines(wt, slope[use], d_line, var_line)
+    shift = modulation_doppler(frame.tones_hz, fd, iq, frame.wavelength_m)[use]
+    _, spread, lines_chi2, sign = _combine_lines(wt, slope[use], d_line, var_line, shift, iq)
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
-                   lines_chi2=lines_chi2)
+                   lines_chi2=lines_chi2, motion_sign=sign)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1838,4 +1894,4 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
     var_line = (1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2[use] / -curv[use]
     _, slope = target_lines(fit.tones, fd, fit.iq)
-    return _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
+    return _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)[:3]
