@@ -89,7 +89,7 @@ def _open(recording: Path):
 
 
 def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0,
-              laser_linewidth_hz: float = 0.0, lo_path_difference_m: float = 0.0):
+              laser_linewidth_hz: float = 0.0, lo_path_difference_m: float = 0.0, sideband_direction: bool = False):
     from mtcw_core.chain import get_profile
 
     over = {"method": method} if method else {}
@@ -99,6 +99,8 @@ def _settings(profile: str, method: Optional[str], technique: str = "pb", timing
         over["timing_jitter_s"] = timing_jitter_s
     if laser_linewidth_hz or lo_path_difference_m:
         over.update(laser_linewidth_hz=laser_linewidth_hz, lo_path_difference_m=lo_path_difference_m)
+    if sideband_direction:
+        over["sideband_direction"] = True
     try:
         return get_profile(profile, **over)
     except ValueError as err:
@@ -161,6 +163,9 @@ def process(
     accumulate: int = typer.Option(0, "--accumulate", help="beyond the laser's coherence (a static target): range "
                                    "from the whole band's digital IF mixing, averaged over the last K frames "
                                    "(1-32; 0: the chain per frame); docs/reach.md"),
+    sideband_direction: bool = typer.Option(False, "--sideband-direction", help="one photodiode: say the direction "
+                                            "of motion where the sidebands' own Doppler shift decides its sign (high "
+                                            "SNR; off: direction unknown, as the interface says)"),
 ) -> None:
     """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
     target."""
@@ -172,7 +177,8 @@ def process(
     from mtcw_core.evaluate import ErrorLog
 
     rec = _open(recording)
-    settings = _settings(profile, method, technique, timing_jitter_s, laser_linewidth_hz, lo_path_difference_m)
+    settings = _settings(profile, method, technique, timing_jitter_s, laser_linewidth_hz, lo_path_difference_m,
+                         sideband_direction)
     acc = _accumulator(accumulate, settings, calibration)
     cal = _calibration(calibration)
     if cal is None:
@@ -704,6 +710,10 @@ def worker(
     accumulate: Optional[int] = typer.Option(None, "--accumulate", help="static targets beyond the laser's "
                                              "coherence: whole-band IF mixing averaged over the last K frames of "
                                              "each source (1-32) [MTCW_ACCUMULATE; default 0: off]"),
+    sideband_direction: Optional[bool] = typer.Option(None, "--sideband-direction/--no-sideband-direction",
+                                                      help="one photodiode: say the direction of motion where the "
+                                                      "sidebands' own Doppler shift decides its sign "
+                                                      "[MTCW_SIDEBAND_DIRECTION; default off: unknown]"),
 ) -> None:
     """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
@@ -713,7 +723,8 @@ def worker(
     _logging()
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
                            timing_jitter_s=timing_jitter_s, laser_linewidth_hz=laser_linewidth_hz,
-                           lo_path_difference_m=lo_path_difference_m, accumulate=accumulate)
+                           lo_path_difference_m=lo_path_difference_m, accumulate=accumulate,
+                           sideband_direction=sideband_direction)
     try:
         w = Worker(st)
     except CalibrationError as err:

@@ -277,6 +277,9 @@ class WorkerSettings(TransportSettings):
                                       "the square stage ranges from the squared record; 0: coherent everywhere")
     lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the echo's "
                                         "internal path (m)")
+    sideband_direction: bool = Field(False, description="one photodiode: say the direction of motion where the "
+                                     "sidebands' own Doppler shift decides its sign (ChainSettings.sideband_direction;"
+                                     " off: direction unknown)")
     calibration: Optional[Path] = Field(None, description="calibration file from `mtcw calibrate`")
     accumulate: int = Field(0, ge=0, le=32, description="static targets beyond the laser's coherence: range from "
                             "the whole band's digital IF mixing averaged over the last K frames of each source "

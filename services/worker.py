@@ -54,7 +54,8 @@ class Worker:
         self.chain = get_profile(settings.profile, technique=settings.technique,
                                  timing_jitter_s=settings.timing_jitter_s,
                                  laser_linewidth_hz=settings.laser_linewidth_hz,
-                                 lo_path_difference_m=settings.lo_path_difference_m)
+                                 lo_path_difference_m=settings.lo_path_difference_m,
+                                 sideband_direction=settings.sideband_direction)
         self.calibration = Calibration.load(settings.calibration) if settings.calibration else None
         # --accumulate K: one accumulator per source (mtcw_core.ranging.accumulate); frames shared
         # between several workers are each worker's share of the source
