@@ -16,19 +16,15 @@ extract   complex amplitude of every planned line         :mod:`mtcw_core.dsp.ex
 mix       IF mixing: pair phases per target candidate     :mod:`mtcw_core.ranging.mixing`
 resolve   cycle resolution, sigma, velocity per candidate :mod:`mtcw_core.ranging.targets`
 select    which candidates are targets, strongest first   :mod:`mtcw_core.ranging.targets`
-square    beyond coherence: range from the squared record :mod:`mtcw_core.ranging.accumulate`
-          (whole-band digital IF mixing) when the lines
-          above gave no target, or one it ranges better
+square    beyond coherence: the squared record's point    :mod:`mtcw_core.ranging.accumulate`
+          (whole-band IF mixing), if none or a worse one
 ========  ==============================================  ==================================
 
 Each stage here is a two-line adapter: it reads what earlier stages left in the
 :class:`FrameState` and stores its own output there. ``gate`` runs only for pulsed frames. A
 stage ends a frame early by raising :class:`~mtcw_core.results.Rejected` (a bad frame) or
 :class:`~mtcw_core.results.NoTarget` (nothing to range). The runner does the timing; no stage
-sees a clock. ``square`` runs only on CW frames with a laser declared incoherent somewhere in the
-searched interval: when ``select`` found no target, or one point where the laser is incoherent
-(the echo's self-beat), which the squared record's point replaces when it is unflagged against a
-flagged one or has the smaller sigma.
+sees a clock.
 """
 
 from __future__ import annotations
@@ -50,7 +46,7 @@ from .phase import C
 from .profiles import PROFILES, ChainSettings, get_profile
 from .ranging.gating import GateEstimate, gate_frame, is_gated
 from .ranging import ab, pe, ptof
-from .ranging.accumulate import better_point, square_can_range, square_point, square_rivals
+from .ranging.accumulate import square_can_range, square_point, square_rival, square_rivals
 from .ranging.mixing import mix
 from .ranging.pe import PeLines
 from .ranging.targets import Reference, resolve_targets, select_targets
@@ -128,18 +124,18 @@ def _resolve(s: FrameState) -> None:
         s.families, s.observations, s.dopplers, s.frame, s.settings, s.reference, s.coarse)
 
 
-def _squarable(s: FrameState) -> bool:
-    """A CW frame of the PB chain and a laser declared incoherent at some range: the squared
-    record may range (:func:`~mtcw_core.ranging.accumulate.square_can_range`)."""
+def _square_applies(s: FrameState) -> bool:
+    """A CW PB frame, a laser declared incoherent somewhere; no target, or one the square stage may better."""
     st = s.settings
-    return st.technique == "pb" and st.squared_lines and s.gate is None and square_can_range(st, s.frame.tones_hz)
+    able = st.technique == "pb" and st.squared_lines and s.gate is None and square_can_range(st, s.frame.tones_hz)
+    return able and (not s.result.targets or square_rivals(s.result.targets, st))
 
 
 def _select(s: FrameState) -> None:
     targets = select_targets(s.candidates, s.settings)
     if not targets:
         s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
-        if _squarable(s):
+        if _square_applies(s):
             return  # the square stage has the last word
         raise NoTarget(s.no_target_why)
     s.result.targets = targets
@@ -149,19 +145,9 @@ def _select(s: FrameState) -> None:
 
 def _square(s: FrameState) -> None:
     r = s.result
-    if r.targets:
-        # the chain's own point beyond coherence (the echo's self-beat): the squared lines' point
-        # replaces it where it is unflagged against a flagged one, or its sigma is smaller
-        try:
-            points, l_unamb, _ = square_point(s.x, s.frame, s.settings, s.reference, "no target")
-        except NoTarget:
-            return
-        if better_point(r.targets[0], points[0]):
-            own = r.targets[0]
-            r.targets, r.unambiguous_range_m, r.doppler_hz = points, l_unamb, 0.0
-            r.reason = (f"squared record (whole-band IF mixing): the chain's own lines (the echo's self-beat) gave "
-                        f"{own.range_m:.4f} +- {own.range_sigma_m:.4f} m{' (flagged)' if own.flagged else ''}; "
-                        "speed unknown")
+    if r.targets:  # the chain's own point beyond coherence: the squared record's, where better
+        if (better := square_rival(s.x, s.frame, s.settings, s.reference, r.targets[0])) is not None:
+            (r.targets, r.unambiguous_range_m, r.reason), r.doppler_hz = better, 0.0
         return
     r.targets, r.unambiguous_range_m, r.reason = square_point(s.x, s.frame, s.settings, s.reference, s.no_target_why)
     r.doppler_hz, r.status = 0.0, "ok"
@@ -186,8 +172,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("mix", _mix),
     Stage("resolve", _resolve),
     Stage("select", _select),
-    Stage("square", _square, lambda s: not s.result.targets
-          or (_squarable(s) and square_rivals(s.result.targets, s.settings))),
+    Stage("square", _square, _square_applies),
 )
 STAGE_NAMES: tuple[str, ...] = tuple(st.name for st in STAGES)
 

@@ -300,6 +300,22 @@ def square_point(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Refe
     return [point], l_unamb, f"squared record (whole-band IF mixing): {why} in the chain's own; speed unknown"
 
 
+def square_rival(x: np.ndarray, frame: Frame, settings: ChainSettings, ref: Reference, own: TargetPoint
+                 ) -> tuple[list[TargetPoint], float, str] | None:
+    """The ``square`` stage beside the chain's own point ``own`` (:func:`square_rivals`): the
+    squared record's point, its unambiguous range (m) and the result's reason where it is the
+    better one (:func:`better_point`); None to keep ``own`` (also when the squared lines give none)."""
+    try:
+        points, l_unamb, _ = square_point(x, frame, settings, ref, "no target")
+    except NoTarget:
+        return None
+    if not better_point(own, points[0]):
+        return None
+    return points, l_unamb, (f"squared record (whole-band IF mixing): the chain's own lines (the echo's self-beat) "
+                             f"gave {own.range_m:.4f} +- {own.range_sigma_m:.4f} m{' (flagged)' if own.flagged else ''};"
+                             " speed unknown")
+
+
 def square_rivals(targets: list[TargetPoint], settings: ChainSettings) -> bool:
     """Whether the chain's own answer is one point at a range where the declared laser is
     incoherent (its lines are then the echo's self-beat, ``|E_echo|^2``, which scales with the
