@@ -1324,7 +1324,8 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     sdw2 = float(np.sum(dw**2))
     var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
     shift = modulation_doppler(frame.tones_hz, fd, iq, frame.wavelength_m)[use]
-    _, spread, lines_chi2, sign = _combine_lines(wt, slope[use], d_line, var_line, shift, iq)
+    combined, spread, lines_chi2, sign = _combine_lines(wt, slope[use], d_line, var_line, shift, iq)
+    fd += combined - delta  # the last step's correction with the sidebands' own shift taken out
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
