@@ -23,15 +23,14 @@ from mtcw_core.evaluate import judge_frame
 from mtcw_core.profiles import get_profile
 from mtcw_core.simulate import Simulator
 
-from .honesty import Group, MapSpec, map_configs, plan
+from .honesty import Group, MapSpec, declared, map_configs, plan
 
 
 def judge_group(g: Group, frames: int) -> tuple[collections.Counter, list[str]]:
     """One group's direction claims: counts of ``points`` (answering a moving truth), ``right``,
     ``wrong`` (``/flagged`` appended for flagged points), and a line per wrong claim."""
     sc = g.scene
-    st = get_profile("balanced", sideband_direction=True, timing_jitter_s=sc.noise.trigger_jitter_s,
-                     laser_linewidth_hz=sc.laser.linewidth_hz, lo_path_difference_m=sc.paths.lo_path_difference_m)
+    st = get_profile("balanced", sideband_direction=True, **declared(sc))
     counts: collections.Counter = collections.Counter()
     wrong: list[str] = []
     for fr in Simulator(sc, g.seed).frames(min(frames, g.frames)):

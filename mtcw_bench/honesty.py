@@ -643,6 +643,14 @@ def _first_target_efficiency(verdicts: list[FrameVerdict], lam_min: float) -> fl
     return float(np.std(e, ddof=1)) if len(e) >= 3 else None
 
 
+def declared(scene: Scene) -> dict:
+    """What the bench tells the chain of itself (``ChainSettings`` fields): its digitizer's timing
+    jitter (issue 12 case 7: it enters the range sigma) and its laser (the LO x echo carrier beat is
+    no line beyond coherence: case 4, speed unknown, not 0; the square stage ranges there)."""
+    return {"timing_jitter_s": scene.noise.trigger_jitter_s, "laser_linewidth_hz": scene.laser.linewidth_hz,
+            "lo_path_difference_m": scene.paths.lo_path_difference_m}
+
+
 def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> dict:
     """Simulate a group's frames once, run every profile, judge every frame; cells and frame rows."""
     sc = g.scene
@@ -653,10 +661,7 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     tones = sorted(sc.tones_hz)
     lam_min = C / (2 * (tones[-1] - tones[0]))
     cells, rows = [], []
-    # the bench knows its digitizer's timing jitter (issue 12 case 7): it enters the range sigma
-    # and its laser: the LO x echo carrier beat is no line beyond coherence (case 4: speed unknown, not 0)
-    known = {"timing_jitter_s": sc.noise.trigger_jitter_s, "laser_linewidth_hz": sc.laser.linewidth_hz,
-             "lo_path_difference_m": sc.paths.lo_path_difference_m}
+    known = declared(sc)
     runs = list(profiles) + ([accumulate_label(g.config.accumulate)] if g.config.accumulate else [])
     first_snr = predicted_snr_db(sc, True, g.seed) if g.config.self_beat else (bound.line_snr_db if bound else None)
     must = must_find(sc, first_snr, g.config.self_beat, g.seed)

@@ -153,10 +153,9 @@ def test_process_sideband_direction_says_which_way_one_photodiode_moves(tmp_path
     (2^18 samples) comes out ``receding`` with a positive velocity; without the flag, ``unknown``."""
     import csv
 
-    from .conftest import make_scene
+    from .conftest import fast_mover_scene
 
-    sc = make_scene(digitizer={"samples": 2**18}, noise={"shot": True, "thermal": True},
-                    targets=[{"range_m": 1.234, "velocity_mps": 47.9, "loss_db": 40.0}])
+    sc = fast_mover_scene()
     scene = tmp_path / "fast.json"
     scene.write_text(sc.model_dump_json())
     rec = tmp_path / "fast"

@@ -5,14 +5,13 @@ from __future__ import annotations
 from mtcw_bench import direction_probe as dp
 from mtcw_bench.honesty import Config, Group
 
-from .conftest import make_scene
+from .conftest import fast_mover_scene
 
 
 def test_a_fast_movers_direction_is_claimed_and_judged_right():
     """47.9 m/s receding on one photodiode, 2^18 samples, 40 dB: the sidebands decide the sign;
     the probe counts the claim and finds it right (the truth's sign), none wrong."""
-    sc = make_scene(digitizer={"samples": 2**18}, noise={"shot": True, "thermal": True},
-                    targets=[{"range_m": 1.234, "velocity_mps": 47.9, "loss_db": 40.0}])
+    sc = fast_mover_scene()
     counts, wrong = dp.judge_group(Group(Config("test", "fast mover", sc), "as is", None, sc, 2, 7), 2)
     assert counts["points"] == 2 and counts["right"] + counts["right/flagged"] == 2 and not wrong, counts
 

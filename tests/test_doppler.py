@@ -975,9 +975,8 @@ def test_a_fast_movers_speed_sigma_is_its_error_and_one_photodiode_tells_its_dir
     interface says)."""
     from mtcw_core.chain import process_frame
     from mtcw_core.simulate import Simulator
-    from tests.conftest import make_scene
-    sc = make_scene(receiver={"kind": kind}, digitizer={"samples": 2**18}, noise={"shot": True, "thermal": True},
-                    targets=[{"range_m": 1.234, "velocity_mps": v, "loss_db": 40.0}])
+    from tests.conftest import fast_mover_scene
+    sc = fast_mover_scene(v, kind)
     z = []
     for fr in Simulator(sc, seed=4).frames(8):
         p = process_frame(fr, get_profile("balanced", sideband_direction=True)).targets[0]

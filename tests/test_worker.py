@@ -17,7 +17,7 @@ from services.settings import WorkerSettings
 from services.wire import FRAME_TOPIC, decode_points, encode_frame, encode_points, point_from_result
 from services.worker import Worker
 
-from .conftest import make_scene
+from .conftest import fast_mover_scene, make_scene
 
 
 @pytest.fixture(scope="module")
@@ -196,8 +196,7 @@ def test_a_worker_with_sideband_direction_says_which_way_one_photodiode_moves(ct
     photodiode (2^18 samples, 40 dB) is served ``receding``; by default ``unknown``."""
     from mtcw_core.simulate import Simulator
 
-    sc = make_scene(digitizer={"samples": 2**18}, noise={"shot": True, "thermal": True},
-                    targets=[{"range_m": 1.234, "velocity_mps": 47.9, "loss_db": 40.0}])
+    sc = fast_mover_scene()
     fr = next(Simulator(sc, 4).frames(1)).with_(source="bench", seq=1, t_ns=10**18)
     for on, want in ((False, "unknown"), (True, "receding")):
         w = Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9",
