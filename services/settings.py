@@ -346,6 +346,10 @@ class ApiSettings(TransportSettings):
         if self.history is not None and "retention_points" not in self.model_fields_set:
             self.retention_points = self.history
         if self.max_seq_jump < self.reorder_max:
+            # name the field the user gave (reorder_max alone, past the default jump: that one)
+            if "reorder_max" in self.model_fields_set and "max_seq_jump" not in self.model_fields_set:
+                raise ValueError(f"reorder_max: {self.reorder_max} is more than max_seq_jump ({self.max_seq_jump}): "
+                                 f"points held for reordering would be refused; raise max_seq_jump too")
             raise ValueError(f"max_seq_jump: {self.max_seq_jump} is less than reorder_max ({self.reorder_max}): "
                              f"points held for reordering would be refused")
         return self

@@ -186,6 +186,10 @@ def test_store_settings_name_their_field(tmp_path):
         load(ApiSettings, store_path=str(tmp_path))
     with pytest.raises(ValueError, match="max_seq_jump: 100 is less than reorder_max"):
         load(ApiSettings, max_seq_jump=100)
+    # reorder_max alone past the default jump: the error names reorder_max, the field given (found by
+    # test_fuzz's settings fuzzing)
+    with pytest.raises(ValueError, match=r"^reorder_max: 100001 is more than max_seq_jump"):
+        load(ApiSettings, reorder_max=100001)
     with pytest.raises(ValueError, match="retention_s"):
         load(ApiSettings, retention_s=-1)
     assert load(ApiSettings, history=500).retention_points == 500  # the old name still works
