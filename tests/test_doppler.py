@@ -655,6 +655,7 @@ class TestPartSteps:
         from scipy.signal.windows import kaiser
 
         from mtcw_core.dsp.doppler import PHASE_WINDOW_BETA, _part_steps
+        from mtcw_core.dsp.tones import PartDFTs
         rng = np.random.default_rng(parts)
         n = 3 * 2**12 + 5  # parts do not divide it: the tail is left out
         # a strong DC (the LO's) and a line 3.1 part bins from another, in noise
@@ -662,7 +663,7 @@ class TestPartSteps:
         x = 50.0 + rng.standard_normal(n) * 1e-2
         x = x + (np.exp(2j * np.pi * cyc(freqs[0], n)) if iq else np.cos(2 * np.pi * cyc(freqs[0], n)))
         length = n // parts
-        z, prod = _part_steps(x, parts, length, freqs, FS)
+        z, prod = _part_steps(PartDFTs(x, FS, PHASE_WINDOW_BETA), parts, freqs)
         w = kaiser(length, PHASE_WINDOW_BETA, sym=True)
         centre = (length - 1) / 2
         plain = np.empty((parts, freqs.size), complex)

@@ -27,7 +27,7 @@ from ..phase import C
 from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
                        window_sum)
-from .tones import _dirichlet, exact_dft, solve_lines
+from .tones import PartDFTs, _dirichlet, exact_dft, solve_lines
 
 
 @dataclass(frozen=True)
@@ -675,30 +675,21 @@ def _separable(freqs: np.ndarray, own: np.ndarray, near: np.ndarray, sep_hz: flo
     return ok if iq else ok & (2 * np.abs(f[:, 0]) > sep_hz)
 
 
-def _part_steps(x: np.ndarray, parts: int, length: int, freqs: np.ndarray, fs: float
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """The lines ``freqs`` (Hz) on ``parts`` consecutive parts of ``length`` samples, and their
-    phase steps from part to part less the expected advance.
+def _part_steps(parts_dft: PartDFTs, parts: int, freqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lines ``freqs`` (Hz) on ``parts`` consecutive parts of the record, and their phase steps
+    from part to part less the expected advance.
 
     Each part's windowed (Kaiser :data:`PHASE_WINDOW_BETA`) exact DFT with its mean removed,
-    ``DFT((part - mean) * w)``, each part referred to its own centre. One part at a time through
-    one reused buffer: the part (at most a quarter of the record) stays in cache from its mean to
-    its product, and neither a windowed copy of the whole record nor the window's own DFT is made.
+    ``DFT((part - mean) * w)``, each part referred to its own centre (:class:`PartDFTs`: every
+    part count of one refinement from one pass over the record).
 
     Returns
     -------
     z : ndarray, shape (parts, K), complex
     prod : ndarray, shape (parts - 1, K), complex: ``z[s+1] * conj(z[s]) * exp(-2j*pi*f*length/fs)``
     """
-    w = cached_window(("kaiser", PHASE_WINDOW_BETA), length)
-    z = np.empty((parts, freqs.size), dtype=np.complex128)
-    buf = np.empty(length, dtype=x.dtype)
-    for s in range(parts):
-        seg = x[s * length:(s + 1) * length]
-        np.subtract(seg, seg.mean(), out=buf)
-        buf *= w
-        z[s] = exact_dft(buf, freqs, fs)
-    advance = np.mod(freqs * length / fs, 1.0)  # expected cycles per part (float64, reduced)
+    z = parts_dft(parts, freqs)
+    advance = np.mod(freqs * (parts_dft.x.size // parts) / parts_dft.fs, 1.0)  # cycles per part (float64)
     return z, z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * advance)
 
 
@@ -741,9 +732,12 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     parts = segments
     while WRAP_SIGMAS * start_err > fs * parts / (2 * n) and parts < MAX_FIRST_PARTS:
         parts *= 2
+    # every part count below from one pass over the record (the first step's, the quarters', the
+    # common phase's), as long as the lines stay near those it read
+    parts_dft = PartDFTs(x, fs, PHASE_WINDOW_BETA, max(parts, COMMON_MODE_MAX_PARTS))
     if parts == segments:
-        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments)
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts)
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -751,7 +745,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # the other targets' lines, not this one's own at its former estimate (which would sit a
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
-    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments)
+    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, parts_dft)
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
@@ -761,7 +755,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                  spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
+                  spec: Spectrum, max_lines: int | None = None, segments: int = 4,
+                  parts_dft: PartDFTs | None = None) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -782,8 +777,11 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     ----------
     x : ndarray, shape (N,), float64 or complex128, V
     others : the Doppler lines of the other targets (Hz)
+    parts_dft : the record's :class:`PartDFTs` (one for every refinement of one target)
     """
     fs = frame.fs_hz
+    if parts_dft is None:
+        parts_dft = PartDFTs(x, fs, PHASE_WINDOW_BETA, max(segments, COMMON_MODE_MAX_PARTS))
     fd = est.fd_hz
     length = x.size // segments
     if length < 64:
@@ -798,7 +796,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if max_lines is not None and freqs.size > max_lines:
         top = np.argsort(spec.power[np.clip(spec.bin_of(freqs), 0, spec.power.size - 1)])[::-1][:max_lines]
         freqs, slope, shift = freqs[top], slope[top], shift[top]
-    z, prod = _part_steps(x, segments, length, freqs, fs)
+    z, prod = _part_steps(parts_dft, segments, freqs)
     if not np.any(np.abs(prod) > 0):
         return est
     d_line = np.angle(prod.sum(axis=0)) / (2 * np.pi * length / fs)  # Hz, per line
@@ -825,7 +823,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     # across the record does (common_mode_error)
     if segments >= 3:
         all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
-        fine = common_mode_error(x, fs, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
+        fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
         if fine is not None:
             spread = math.hypot(spread, fine)
         else:
@@ -928,7 +926,7 @@ def common_mode_margin(dof: int) -> float:
     return max(1.0, float(student_t.ppf(1 - COMMON_MODE_TAIL / 2, dof)) / 5.0)
 
 
-def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
+def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
                       var_phi: np.ndarray, segments: int, length: int, all_freqs: np.ndarray, near: np.ndarray,
                       iq: bool) -> float | None:
     """The Doppler error (Hz) of :func:`refine_by_phase` from the phase all its lines share.
@@ -950,7 +948,7 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
 
     Parameters
     ----------
-    x : ndarray, shape (N,), float64 or complex128, V
+    parts_dft : the record's :class:`PartDFTs`
     freqs, slope, wt, var_phi : ndarray, shape (K,)
         The refinement's lines (Hz), how each moves with ``f_d``, its weight and its white-noise
         phase variance per segment (rad^2).
@@ -963,8 +961,9 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     :data:`COMMON_MODE_MIN_PARTS` parts
     """
     choice = None
+    fs = parts_dft.fs
     for parts in range(COMMON_MODE_MAX_PARTS, COMMON_MODE_MIN_PARTS - 1, -1):
-        lc = x.size // parts
+        lc = parts_dft.x.size // parts
         if lc < 64:
             continue
         use = _separable(freqs, all_freqs, near, PHASE_SEPARATION_BINS * fs / lc, iq)
@@ -978,7 +977,7 @@ def common_mode_error(x: np.ndarray, fs: float, freqs: np.ndarray, slope: np.nda
     if choice is None:
         return None
     parts, lc, use, white = choice
-    _, prod = _part_steps(x, parts, lc, freqs[use], fs)
+    _, prod = _part_steps(parts_dft, parts, freqs[use])
     res = _common_residual(np.angle(prod), slope[use], wt[use])
     dof = parts - 2
     scatter = float(np.sum(res**2)) / dof

@@ -15,10 +15,13 @@ frequency errors.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 from scipy import linalg
+
+from .spectrum import cached_window
 
 
 def _block(n: int) -> int:
@@ -125,6 +128,204 @@ def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     ndarray, shape (K,), complex128 (not normalised)
     """
     return exact_dft_parts(np.asarray(x)[None, :], freqs_hz, fs_hz)[0]
+
+
+#: :class:`PartDFTs` cuts the record into blocks of this fraction of its shortest part: a Kaiser(8)
+#: window and a line's small frequency offset are then, across a block, a polynomial of degree
+#: :data:`PART_DEGREE` in the block's index to ~1e-7 of the line (measured against the exact
+#: part DFTs, ``test_tones``)
+PART_BLOCK_FRACTION = 1 / 40
+#: ... and at least this long (shorter blocks leave as many products per block as the pass saves:
+#: short records are read part by part, exactly)
+PART_MIN_BLOCK = 512
+#: the degree of that polynomial
+PART_DEGREE = 3
+#: a line is read from block moments taken at a frequency at most this far off (radians of phase
+#: across half a block; the Taylor term left out is then below ~4e-8 of the line)
+PART_OFFSET_RAD = 0.03
+
+
+@dataclass(frozen=True)
+class _PartGeometry:
+    """Where the blocks of :class:`PartDFTs` fall in ``parts`` consecutive parts of ``length``
+    samples (blocks of ``m`` from the record's start; cached per record shape, read-only).
+
+    Part ``s`` starts at ``s*length``; its first whole block is ``first[s]``, ``head[s]`` samples
+    into it; ``count`` whole blocks follow (the same number in every part); the ``head[s]`` samples
+    before and the ``length - head[s] - count*m`` after them are read exactly."""
+
+    first: np.ndarray  # (S,) int, the first whole block of each part
+    head: np.ndarray  # (S,) int, samples before it
+    count: int  # whole blocks per part
+    poly: np.ndarray  # (S, count, deg+1): the window across each block, increasing powers of t
+    head_w: np.ndarray  # (S, m): the window on the head samples, 0 beyond them
+    tail_w: np.ndarray  # (S, 2m): the window on the tail samples counted from the part's end, 0 beyond
+    head_in: np.ndarray  # (S, m): 1 on the head samples, 0 beyond
+    tail_in: np.ndarray  # (S, 2m): 1 on the tail samples, 0 beyond
+
+
+@lru_cache(maxsize=16)
+def _part_geometry(window: tuple, n: int, parts: int, m: int) -> _PartGeometry:
+    """:class:`_PartGeometry` of ``parts`` parts of an ``n``-sample record in blocks of ``m``; the
+    window's polynomial on each block by least squares in ``t = (b - (m-1)/2)/(m/2)``."""
+    length = n // parts
+    w = cached_window(window, length)
+    start = np.arange(parts) * length
+    first = -(-start // m)
+    head = first * m - start
+    count = (length - (m - 1)) // m
+    t = (np.arange(m) - (m - 1) / 2.0) / (m / 2.0)
+    fit = np.linalg.pinv(np.vander(t, PART_DEGREE + 1, increasing=True))  # (deg+1, m)
+    inner = head[:, None, None] + np.arange(count)[None, :, None] * m + np.arange(m)[None, None, :]
+    poly = w[inner] @ fit.T  # (S, count, deg+1)
+    j = np.arange(m)
+    head_in = (j[None, :] < head[:, None]).astype(np.float64)
+    q = np.arange(2 * m)
+    tail_in = (q[None, :] < (length - head - count * m)[:, None]).astype(np.float64)
+    head_w = head_in * w[np.minimum(j, length - 1)][None, :]
+    tail_w = tail_in * w[np.maximum(length - 1 - q, 0)][None, :]
+    for a in (first, head, poly, head_w, tail_w, head_in, tail_in):
+        a.setflags(write=False)
+    return _PartGeometry(first, head, count, poly, head_w, tail_w, head_in, tail_in)
+
+
+class PartDFTs:
+    """The windowed, mean-removed DFTs of a record's consecutive parts at a few lines, for any
+    number of parts, from one pass over the record.
+
+    ``z[s, k] = sum_j (x[s*L + j] - mean_s) * w[j] * exp(-2j*pi*f_k*(j - (L-1)/2)/fs)``, ``L = N // S``
+    (the Doppler refinement's parts: :func:`mtcw_core.dsp.doppler.phase_advance`). The record is
+    cut into blocks of ``M`` samples (:data:`PART_BLOCK_FRACTION` of the shortest part); one
+    product gives every block's moments ``Y_n[a, k] = sum_b x[a*M + b] * t_b^n *
+    exp(-2j*pi*r_k*(b - (M-1)/2))`` (``t_b`` the scaled index within the block, ``n`` up to
+    :data:`PART_DEGREE`) and its sum. The window across a block, times the turn of a frequency a
+    little off the moments' ``r_k`` (Taylor series), is a polynomial in ``t_b``, so a part's DFT
+    is a combination of its whole blocks' moments, each turned by its centre's phase, plus the
+    few samples at its ends read exactly (:class:`_PartGeometry`). The refinement's first step
+    (8-32 parts), its quarters at the refined Doppler and the common phase's 6-16 parts then cost
+    one pass over the record where each used to cost one and a windowed copy. Lines further from
+    every frequency read than :data:`PART_OFFSET_RAD` take a pass of their own; a record too short
+    for blocks of :data:`PART_MIN_BLOCK` is computed part by part, exactly.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128, V
+    fs_hz : float
+    beta : float, the Kaiser window's beta
+    max_parts : the most parts asked for (sets the block length)
+    """
+
+    def __init__(self, x: np.ndarray, fs_hz: float, beta: float, max_parts: int = 32) -> None:
+        self.x, self.fs, self.window = x, fs_hz, ("kaiser", beta)
+        m = int(x.size // max_parts * PART_BLOCK_FRACTION)
+        self.m = m if m >= PART_MIN_BLOCK else 0
+        # per pass: its lines (cycles per sample), every block's moments (K, A, deg+1) and the
+        # same moments of a constant 1 (K, deg+1)
+        self._passes: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._sums: np.ndarray | None = None  # each block's sum, shape (A,)
+
+    def __call__(self, parts: int, freqs_hz) -> np.ndarray:
+        """The parts' DFTs, shape (parts, K), complex128 (each about its own centre)."""
+        f = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
+        n = self.x.size
+        length = n // parts
+        if not self.m or length < 4 * self.m:
+            return self._exact(parts, length, f)
+        r = f / self.fs
+        m, deg, c = self.m, PART_DEGREE, (length - 1) / 2.0
+        geo = _part_geometry(self.window, n, parts, m)
+        where, col = self._locate(r)  # (a pass over the record for lines not yet read)
+        blocks = geo.first[:, None] + np.arange(geo.count)[None, :]  # (S, count)
+        # each whole block's centre about its part's, head[s] + i*M + (M-1)/2 - c samples, as a
+        # turn: the part's factor (K, S) times the block's (K, count), cycles reduced modulo 1
+        turn = (np.exp(-2j * np.pi * np.mod(np.outer(r, geo.head + (m - 1) / 2.0 - c), 1.0))[:, :, None]
+                * phasors(0.0, geo.count, r * m).T[:, None, :])  # (K, S, count)
+        z = np.empty((parts, r.size), dtype=np.complex128)
+        wdft = np.empty((parts, r.size), dtype=np.complex128)
+        for p, (rp, mom, const) in enumerate(self._passes):
+            ks = np.flatnonzero(where == p)
+            if not ks.size:
+                continue
+            cs = col[ks]
+            theta = 2 * np.pi * (r[ks] - rp[cs]) * m / 2  # each line's offset, phase across half a block
+            shift = np.zeros((ks.size, deg + 1, deg + 1), dtype=np.complex128)
+            for i in range(deg + 1):
+                for j in range(deg + 1 - i):
+                    shift[:, i, i + j] = (-1j * theta) ** j / math.factorial(j)
+            # the window's polynomial times each line's offset, truncated, turned: (K, S, count, deg+1)
+            g = np.matmul(geo.poly.reshape(1, -1, deg + 1), shift).reshape(ks.size, parts, geo.count, deg + 1)
+            g *= turn[ks, :, :, None]
+            y = mom[:, blocks] if np.array_equal(cs, np.arange(rp.size)) else mom[cs[:, None, None], blocks[None]]
+            z[:, ks] = np.sum((y * g).reshape(ks.size, parts, -1), axis=2).T
+            # the window's DFT the same way, from the constant's moments: (K, S)
+            v = np.matmul(geo.poly.reshape(1, -1, deg + 1), np.matmul(shift, const[cs, :, None]))
+            wdft[:, ks] = np.sum(v.reshape(ks.size, parts, geo.count) * turn[ks], axis=2).T
+        # the ends of each part, exactly: head samples j < head[s] (phase r*(j - c)), tail samples
+        # j = L-1-q for q < tail (phase -r*(q - c)), from one table exp(-2j*pi*r*j), j < 2M
+        start = np.arange(parts) * length
+        hx = self.x[np.minimum(start[:, None] + np.arange(m)[None, :], n - 1)]
+        tx = self.x[np.maximum(start[:, None] + length - 1 - np.arange(2 * m)[None, :], 0)]
+        tab = phasors(0.0, 2 * m, r)
+        about = np.exp(2j * np.pi * np.mod(r * c, 1.0))  # exp(+2j*pi*r*c)
+        z += ((hx * geo.head_w) @ tab[:m]) * about + ((tx * geo.tail_w) @ np.conj(tab)) * np.conj(about)
+        wdft += (geo.head_w @ tab[:m]) * about + (geo.tail_w @ np.conj(tab)) * np.conj(about)
+        ends = np.sum(hx * geo.head_in, axis=1) + np.sum(tx * geo.tail_in, axis=1)
+        mean = (self._sums[blocks].sum(axis=1) + ends) / length
+        return z - mean[:, None] * wdft
+
+    def _locate(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pass and column of each line ``r`` (cycles per sample): the first pass that read a
+        line within :data:`PART_OFFSET_RAD` of it, or a new pass for those no pass has read."""
+        tol = PART_OFFSET_RAD / (np.pi * self.m)
+        where = np.full(r.size, -1)
+        col = np.zeros(r.size, dtype=int)
+        for p, (rp, _, _) in enumerate(self._passes):
+            d = np.abs(r[:, None] - rp[None, :])
+            hit = (where < 0) & (d.min(axis=1) <= tol)
+            where[hit], col[hit] = p, d.argmin(axis=1)[hit]
+        miss = where < 0
+        if np.any(miss):
+            _, first = np.unique(r[miss], return_index=True)
+            new = r[miss][np.sort(first)]  # in the order asked (a later ask in that order reads in place)
+            self._read(new)
+            where[miss] = len(self._passes) - 1
+            col[miss] = np.argmin(np.abs(r[miss, None] - new[None, :]), axis=1)
+        return where, col
+
+    def _read(self, r: np.ndarray) -> None:
+        """Every block's moments at the lines ``r`` (cycles per sample), in one product: the
+        record's blocks (A, M) times a table (M, (deg+1)K [+1]) of ``t^n`` times the lines'
+        phasors (and a column of ones for the blocks' sums on the first pass)."""
+        m, deg = self.m, PART_DEGREE
+        t = (np.arange(m) - (m - 1) / 2.0) / (m / 2.0)
+        e = phasors(-(m - 1) / 2.0, m, r)  # (M, K)
+        cols = [e * (t**i)[:, None] for i in range(deg + 1)]
+        first = self._sums is None
+        table = np.concatenate(cols + [np.ones((m, 1), dtype=np.complex128)] * first, axis=1)
+        a = self.x.size // m
+        body = self.x[:a * m].reshape(a, m)
+        if np.iscomplexobj(body):
+            y = body @ table
+        else:
+            y = (body @ table.view(np.float64)).view(np.complex128)  # as exact_dft_parts
+        if first:
+            self._sums = y[:, -1] if np.iscomplexobj(body) else y[:, -1].real
+        # line by line, every block's moments in a row: (K, A, deg+1)
+        mom = np.ascontiguousarray(y[:, :(deg + 1) * r.size].reshape(a, deg + 1, r.size).transpose(2, 0, 1))
+        const = np.array([q.sum(axis=0) for q in cols]).T  # (K, deg+1)
+        self._passes.append((r, mom, const))
+
+    def _exact(self, parts: int, length: int, f: np.ndarray) -> np.ndarray:
+        """Part by part through one reused buffer (mean removed, windowed, :func:`exact_dft`)."""
+        w = cached_window(self.window, length)
+        z = np.empty((parts, f.size), dtype=np.complex128)
+        buf = np.empty(length, dtype=self.x.dtype)
+        for s in range(parts):
+            seg = self.x[s * length:(s + 1) * length]
+            np.subtract(seg, seg.mean(), out=buf)
+            buf *= w
+            z[s] = exact_dft(buf, f, self.fs)
+        return z
 
 
 def _dirichlet(w: np.ndarray, n: int) -> np.ndarray:
