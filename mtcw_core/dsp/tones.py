@@ -132,17 +132,18 @@ def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
 
 #: :class:`PartDFTs` cuts the record into blocks of this fraction of its shortest part: a Kaiser(8)
 #: window and a line's small frequency offset are then, across a block, a polynomial of degree
-#: :data:`PART_DEGREE` in the block's index to ~1e-7 of the line (measured against the exact
-#: part DFTs, ``test_tones``)
-PART_BLOCK_FRACTION = 1 / 40
-#: ... and at least this long (shorter blocks leave as many products per block as the pass saves:
-#: short records are read part by part, exactly)
-PART_MIN_BLOCK = 512
+#: :data:`PART_DEGREE` in the block's index to within ~1e-8 of the strongest line's DFT (measured
+#: against the direct sums: ``test_tones``; on a moving-target frame every line within 4e-8 of its
+#: own; degree 3 on blocks 2.5x longer is as close and ~10 % slower in the chain)
+PART_BLOCK_FRACTION = 1 / 100
+#: ... and at least this long: below it (records under ~4e5 samples at 16 parts) a part count's
+#: fixed cost (~0.5 ms) exceeds what the shared pass saves, and the parts are read one by one, exactly
+PART_MIN_BLOCK = 256
 #: the degree of that polynomial
-PART_DEGREE = 3
+PART_DEGREE = 2
 #: a line is read from block moments taken at a frequency at most this far off (radians of phase
-#: across half a block; the Taylor term left out is then below ~4e-8 of the line)
-PART_OFFSET_RAD = 0.03
+#: across half a block; the Taylor term left out, ``theta^3/6``, is then below ~2e-8 of the line)
+PART_OFFSET_RAD = 0.005
 
 
 @dataclass(frozen=True)
@@ -158,10 +159,10 @@ class _PartGeometry:
     head: np.ndarray  # (S,) int, samples before it
     count: int  # whole blocks per part
     poly: np.ndarray  # (S, count, deg+1): the window across each block, increasing powers of t
-    head_w: np.ndarray  # (S, m): the window on the head samples, 0 beyond them
-    tail_w: np.ndarray  # (S, 2m): the window on the tail samples counted from the part's end, 0 beyond
+    head_w: np.ndarray  # (S, m): the window on each part's first m samples where they are its head, else 0
+    tail_w: np.ndarray  # (S, 2m): the window on each part's last 2m samples where they are its tail, else 0
     head_in: np.ndarray  # (S, m): 1 on the head samples, 0 beyond
-    tail_in: np.ndarray  # (S, 2m): 1 on the tail samples, 0 beyond
+    tail_in: np.ndarray  # (S, 2m): 1 on the tail samples, 0 before
 
 
 @lru_cache(maxsize=16)
@@ -178,15 +179,21 @@ def _part_geometry(window: tuple, n: int, parts: int, m: int) -> _PartGeometry:
     fit = np.linalg.pinv(np.vander(t, PART_DEGREE + 1, increasing=True))  # (deg+1, m)
     inner = head[:, None, None] + np.arange(count)[None, :, None] * m + np.arange(m)[None, None, :]
     poly = w[inner] @ fit.T  # (S, count, deg+1)
-    j = np.arange(m)
-    head_in = (j[None, :] < head[:, None]).astype(np.float64)
-    q = np.arange(2 * m)
-    tail_in = (q[None, :] < (length - head - count * m)[:, None]).astype(np.float64)
-    head_w = head_in * w[np.minimum(j, length - 1)][None, :]
-    tail_w = tail_in * w[np.maximum(length - 1 - q, 0)][None, :]
+    head_in = (np.arange(m)[None, :] < head[:, None]).astype(np.float64)
+    tail_in = (np.arange(2 * m)[None, :] >= (head + count * m - (length - 2 * m))[:, None]).astype(np.float64)
+    head_w = head_in * w[None, :m]
+    tail_w = tail_in * w[None, length - 2 * m:]
     for a in (first, head, poly, head_w, tail_w, head_in, tail_in):
         a.setflags(write=False)
     return _PartGeometry(first, head, count, poly, head_w, tail_w, head_in, tail_in)
+
+
+def _times_table(a: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """``a @ table`` for a complex ``table`` (M, K): a real ``a`` (S, M) against the table's memory
+    read as real (M, 2K), the product's rows then the complex sums (as :func:`exact_dft_parts`)."""
+    if np.iscomplexobj(a):
+        return a @ table
+    return (a @ table.view(np.float64)).view(np.complex128)
 
 
 class PartDFTs:
@@ -260,15 +267,15 @@ class PartDFTs:
             # the window's DFT the same way, from the constant's moments: (K, S)
             v = np.matmul(geo.poly.reshape(1, -1, deg + 1), np.matmul(shift, const[cs, :, None]))
             wdft[:, ks] = np.sum(v.reshape(ks.size, parts, geo.count) * turn[ks], axis=2).T
-        # the ends of each part, exactly: head samples j < head[s] (phase r*(j - c)), tail samples
-        # j = L-1-q for q < tail (phase -r*(q - c)), from one table exp(-2j*pi*r*j), j < 2M
-        start = np.arange(parts) * length
-        hx = self.x[np.minimum(start[:, None] + np.arange(m)[None, :], n - 1)]
-        tx = self.x[np.maximum(start[:, None] + length - 1 - np.arange(2 * m)[None, :], 0)]
-        tab = phasors(0.0, 2 * m, r)
-        about = np.exp(2j * np.pi * np.mod(r * c, 1.0))  # exp(+2j*pi*r*c)
-        z += ((hx * geo.head_w) @ tab[:m]) * about + ((tx * geo.tail_w) @ np.conj(tab)) * np.conj(about)
-        wdft += (geo.head_w @ tab[:m]) * about + (geo.tail_w @ np.conj(tab)) * np.conj(about)
+        # the ends of each part, exactly: its first M samples (the head's, weighted) and its last 2M
+        # (the tail's), strided views of the record (phase r*(j - c) at sample j of the part)
+        step = length * self.x.itemsize
+        hx = np.lib.stride_tricks.as_strided(self.x, (parts, m), (step, self.x.itemsize), writeable=False)
+        tx = np.lib.stride_tricks.as_strided(self.x[length - 2 * m:], (parts, 2 * m), (step, self.x.itemsize),
+                                             writeable=False)
+        h_tab, t_tab = phasors(-c, m, r), phasors(length - 2 * m - c, 2 * m, r)
+        z += _times_table(hx * geo.head_w, h_tab) + _times_table(tx * geo.tail_w, t_tab)
+        wdft += _times_table(geo.head_w, h_tab) + _times_table(geo.tail_w, t_tab)
         ends = np.sum(hx * geo.head_in, axis=1) + np.sum(tx * geo.tail_in, axis=1)
         mean = (self._sums[blocks].sum(axis=1) + ends) / length
         return z - mean[:, None] * wdft
