@@ -269,9 +269,9 @@ class PartDFTs:
             wdft[:, ks] = np.sum(v.reshape(ks.size, parts, geo.count) * turn[ks], axis=2).T
         # the ends of each part, exactly: its first M samples (the head's, weighted) and its last 2M
         # (the tail's), strided views of the record (phase r*(j - c) at sample j of the part)
-        step = length * self.x.itemsize
-        hx = np.lib.stride_tricks.as_strided(self.x, (parts, m), (step, self.x.itemsize), writeable=False)
-        tx = np.lib.stride_tricks.as_strided(self.x[length - 2 * m:], (parts, 2 * m), (step, self.x.itemsize),
+        st = self.x.strides[0]
+        hx = np.lib.stride_tricks.as_strided(self.x, (parts, m), (length * st, st), writeable=False)
+        tx = np.lib.stride_tricks.as_strided(self.x[length - 2 * m:], (parts, 2 * m), (length * st, st),
                                              writeable=False)
         h_tab, t_tab = phasors(-c, m, r), phasors(length - 2 * m - c, 2 * m, r)
         z += _times_table(hx * geo.head_w, h_tab) + _times_table(tx * geo.tail_w, t_tab)
