@@ -105,6 +105,18 @@ class TestValidate:
     def test_bad_fs(self, fs):
         assert reason(make(fs_hz=fs)) == "bad_fs"
 
+    @pytest.mark.parametrize("wl", [0.0, -1.064e-6, 5e-8, 2e-3, 9.5e297, float("nan"), float("inf")])
+    def test_bad_wavelength(self, wl):
+        """The Doppler and the sidebands' shift are computed from it: an absurd wavelength (9.5e297 m,
+        a decodable frame the worker fuzzing drew) is rejected, naming the field, not an internal error."""
+        with pytest.raises(Rejected) as e:
+            validate(make(wavelength_m=wl), ChainSettings(), None)
+        assert e.value.reason == "bad_wavelength" and "wavelength_m" in str(e.value)
+
+    @pytest.mark.parametrize("wl", [2.5e-7, 1.064e-6, 1.55e-6, 1.06e-5])
+    def test_optical_wavelengths_pass(self, wl):
+        validate(make(wavelength_m=wl), ChainSettings(), None)
+
     def test_bad_shape(self):
         assert reason(make(np.stack([signal(), signal()]))) == "bad_shape"  # 2 rows, 1 channel name
 

@@ -1,7 +1,7 @@
 """Stage ``validate``: digitizer codes to volts, and the checks a frame must pass first.
 
 A frame that fails raises :class:`~mtcw_core.results.Rejected` with a short reason key
-(``bad_fs``, ``bad_shape``, ``too_short``, ``too_long``, ``length_mismatch``, ``tone_plan``,
+(``bad_fs``, ``bad_wavelength``, ``bad_shape``, ``too_short``, ``too_long``, ``length_mismatch``, ``tone_plan``,
 ``calibration_mismatch``, ``bad_channels``, ``non_finite``, ``bad_scale``, ``bad_pulse``, ``flat``,
 ``clipped``). The limits on what a frame may ask for (tones, record length, cycle-search grid,
 gate periods) are checked first, before any work that grows with them.
@@ -111,10 +111,20 @@ def _check_limits(frame: Frame, settings: ChainSettings) -> None:
 MAX_PHASE_RAD = 1e6
 
 
+#: the optical wavelengths a frame may state (m), deep ultraviolet to far infrared: the Doppler
+#: (``2v/lambda``) and the sidebands' own shift (``f_i*f_d/f0``) are computed from it, and an absurd
+#: one (9.5e297 m: found by fuzzing the worker) overflowed the refinement's sums
+WAVELENGTH_RANGE_M = (1e-7, 1e-3)
+
+
 def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration | None) -> None:
-    """Sample rate, shape, length, tone plan and channels against the frame and the settings."""
+    """Sample rate, wavelength, shape, length, tone plan and channels against the frame and the
+    settings."""
     if not (frame.fs_hz > 0 and math.isfinite(frame.fs_hz)):
         raise Rejected("bad_fs", f"fs_hz={frame.fs_hz!r}")
+    lo, hi = WAVELENGTH_RANGE_M
+    if not lo <= frame.wavelength_m <= hi:
+        raise Rejected("bad_wavelength", f"wavelength_m={frame.wavelength_m!r} (from {lo:g} to {hi:g} m)")
     if frame.samples.ndim != 2 or frame.samples.shape[0] != len(frame.channels):
         raise Rejected("bad_shape", f"samples shape {frame.samples.shape} vs channels {list(frame.channels)}")
     _check_limits(frame, settings)
