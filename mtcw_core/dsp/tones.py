@@ -52,6 +52,15 @@ def phasors(offset: float, count: int, step: np.ndarray) -> np.ndarray:
     return (coarse[:, None, :] * fine[None, :, :]).reshape(rows * width, step.size)[:count]
 
 
+def _times_table(a: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """``a @ table`` for a complex ``table`` (M, K). A real ``a`` (..., M) meets the table's own
+    memory read as real (M, 2K), cosine and sine columns interleaved: the product's rows are then
+    the complex sums themselves (no table copy, no complex copy of ``a``, no recombining)."""
+    if np.iscomplexobj(a):
+        return a @ table
+    return (a @ table.view(np.float64)).view(np.complex128)
+
+
 def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     """:func:`exact_dft` of every row of ``parts``, each referred to its own centre.
 
@@ -78,12 +87,7 @@ def exact_dft_parts(parts: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     r = freqs / fs_hz  # cycles per sample, float64
     eb, ea, et = _tables(n, r.tobytes())
     body = parts[:, :a_count * m].reshape(s_count, a_count, m)  # a view: rows keep their stride
-    if np.iscomplexobj(parts):
-        y = body @ eb  # (S, A, K)
-    else:
-        # the complex table's own memory read as real (M, 2K), cosine and sine columns interleaved:
-        # the product's rows are then the complex sums themselves (no table copy, no recombining)
-        y = (body @ eb.view(np.float64)).view(np.complex128)  # (S, A, K)
+    y = _times_table(body, eb)  # (S, A, K)
     out = np.einsum("sak,ak->sk", y, ea)
     if et is not None:
         out += parts[:, a_count * m:] @ et
@@ -186,14 +190,6 @@ def _part_geometry(window: tuple, n: int, parts: int, m: int) -> _PartGeometry:
     for a in (first, head, poly, head_w, tail_w, head_in, tail_in):
         a.setflags(write=False)
     return _PartGeometry(first, head, count, poly, head_w, tail_w, head_in, tail_in)
-
-
-def _times_table(a: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """``a @ table`` for a complex ``table`` (M, K): a real ``a`` (S, M) against the table's memory
-    read as real (M, 2K), the product's rows then the complex sums (as :func:`exact_dft_parts`)."""
-    if np.iscomplexobj(a):
-        return a @ table
-    return (a @ table.view(np.float64)).view(np.complex128)
 
 
 class PartDFTs:
@@ -311,10 +307,7 @@ class PartDFTs:
         table = np.concatenate(cols + [np.ones((m, 1), dtype=np.complex128)] * first, axis=1)
         a = self.x.size // m
         body = self.x[:a * m].reshape(a, m)
-        if np.iscomplexobj(body):
-            y = body @ table
-        else:
-            y = (body @ table.view(np.float64)).view(np.complex128)  # as exact_dft_parts
+        y = _times_table(body, table)
         if first:
             self._sums = y[:, -1] if np.iscomplexobj(body) else y[:, -1].real
         # line by line, every block's moments in a row: (K, A, deg+1)
