@@ -193,21 +193,26 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     fading = (not iq and not windows and settings.segments == 1 and settings.extraction != "filter"
               and not any(d.detected for d in dops))
     guard = max((d.min_detectable_hz for d in dops), default=0.0)  # the largest Doppler missed (Hz)
-    seg_dft = None
+    seg_dft = seg_sums = None
     if settings.extraction == "filter":
         if windows:
             raise Rejected("unsupported", "the seed's filter extraction has no quasi-CW gating")
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        # a real record's sum: the fit's DC projection, and the record's mean below, in one pass;
-        # the search spectrum's when it transformed the whole record (the same sum of the same array)
-        total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
-                                 else float(np.sum(x)))
         # no Doppler line on a real record: the static lines may fade within it (below), and the
-        # whole record's DFTs come from the envelope fit's segments (one pass for both)
+        # whole record's DFTs come from the envelope fit's segments (one pass for both), at 0 Hz
+        # too: the record's sum and its segments' (the fits' DC projections) from the same pass
         fade_segs = fading_segments(n, fs, uniq, guard) if fading else None
-        whole, seg_dft = exact_dft_tiled(x, fade_segs, uniq, fs) if fade_segs else (None, None)
+        whole, seg_dft = (exact_dft_tiled(x, fade_segs, np.concatenate([[0.0], uniq]), fs) if fade_segs
+                          else (None, None))
+        if whole is not None:
+            total, whole, seg_sums, seg_dft = float(whole[0].real), whole[1:], seg_dft[:, 0].real, seg_dft[:, 1:]
+        else:
+            # a real record's sum: the fit's DC projection, and the record's mean below; the search
+            # spectrum's when it transformed the whole record (the same sum of the same array)
+            total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
+                                     else float(np.sum(x)))
         z_all, centres = fit_lines(x, uniq, fs, dft=whole, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
@@ -219,7 +224,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         # the search's guard, the carrier's phase noise); their common real envelope is measured
         s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
         s2_s = spec.noise_variances(fams[0][2], uniq)
-        c = fading_lines(x, fs, uniq, s_idx, s2_s, guard, seg_dft)
+        c = fading_lines(x, fs, uniq, s_idx, s2_s, guard, seg_dft, seg_sums)
         if c is not None:
             z_all = z_all.copy()
             z_all[0, s_idx] = c
@@ -296,7 +301,8 @@ def fading_segments(n: int, fs: float, uniq: np.ndarray, guard_hz: float) -> int
 
 
 def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
-                 guard_hz: float, seg_dft: np.ndarray | None = None) -> np.ndarray | None:
+                 guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None
+                 ) -> np.ndarray | None:
     """The static lines' whole-record amplitudes with a fading envelope taken out, or None.
 
     A real detector sees a target's LO beats at tone ``f_i`` as ``A_i*a(t)*cos(2*pi*f_i*t +
@@ -329,6 +335,8 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     guard_hz : the largest Doppler the search could have missed (Hz)
     seg_dft : ndarray, shape (S, K), complex, optional: the segments' DFTs of ``uniq`` if already
         taken (:func:`~.tones.exact_dft_tiled` with :func:`fading_segments`' count, which ``S`` is then)
+    seg_sums : ndarray, shape (S,), optional: the segments' sums (V) if already taken (the same
+        pass at 0 Hz)
 
     Returns
     -------
@@ -341,7 +349,7 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
         return None
     length = n // segs
     starts = np.arange(segs) * length
-    z = fit_lines_segments(x, starts, length, uniq, fs, seg_dft)[:, s_idx]  # (S, T), about each segment's centre
+    z = fit_lines_segments(x, starts, length, uniq, fs, seg_dft, seg_sums)[:, s_idx]  # (S, T), about each segment's centre
     z = z * centre_turn(segs, length, n, uniq[s_idx], fs)  # about the record's centre
     sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)

@@ -452,7 +452,7 @@ def exact_dft_tiled(x: np.ndarray, parts: int, freqs_hz, fs_hz: float) -> tuple[
 
 
 def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz, fs_hz: float,
-                       dft: np.ndarray | None = None) -> np.ndarray:
+                       dft: np.ndarray | None = None, sums: np.ndarray | None = None) -> np.ndarray:
     """:func:`fit_lines` on many equal-length segments at once, each referred to its own centre.
 
     :func:`exact_dft_parts` gives every segment's DFTs (the phasor tables are the same for all
@@ -466,6 +466,8 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
     freqs_hz : array_like, shape (K,)
     dft : ndarray, shape (S, K), optional: the segments' DFTs if already computed
         (:func:`exact_dft_tiled`)
+    sums : ndarray, shape (S,), optional: a real record's segment sums if already computed (the
+        DC column's projection; :func:`exact_dft_tiled` at 0 Hz)
 
     Returns
     -------
@@ -484,7 +486,7 @@ def fit_lines_segments(x: np.ndarray, starts: np.ndarray, length: int, freqs_hz,
         g = _dirichlet(w[:, None] - w[None, :], length)
         return linalg.solve(g, dft.T, assume_a="sym").T
     gc, gs = _gram_real(w, length)
-    pc = np.concatenate([seg.sum(axis=1)[:, None], dft.real], axis=1)  # (S, K+1)
+    pc = np.concatenate([(seg.sum(axis=1) if sums is None else sums)[:, None], dft.real], axis=1)  # (S, K+1)
     alpha = linalg.solve(gc, pc.T, assume_a="sym").T[:, 1:]
     beta = linalg.solve(gs, (-dft.imag).T, assume_a="sym").T
     return alpha - 1j * beta
