@@ -200,19 +200,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        # no Doppler line on a real record: the static lines may fade within it (below), and the
-        # whole record's DFTs come from the envelope fit's segments (one pass for both), at 0 Hz
-        # too: the record's sum and its segments' (the fits' DC projections) from the same pass
-        fade_segs = fading_segments(n, fs, uniq, guard) if fading else None
-        whole, seg_dft = (exact_dft_tiled(x, fade_segs, np.concatenate([[0.0], uniq]), fs) if fade_segs
-                          else (None, None))
-        if whole is not None:
-            total, whole, seg_sums, seg_dft = float(whole[0].real), whole[1:], seg_dft[:, 0].real, seg_dft[:, 1:]
-        else:
-            # a real record's sum: the fit's DC projection, and the record's mean below; the search
-            # spectrum's when it transformed the whole record (the same sum of the same array)
-            total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
-                                     else float(np.sum(x)))
+        whole, total, seg_dft, seg_sums = _whole_record_dfts(x, fs, uniq, spec, guard if fading else None)
         z_all, centres = fit_lines(x, uniq, fs, dft=whole, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
@@ -298,6 +286,33 @@ def fading_segments(n: int, fs: float, uniq: np.ndarray, guard_hz: float) -> int
         return None
     gaps = np.diff(np.concatenate([[0.0], uniq]))
     return None if np.min(gaps) < FADING_MIN_SEPARATION_BINS * fs / (n // segs) else segs
+
+
+def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectrum, guard_hz: float | None
+                       ) -> tuple[np.ndarray | None, float | None, np.ndarray | None, np.ndarray | None]:
+    """What the whole-record fit needs, in as few passes as the record allows: its DFTs at ``uniq``
+    (Hz), its sum (a real record's DC projection; None for IQ) and, where its static lines may fade
+    (``guard_hz``: the largest Doppler the search could have missed, None when fading is not
+    fitted), the segments' DFTs and sums for :func:`fading_lines`.
+
+    The whole record's DFTs then come from the envelope fit's segments (one pass for both), at
+    0 Hz too: the record's sum and its segments' from the same pass. Otherwise the DFTs are left to
+    :func:`~.tones.fit_lines` and the sum is the search spectrum's when it transformed the whole
+    record (the same sum of the same array), else one pass.
+
+    Returns
+    -------
+    whole : ndarray, shape (K,), complex, or None; total : float or None;
+    seg_dft : ndarray, shape (S, K), complex, or None; seg_sums : ndarray, shape (S,), or None
+    """
+    n, iq = x.size, np.iscomplexobj(x)
+    segs = fading_segments(n, fs, uniq, guard_hz) if guard_hz is not None else None
+    if segs:
+        whole, each = exact_dft_tiled(x, segs, np.concatenate([[0.0], uniq]), fs)
+        return whole[1:], float(whole[0].real), each[:, 1:], each[:, 0].real
+    total = None if iq else (spec.total if spec.total is not None and spec.n == n and not spec.complex_input
+                             else float(np.sum(x)))
+    return None, total, None, None
 
 
 def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
