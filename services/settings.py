@@ -16,6 +16,8 @@ from typing import Annotated, Literal, Optional
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from mtcw_core.dsp.validate import WAVELENGTH_RANGE_M
+
 from .auth import AUTHORIZED_DIR, SERVER, is_local_endpoint
 from .ordering import DEFAULT_MAX_JUMP
 from .sockets import (DEFAULT_FRAME_HWM, DEFAULT_FRAME_LINGER_MS, DEFAULT_MAX_FRAME_BYTES, DEFAULT_MAX_POINT_BYTES,
@@ -155,8 +157,9 @@ class AcquisitionSettings(TransportSettings):
     tones_hz: Annotated[Optional[list[float]], NoDecode] = Field(
         None, description="the bench's modulation tones (Hz, comma-separated); the scope does not know them "
                           "(scope-sim: the scene's)")
-    wavelength_m: Optional[float] = Field(None, gt=0, lt=1e-3, description="the bench laser's wavelength "
-                                          "(scope-sim: the scene's)")
+    wavelength_m: Optional[float] = Field(None, ge=WAVELENGTH_RANGE_M[0], le=WAVELENGTH_RANGE_M[1],
+                                          description="the bench laser's wavelength (m, within what the chain "
+                                          "accepts; scope-sim: the scene's)")
     receiver: Optional[Literal["single", "balanced", "iq"]] = Field(
         None, description="the bench's receiver (scope: single unless given; scope-sim: the scene's)")
     scope_channels: Annotated[Optional[list[str]], NoDecode] = Field(

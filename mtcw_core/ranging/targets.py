@@ -121,12 +121,10 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             inv_var += float(np.sum(1 / var_f))
         sig_f = math.hypot(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, dop.refine_error_hz, dop.wander_hz)
     sig_f = max(sig_f, SPEED_FLOOR_BINS * fs / n)
-    if iq:
-        v = -dop.fd_hz * lam / 2
-        return v, sig_f * lam / 2, "receding" if v > 0 else "approaching", v_min
-    if sideband_direction and dop.motion_sign:
-        # one photodiode: the sidebands' modulation Doppler said the sign of f_d = -2v/lambda
-        v = -dop.motion_sign * abs(dop.fd_hz) * lam / 2
+    if iq or (sideband_direction and dop.motion_sign):
+        # the sign of f_d = -2v/lambda: IQ carries it, one photodiode's sidebands' modulation
+        # Doppler may have decided it
+        v = -(dop.fd_hz if iq else dop.motion_sign * abs(dop.fd_hz)) * lam / 2
         return v, sig_f * lam / 2, "receding" if v > 0 else "approaching", v_min
     return abs(dop.fd_hz) * lam / 2, sig_f * lam / 2, "unknown", v_min
 
