@@ -486,6 +486,28 @@ class TestLowBand:
         assert np.mean(p) / (n * s**2) == pytest.approx(1.0, abs=0.08)
 
     @pytest.mark.parametrize("iq", [False, True])
+    def test_a_lines_width_at_the_records_resolution(self, iq):
+        """LowBand.line_at: the equivalent width the whole record's Kaiser(14) spectrum gives
+        (:func:`widths_at`), from the block sums; a coherent line stands out of the bins about it by
+        its SNR, a laser's Lorentzian (a random-walk phase, 1 MHz over 10 kHz bins) by ~5."""
+        from mtcw_core.dsp.spectrum import LowBand, widths_at
+
+        n = 2**16
+        df = FS / n
+        rng = np.random.default_rng(3)
+        t = np.arange(n)
+        for k in (40.3, 80.0, 120.5):
+            f = -k * df if iq else k * df
+            x = (np.exp(2j * np.pi * f * t / FS) if iq else tone(n, f, p=0.3)) + 0.01 * rng.standard_normal(n)
+            width, contrast = LowBand.of(x, FS, 160).line_at(f)
+            assert width == pytest.approx(widths_at(power_spectrum(x, FS), [f], half_span=16), rel=1e-4)
+            assert width < 2.6 and contrast > 1e5
+        for _ in range(5):
+            phase = np.cumsum(rng.standard_normal(n) * np.sqrt(2 * np.pi * 1e6 / FS))
+            x = np.cos(2 * np.pi * 60 * t / n + phase)
+            assert LowBand.of(x, FS, 160).line_at(60 * df)[1] < 50
+
+    @pytest.mark.parametrize("iq", [False, True])
     def test_the_scan_is_the_dft_on_its_grid(self, iq):
         """LowBand.scan: one zero-padded FFT of the block sums, the same values as :meth:`dft` (and
         so the record's exact DFT) on its grid, within the tail it leaves out."""

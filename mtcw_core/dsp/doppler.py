@@ -1483,15 +1483,15 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     if hi <= lo + 2 * SMALL_SCAN_STEP * dfr or n < 256:
         return None
     beside = band is not None
-    found = _small_candidate(x, fs, spec, tones, others, low or LowBand.of(x, fs, hi / dfr), lo, hi, beside,
-                             beats=frame.receiver == "single")
+    low = low or LowBand.of(x, fs, hi / dfr)
+    found = _small_candidate(x, fs, spec, tones, others, low, lo, hi, beside, beats=frame.receiver == "single")
     if found is None:
         return None
     fd0, fit = found
     fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, fd0, lo, hi)
     if not SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] or not _small_decisive(
             spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz, threshold_factor,
-            width_test=not beside):
+            width_test=not beside, low=low):
         return None
     combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats)
     if combined is None:
@@ -1529,9 +1529,27 @@ def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray
         return None
     # a coherent line, before the fit (tens of passes over the record): the decisive test's width
     # rule at the scan's peak (a mover's phase-noise pedestal near 0 Hz passes the SNR gate beside it)
-    if not beside and widths_at(spec, [fd0 if spec.complex_input else abs(fd0)], half_span=16) > SMALL_MAX_WIDTH:
+    if not beside and _too_wide(spec, low, fd0):
         return None
     return fd0, fit or _SmallFit(x, fs, tones, iq, others, beats)
+
+
+def _too_wide(spec: Spectrum, low: LowBand | None, fd: float) -> bool:
+    """Whether the line at ``fd`` (Hz) is wider than a coherent line (:data:`SMALL_MAX_WIDTH`): in
+    the search spectrum, and where that holds part of the record only (``fast``'s eighth, its bins
+    8x wider: movers 40/80/120 record bins up at 2^16 lie 5 of its bins apart and read as one line
+    4.4 bins wide) at the record's own resolution too (``low``'s block sums, the same window). A
+    laser's Lorentzian is wider in record bins than in the eighth's; a cluster of coherent lines is
+    not. There a line also stands :data:`SMALL_MIN_SNR` above the median of the bins about it: a
+    Lorentzian's periodogram at the record's resolution is a ragged top of spikes a bin or two wide
+    (900 draws of 0.3-10 MHz lasers at 2^16: widths down to 1.9 bins, contrasts up to 39)."""
+    f = fd if spec.complex_input else abs(fd)
+    if widths_at(spec, [f], half_span=16) <= SMALL_MAX_WIDTH:
+        return False
+    if spec.record_n is None or low is None:
+        return True
+    width, contrast = low.line_at(f)
+    return width > SMALL_MAX_WIDTH or contrast < SMALL_MIN_SNR
 
 
 def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: float
@@ -1840,7 +1858,7 @@ class _SmallFit:
 
 def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_fixed: int, n_static: int,
                     tones: np.ndarray, guard_bins: int, fd_max_hz: float, threshold_factor: float,
-                    width_test: bool = True) -> bool:
+                    width_test: bool = True, low: LowBand | None = None) -> bool:
     """Whether a sub-guard fit at ``fd`` is a mover: the baseband line's SNR (``snr[0]``) at least
     :data:`SMALL_MIN_SNR` and stronger than every sideband, :data:`SMALL_MIN_PAIRS` tones with both
     sidebands above ``threshold_factor``, a coherent line (:data:`SMALL_MAX_WIDTH`), and on a static
@@ -1853,7 +1871,7 @@ def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n
     if not (snr[0] >= SMALL_MIN_SNR and base_pw > float(np.max(np.abs(cm[1:]) ** 2))
             and pairs >= min(SMALL_MIN_PAIRS, t)):
         return False
-    if width_test and widths_at(spec, [fd if spec.complex_input else abs(fd)], half_span=16) > SMALL_MAX_WIDTH:
+    if width_test and _too_wide(spec, low, fd):
         return False
     spurs = blind_spurs(spec, tones, fd_max_hz)
     on_spur = np.any(np.abs(spurs - abs(fd)) < guard_bins * spec.df_hz)

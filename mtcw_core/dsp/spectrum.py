@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.fft
@@ -569,20 +569,28 @@ def widths_at(spec: Spectrum, centres, half_span: int = 64) -> float:
     for f in centres:
         k0 = int(spec.bin_of(f))
         lo, hi = max(k0 - half_span, 0), min(k0 + half_span + 1, p.size)
-        seg = p[lo:hi].copy()
-        if lo <= dc < hi:  # the mean-removal notch and the DC bins are not a line
-            seg[max(dc - lo - 1, 0): dc - lo + 2] = 0.0
-        if not seg.size or seg.max() <= 0:
-            continue
-        # the strongest line's own extent: contiguous bins within 20 dB of its peak (a second
-        # line nearby, e.g. the other Doppler sideband, is not counted)
-        k = int(np.argmax(seg))
-        m = float(seg[k])
-        above = seg >= 0.01 * m
-        r = k + (int(np.argmin(above[k:])) if not above[k:].all() else seg.size - k)
-        l_ = k - (int(np.argmin(above[: k + 1][::-1])) if not above[: k + 1].all() else k + 1) + 1
-        widths.append(float(seg[l_:r].sum()) / m)
+        w = equivalent_width(p[lo:hi].copy(), dc - lo)
+        if w is not None:
+            widths.append(w)
     return float(np.median(widths)) if widths else 1.0
+
+
+def equivalent_width(seg: np.ndarray, dc: int | None = None) -> float | None:
+    """The equivalent width (bins) of the strongest line in ``seg`` (shape (K,), power, any unit):
+    ``sum/max`` over its contiguous bins within 20 dB of its peak (a second line nearby, e.g. the
+    other Doppler sideband, is not counted); ``dc``: the index of 0 Hz in ``seg``, whose bin and
+    neighbours (the mean-removal notch) are no line; None where ``seg`` holds no power. Modifies
+    ``seg`` in place."""
+    if dc is not None and 0 <= dc < seg.size:
+        seg[max(dc - 1, 0): dc + 2] = 0.0
+    if not seg.size or seg.max() <= 0:
+        return None
+    k = int(np.argmax(seg))
+    m = float(seg[k])
+    above = seg >= 0.01 * m
+    r = k + (int(np.argmin(above[k:])) if not above[k:].all() else seg.size - k)
+    l_ = k - (int(np.argmin(above[: k + 1][::-1])) if not above[: k + 1].all() else k + 1) + 1
+    return float(seg[l_:r].sum()) / m
 
 
 def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, single: bool,
@@ -609,6 +617,8 @@ def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, s
 
 #: :class:`LowBand` keeps at least this many blocks, and this many per record bin of its band
 LOW_BAND_MIN_BLOCKS, LOW_BAND_BLOCKS_PER_BIN = 128, 16
+#: the window :meth:`LowBand.width_at` reads a line's width through (the search spectrum's)
+LOW_BAND_KAISER_BETA = 14.0
 
 
 @dataclass(frozen=True)
@@ -677,6 +687,43 @@ class LowBand:
             t_idx = np.arange(m * b, self.n, dtype=np.float64) - c
             out = out + np.exp(-2j * np.pi * np.outer(r, t_idx)) @ self.tail
         return out
+
+    @cached_property
+    def _kaiser_spectrum(self) -> np.ndarray:
+        """The FFT of the block sums through a Kaiser(:data:`LOW_BAND_KAISER_BETA`) window over the
+        record, sampled at the blocks' centres (the window is near flat across a block: the record's
+        windowed DFT to ~1e-5), shape (M,), complex, V; the grid is ``k*fs/(M*B)``."""
+        m, b = self.sums.size, self.block
+        pos = np.arange(m, dtype=np.float64) * b + (b - 1) / 2.0
+        arg = 1.0 - (2.0 * pos / max(self.n - 1, 1) - 1.0) ** 2
+        w = np.i0(LOW_BAND_KAISER_BETA * np.sqrt(np.clip(arg, 0.0, 1.0))) / np.i0(LOW_BAND_KAISER_BETA)
+        return scipy.fft.fft(self.sums * w)
+
+    def line_at(self, f_hz: float, half_span: int = 16) -> tuple[float, float]:
+        """The strongest line within ``half_span`` record bins of ``f_hz`` (inside the band; signed
+        for an IQ record), seen at the record's own resolution through the search spectrum's Kaiser
+        window: its equivalent width (record bins, :func:`equivalent_width`: 1-2.3 bins for a
+        coherent line) and its contrast, its peak over the median of the bins more than 3 from it
+        (a coherent line stands out by its SNR; a laser's Lorentzian, whose periodogram at this
+        resolution is a ragged top of spikes a bin or two wide, by ~5, and by more than 20 once in
+        ~1e5 draws). For where a search spectrum of part of the record (``fast``'s eighth) reads
+        neighbouring lines as one broad line."""
+        m, b = self.sums.size, self.block
+        spec = self._kaiser_spectrum
+        k0 = int(round(f_hz * m * b / self.fs_hz))
+        ks = np.arange(k0 - half_span, k0 + half_span + 1)
+        r = ks / float(m * b)  # cycles per sample
+        seg = np.abs(spec[ks % m]) ** 2 / self._droop(r) ** 2
+        dc = np.flatnonzero(ks == 0)
+        if dc.size:  # the mean-removal notch and the DC bins are not a line
+            seg[max(int(dc[0]) - 1, 0): int(dc[0]) + 2] = 0.0
+        w = equivalent_width(seg.copy())
+        if w is None:
+            return 1.0, 0.0
+        k = int(np.argmax(seg))
+        ring = np.concatenate([seg[:max(k - 3, 0)], seg[k + 4:]])
+        ring = ring[ring > 0]
+        return w, (float(seg[k]) / float(np.median(ring)) if ring.size else math.inf)
 
     def scan(self, lo_hz: float, hi_hz: float, step_bins: float, both_signs: bool) -> tuple[np.ndarray, np.ndarray]:
         """``exact_dft(x - mean(x), f, fs)`` on a grid of about ``step_bins`` record bins over
