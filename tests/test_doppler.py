@@ -923,6 +923,45 @@ class TestSmallGate:
         assert gated < fits["n"] - gated
 
 
+class TestSmallScanEdge:
+    """The sub-guard scan's peak must be a local maximum inside its band; a stronger line just
+    outside (its peak on the band's edge) is taken out of the scan first, so that it hides nothing
+    inside (the movers probe: movers 48 and 160 record bins up at 2^18, one photodiode, their beat
+    at 112 found by the search; the lobe search's band from 48 to 176 bins returned nothing, the 48
+    line on its edge being its strongest point, and the beat came out a confident mover)."""
+
+    @pytest.mark.parametrize("iq", [False, True])
+    def test_a_line_on_the_edge_hides_nothing_inside(self, iq):
+        from mtcw_core.dsp.doppler import _small_scan
+        from mtcw_core.dsp.spectrum import LowBand
+        rng = np.random.default_rng(12)
+        t = np.arange(N)
+        sign = -1.0 if iq else 1.0
+        edge, inner = sign * 48.0 * DF, sign * 30.3 * DF
+        if iq:
+            x = 1.0 + np.exp(2j * np.pi * edge * t / FS) + 0.3 * np.exp(2j * np.pi * inner * t / FS)
+            x = x + 1e-3 * (rng.standard_normal(N) + 1j * rng.standard_normal(N))
+        else:
+            x = 1.0 + np.cos(2 * np.pi * edge * t / FS) + 0.3 * np.cos(2 * np.pi * inner * t / FS + 1.0)
+            x = x + 1e-3 * rng.standard_normal(N)
+        low = LowBand.of(x, FS, 52.0)
+        got = _small_scan(low, 10 * DF, 48 * DF, iq)
+        assert got is not None and abs(got - inner) <= 0.25 * DF
+        # nothing inside: the edge line's last digits, kept clear of, are no peak
+        x_edge = x - (0.3 * np.exp(2j * np.pi * inner * t / FS) if iq else 0.3 * np.cos(2 * np.pi * inner * t / FS + 1.0))
+        got = _small_scan(LowBand.of(x_edge, FS, 52.0), 10 * DF, 48 * DF, iq)
+        assert got is None or abs(abs(got) - 48 * DF) > 2 * DF
+
+    def test_a_slope_rising_past_the_edge_is_no_line(self):
+        """A line further out than :data:`SMALL_EDGE_BINS` past the edge: its skirt rises to the
+        edge (a sidelobe's peak there), nothing is taken out, and the scan finds no peak inside."""
+        from mtcw_core.dsp.doppler import _small_scan
+        from mtcw_core.dsp.spectrum import LowBand
+        t = np.arange(N)
+        x = 1.0 + np.cos(2 * np.pi * 58.5 * DF * t / FS) + 1e-4 * np.random.default_rng(3).standard_normal(N)
+        assert _small_scan(LowBand.of(x, FS, 60.0), 10 * DF, 48 * DF, False) is None
+
+
 class TestSmallSeveral:
     """Several movers below the guard: each further one scanned with the baseband lines of those
     found taken out, and fitted with all their lines held (one echo's lines leak into another's

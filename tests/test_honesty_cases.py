@@ -386,16 +386,14 @@ def test_a_folded_intermodulation_product_is_no_mover():
         assert not v.missed
 
 
-@pytest.mark.xfail(strict=True, reason="fast reads its lines' noise floors 96 record bins from the lines (12 of its "
-                   "eighth-record bins), where the noise is lower than at the lines: its range sigmas on this cell are "
-                   "0.85x balanced's (median of 24 frames), unflagged range z std 1.6-1.7 in the map. A guard of 48 "
-                   "record bins gave 0.95 but 2 confident-wrong + 1 confident-false frames in the movers probe "
-                   "(fast's lobe neighbours), so it was taken back; the same guard on the extracted lines' "
-                   "floors alone (the search's kept) did the same (notes)")
 def test_fast_measures_the_lines_noise_as_the_whole_record_does():
     """The map's six-tone mover (1.62 m/s, 100 kHz laser, 2^16, its 30 dB rung): ``fast`` reads the
     lines' noise floors in its eighth-record spectrum, ``balanced`` in the whole record's; the
-    lines, and so their noise, are the same, and their range sigmas should agree within 10 %."""
+    lines, and so their noise, are the same, and their range sigmas should agree within 10 %.
+    With the ring kept 12 of the eighth's own bins (96 record bins) from every line, where the noise
+    is lower than at the lines, ``fast``'s were 0.85x ``balanced``'s (unflagged range z std 1.6-1.7
+    in the map); its extracted lines' floors now keep 48 record bins clear
+    (:meth:`~mtcw_core.dsp.spectrum.Spectrum.line_floor_guard`)."""
     six16 = scene_variant(load_scene("six-tone"), digitizer={"samples": 2**16})
     sc = with_targets(six16, [tgt(7.89, 1.62, 59.0019352261902)])
     fast, bal = (get_profile(p, laser_linewidth_hz=100e3) for p in ("fast", "balanced"))
@@ -413,11 +411,21 @@ def test_a_fast_movers_own_broad_line_does_not_flag_it():
     off (or, refitted in the sub-guard band's bounds, a "mover" at the band's top). Such a neighbour
     gives no point of its own (a copy of the mover's lines, or at its range), so the mover is no
     blend: in the first map with the lobe search, 8 of its 16 frames were flagged ``blended``
-    although right (|z| < 2.4); now at most the one frame whose neighbour is a point of its own."""
+    although right (|z| < 2.4); then only the frame whose neighbour is a point of its own.
+
+    Since ``fast`` reads its extracted lines' floors 48 record bins from the lines (not 96: its range
+    sigmas were 15 % small), such neighbours' lines pass the line threshold in 3 frames (with the
+    old guard their ring fell back to every bin in reach, the mover's lobes included): 3 frames are
+    flagged, each beside a point of its own (itself flagged), never a flag with nothing to explain
+    it. A trade measured on the map (notes): telling such a neighbour from a second mover is not
+    done yet."""
     from mtcw_bench.honesty import base_scene
     sc = with_targets(scene_variant(base_scene(2**16), receiver={"kind": "balanced"}),
                       [tgt(1.234, 47.88, 59.14207736364128)])
     runs = run(sc, get_profile("fast", laser_linewidth_hz=100e3), 16, seed=645609409)
     assert not confident(runs), confident(runs)
     flagged = [i for i, (_, r, _) in enumerate(runs) if any(p.blended for p in r.targets)]
-    assert len(flagged) <= 2, flagged
+    assert len(flagged) <= 3, flagged
+    for i in flagged:
+        _, r, v = runs[i]
+        assert len(r.targets) >= 2 and all(p.flagged for p in v.points), i

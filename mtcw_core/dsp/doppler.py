@@ -1671,27 +1671,77 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     """The sub-guard scan: the baseband line alone (the record's mean removed, from its block sums,
     :meth:`~.spectrum.LowBand.scan`), every ~:data:`SMALL_SCAN_STEP` record bins over
     ``[lo, hi]`` Hz (both signs for IQ); its strongest point, when that is a local maximum inside
-    the band (a line just outside has its peak at the band's edge, and its sidelobes inside are
-    weaker), else None. ``others``: the movers already found; the points near them and their beats
-    are left out (their beats only where the echoes beat with each other, ``beats``: one
-    photodiode), and with ``fit`` (its ``others`` the same) their baseband lines taken out first.
-    ``contrast``: the peak must stand this far above the scan's median power, else None."""
+    the band, else None. A line just outside has its peak at the band's edge and hides what lies
+    inside: where its peak lies within :data:`SMALL_EDGE_BINS` of the edge it is taken out of the
+    scan (:func:`_edge_line`) and the strongest point taken again (a stronger mover 16 record bins
+    below a lobe search's band hid the one inside it). ``others``: the movers already found; the
+    points near them and their beats are left out (their beats only where the echoes beat with
+    each other, ``beats``: one photodiode), and with ``fit`` (its ``others`` the same) their
+    baseband lines taken out first. ``contrast``: the peak must stand this far above the scan's
+    median power, else None."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
-    p = np.abs(xs - _small_residual(fit, grid)) ** 2 if fit is not None else np.abs(xs) ** 2
-    if others:
-        dfr = low.fs_hz / low.n
-        near = [*others, *(a + sg * b for i, a in enumerate(others) for b in others[i + 1:] for sg in (1, -1)
-                           if beats)]
-        for f0 in near:
-            p[np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr] = 0.0
-    k = int(np.argmax(p))
+    dfr = low.fs_hz / low.n
+    if fit is not None:
+        xs = xs - _small_residual(fit, grid)
+    near = [*others, *(a + sg * b for i, a in enumerate(others) for b in others[i + 1:] for sg in (1, -1) if beats)]
+    mask = np.zeros(grid.size, dtype=bool)
+    for f0 in near:
+        mask |= np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr
+    side = int(np.sum(grid > 0))
+    for _ in range(SMALL_EDGE_LINES + 1):
+        p = np.where(mask, 0.0, np.abs(xs) ** 2)
+        k = int(np.argmax(p))
+        i, count = (k, side) if k < side else (k - side, grid.size - side)
+        if not p[k] > 0:
+            return None
+        if 0 < i < count - 1:
+            break
+        edge = _edge_line(low, grid, k, -1.0 if i == 0 else 1.0, iq)
+        if edge is None:
+            return None
+        fp, line = edge
+        xs = xs - line  # and the scan keeps clear of it, as of a mover found (its kernel's last digits)
+        mask |= np.abs((grid if iq else np.abs(grid)) - fp) < SMALL_OTHER_BINS * dfr
+    else:
+        return None
     if contrast is not None and not p[k] >= contrast * float(np.median(p)):
         return None
-    side = int(np.sum(grid > 0))
-    i, count = (k, side) if k < side else (k - side, grid.size - side)
-    return float(grid[k]) if 0 < i < count - 1 and p[k] > 0 else None
+    return float(grid[k])
+
+
+#: how far (record bins) past the scan band's edge a line's peak is looked for (:func:`_edge_line`) ...
+SMALL_EDGE_BINS = 3.0
+#: ... and how many such lines are taken out of one scan
+SMALL_EDGE_LINES = 2
+
+
+def _edge_line(low: LowBand, grid: np.ndarray, k: int, outward: float, iq: bool
+               ) -> tuple[float, np.ndarray] | None:
+    """A line just outside the scan's band: its frequency (Hz; ``|f|`` for a real record) and what it
+    puts into the scan (shape (G,), complex), the scan's
+    strongest point ``grid[k]`` (Hz) being on the band's edge, ``outward`` (+-1) the direction out
+    of the band: the line's peak found from half a bin inside to :data:`SMALL_EDGE_BINS` record
+    bins past the edge
+    (the block sums' DFT every 0.1 bin, a parabola through the top three), its amplitude there and
+    its centred Dirichlet kernel over the grid (a real line's image too). None where ``|X|``
+    still rises at the search's end (a line further out, or a slope)."""
+    dfr = low.fs_hz / low.n
+    f = grid[k] + outward * dfr * np.arange(-0.5, SMALL_EDGE_BINS + 1e-9, 0.1)  # from half a bin inside
+    if not iq and np.any(np.abs(f) < dfr):
+        return None  # toward 0 Hz: the static lines' skirt and the mean's notch
+    a = np.abs(low.dft(f))
+    j = int(np.argmax(a))
+    if not 0 < j < f.size - 1:
+        return None
+    den = a[j - 1] - 2 * a[j] + a[j + 1]
+    fp = float(f[j] + (0.5 * (a[j - 1] - a[j + 1]) / den if den < 0 else 0.0) * (f[1] - f[0]))
+    amp = low.dft([fp])[0] / low.n
+    out = amp * _dirichlet(2 * np.pi * (grid - fp) / low.fs_hz, low.n)
+    if not iq:
+        out = out + np.conj(amp) * _dirichlet(2 * np.pi * (grid + fp) / low.fs_hz, low.n)
+    return (fp if iq else abs(fp)), out
 
 
 def _small_residual(fit: "_SmallFit", grid: np.ndarray) -> np.ndarray:

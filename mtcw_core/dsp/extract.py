@@ -229,7 +229,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings)
     # every family's local floors in one call (each row is its own line's statistic)
-    s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq)
+    s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
+                                  guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
