@@ -1195,11 +1195,12 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
         guard = _guard_bins(spec, frame.tones_hz, settings.doppler_min_bins, width)
         f_max = fd_max(frame.tones_hz, settings)
         band = small_band(spec, guard, f_max, frame.fs_hz, x.size)
+        low = LowBand.of(x, frame.fs_hz, band[1] * x.size / frame.fs_hz)
         if main:
             # a guard short of the nearest mover found: nearer, its phase-noise pedestal (the laser's,
-            # over the echo delay) carries bumps the search's own rule keeps out
-            band = (band[0], min(band[1], min(abs(m) for m in main) - guard * spec.df_hz))
-        low = LowBand.of(x, frame.fs_hz, band[1] * x.size / frame.fs_hz)
+            # over the echo delay) carries bumps the search's own rule keeps out -- where it has one
+            band = (band[0], min(band[1], min(abs(m) - _pedestal_margin(spec, low, frame.tones_hz, m, guard, x.size)
+                                              for m in main)))
         while band[1] > band[0] and len(main) + len(small) < settings.max_targets:
             more = search_small_doppler(x, frame, spec, guard, f_max, settings.doppler_threshold,
                                         (*main, *(d.fd_hz for d in small)), low, band[1])
@@ -1232,6 +1233,28 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
                 spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
     return main_refined + small if ests[0].detected else ests
+
+
+#: a mover's line has no phase-noise pedestal about it where its near floor is within this factor of
+#: the wide ring's (:func:`_pedestal_margin`; white noise: the two medians agree within ~20 %)
+PEDESTAL_FREE_RATIO = 2.0
+
+
+def _pedestal_margin(spec: Spectrum, low: LowBand, tones_hz, fd: float, guard_bins: int, n: int) -> float:
+    """How far (Hz) below a mover found beyond the guard, at ``fd`` (Hz), the sub-guard band ends:
+    the search's guard where the mover's line may carry a phase-noise pedestal (the laser's, over
+    the echo delay, whose bumps would pass for movers), :data:`SMALL_OTHER_BINS` + 1 record bins
+    where it has none -- its baseband line coherent (:func:`_too_wide`) and the floor about it
+    (:data:`SMALL_NEAR_HALF_WIDTH` bins) within :data:`PEDESTAL_FREE_RATIO` of the wide ring's.
+    Two movers 2 and 6.5 record bins up (IQ, 2^16, coherent laser): ``balanced``'s guard of 6
+    bins left the first no band at all, and it was missed in every frame."""
+    f = fd if spec.complex_input else abs(fd)
+    excl = [0.0, *np.asarray(tones_hz, float), f]
+    near = spec.noise_variances([f], excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD)[0]
+    wide = spec.noise_variances([f], excl)[0]
+    if _too_wide(spec, low, fd) or not near <= PEDESTAL_FREE_RATIO * wide:
+        return guard_bins * spec.df_hz
+    return (SMALL_OTHER_BINS + 1) * spec.fs_hz / n
 
 
 #: reassignment steps from the search's parabola (each one DFT pair of the target's lines)
