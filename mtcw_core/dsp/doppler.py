@@ -1247,7 +1247,13 @@ def _pedestal_margin(spec: Spectrum, low: LowBand, tones_hz, fd: float, guard_bi
     where it has none -- its baseband line coherent (:func:`_too_wide`) and the floor about it
     (:data:`SMALL_NEAR_HALF_WIDTH` bins) within :data:`PEDESTAL_FREE_RATIO` of the wide ring's.
     Two movers 2 and 6.5 record bins up (IQ, 2^16, coherent laser): ``balanced``'s guard of 6
-    bins left the first no band at all, and it was missed in every frame."""
+    bins left the first no band at all, and it was missed in every frame. Only where the search
+    spectrum is the whole record's: ``fast``'s eighth-record line may be two movers in one of its
+    bins (40 and 60 record bins up at 2^16: one line at 47), which its lobe search separates; a
+    band up to 3 bins short of it fitted the 40-bin mover with a line held where none is (the
+    movers probe: 13 confident-wrong frames)."""
+    if spec.record_n is not None:
+        return guard_bins * spec.df_hz
     f = fd if spec.complex_input else abs(fd)
     excl = [0.0, *np.asarray(tones_hz, float), f]
     near = spec.noise_variances([f], excl, half_width=SMALL_NEAR_HALF_WIDTH, guard=SMALL_NEAR_GUARD)[0]
