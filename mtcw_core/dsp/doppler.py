@@ -1748,14 +1748,14 @@ SMALL_EDGE_LINES = 2
 
 def _edge_line(low: LowBand, grid: np.ndarray, k: int, outward: float, iq: bool
                ) -> tuple[float, np.ndarray] | None:
-    """A line just outside the scan's band: its frequency (Hz; ``|f|`` for a real record) and what it
-    puts into the scan (shape (G,), complex), the scan's
-    strongest point ``grid[k]`` (Hz) being on the band's edge, ``outward`` (+-1) the direction out
-    of the band: the line's peak found from half a bin inside to :data:`SMALL_EDGE_BINS` record
-    bins past the edge
-    (the block sums' DFT every 0.1 bin, a parabola through the top three), its amplitude there and
-    its centred Dirichlet kernel over the grid (a real line's image too). None where ``|X|``
-    still rises at the search's end (a line further out, or a slope)."""
+    """A line just outside the scan's band, the scan's strongest point ``grid[k]`` (Hz) lying on the
+    band's edge and ``outward`` (+-1) the direction out of the band: its frequency (Hz; ``|f|`` for
+    a real record) and what it puts into the scan (shape (G,), complex). Its peak is looked for
+    from half a bin inside the edge to :data:`SMALL_EDGE_BINS` record bins past it (the block
+    sums' DFT every 0.1 bin, a parabola through the top three); its amplitude there times its
+    centred Dirichlet kernel over the grid (a real line's image too) is what it puts in. None
+    where ``|X|`` still rises at the search's end (a line further out, or a slope) or where the
+    search would reach within a bin of 0 Hz (a real record's static lines and the mean's notch)."""
     dfr = low.fs_hz / low.n
     f = grid[k] + outward * dfr * np.arange(-0.5, SMALL_EDGE_BINS + 1e-9, 0.1)  # from half a bin inside
     if not iq and np.any(np.abs(f) < dfr):
