@@ -1766,24 +1766,27 @@ def _edge_line(low: LowBand, grid: np.ndarray, k: int, outward: float, iq: bool
         return None
     den = a[j - 1] - 2 * a[j] + a[j + 1]
     fp = float(f[j] + (0.5 * (a[j - 1] - a[j + 1]) / den if den < 0 else 0.0) * (f[1] - f[0]))
-    amp = low.dft([fp])[0] / low.n
-    out = amp * _dirichlet(2 * np.pi * (grid - fp) / low.fs_hz, low.n)
-    if not iq:
-        out = out + np.conj(amp) * _dirichlet(2 * np.pi * (grid + fp) / low.fs_hz, low.n)
-    return (fp if iq else abs(fp)), out
+    amp = low.dft([fp]) * ((1.0 if iq else 2.0) / low.n)
+    return (fp if iq else abs(fp)), _lines_in_dft(np.array([fp]), amp, grid, low.fs_hz, low.n, iq)
 
 
 def _small_residual(fit: "_SmallFit", grid: np.ndarray) -> np.ndarray:
     """What the movers already found put into the record's DFT on ``grid`` (Hz), shape (G,),
     complex: each one's baseband line, fitted with the static lines and their other lines
-    (``fit``), through the record's rectangular window (centred Dirichlet kernel; a real line's
-    image at ``-f`` too)."""
-    n = fit.x.size
+    (``fit``), through the record's rectangular window (:func:`_lines_in_dft`)."""
+    return _lines_in_dft(fit.other_base, fit.other_amps, grid, fit.fs, fit.x.size, fit.iq)
+
+
+def _lines_in_dft(freqs: np.ndarray, amps: np.ndarray, grid: np.ndarray, fs: float, n: int, iq: bool) -> np.ndarray:
+    """What lines at ``freqs`` (Hz) with amplitudes ``amps`` (V: ``X/N`` for IQ, ``2X/N`` for a real
+    record, phase at the record's centre) put into the record's DFT on ``grid`` (Hz): the centred
+    Dirichlet kernel of the record's rectangular window (a real line's image at ``-f`` too), shape
+    (G,), complex."""
     out = np.zeros(grid.size, dtype=np.complex128)
-    for f0, a in zip(fit.other_base, fit.other_amps):
-        out += (a if fit.iq else a / 2) * _dirichlet(2 * np.pi * (grid - f0) / fit.fs, n)
-        if not fit.iq:
-            out += np.conj(a) / 2 * _dirichlet(2 * np.pi * (grid + f0) / fit.fs, n)
+    for f0, a in zip(freqs, amps):
+        out += (a if iq else a / 2) * _dirichlet(2 * np.pi * (grid - f0) / fs, n)
+        if not iq:
+            out += np.conj(a) / 2 * _dirichlet(2 * np.pi * (grid + f0) / fs, n)
     return out
 
 
