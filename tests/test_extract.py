@@ -363,6 +363,46 @@ class TestFadingLines:
         assert fired == 0
 
 
+    def test_a_weak_half_bin_mover_takes_the_sinusoidal_envelope(self):
+        """At ~13 dB a line (the map's half-bin movers at their 13 dB rung, 5 of 16 frames
+        ``no_target`` before: a fade the whole-record fit keeps little of) the free envelope, one
+        value per segment, follows the noise and is refused (:data:`FADING_SIGNAL_EDGES`); the
+        sinusoid at ``f_d`` (two parameters) keeps the lines' power and their phases."""
+        from mtcw_core.dsp.extract import _sine_envelope, fading_lines
+
+        n = 2**14
+        delta = 0.5 * FS / n
+        s = 1e-3 * np.sqrt(n / 2 / 20.0)  # the strongest line at 13 dB (|c|^2 N/(2 s^2) = 20)
+        kept, phases = 0, []
+        for k in range(8):
+            x, theta, amp = self.record(delta, 0.45 * np.pi, s, seed=k, n=n)
+            c = fading_lines(x, FS, np.asarray(TONES), np.arange(3), np.full(3, s**2), 4 * FS / n)
+            if c is None:
+                continue
+            kept += 1
+            # the lines' power kept: mean(4*cos^2) = 2 against |2*cos(Phi0)*sinc(1/2)|^2 = 0.04
+            assert 0.6 < np.sum(np.abs(c) ** 2) / np.sum(2 * amp**2) < 1.6
+            d = np.angle(c * np.exp(-1j * theta))
+            d = np.angle(np.exp(1j * (d - d[0])))
+            sig = np.sqrt(2 * s**2 / (n * np.abs(c) ** 2))
+            phases.append(np.all(np.abs(d) < 5 * np.hypot(sig, sig[0])))
+        assert kept >= 7 and all(phases)
+        # noise alone (whitened, 16 segments, 3 lines): the scan's best sinusoid is never taken
+        rng = np.random.default_rng(1)
+        assert sum(_sine_envelope(rng.standard_normal((16, 6)), 1.5) is not None for _ in range(500)) == 0
+
+    def test_no_envelope_fitted_to_noise_alone(self):
+        """Records with no line: neither envelope is taken (each would raise the lines' power with
+        the noise it follows)."""
+        from mtcw_core.dsp.extract import fading_lines
+
+        n, s = 2**14, 1e-3
+        rng = np.random.default_rng(2)
+        fired = sum(fading_lines(s * rng.standard_normal(n), FS, np.asarray(TONES), np.arange(3), np.full(3, s**2),
+                                 4 * FS / n) is not None for _ in range(40))
+        assert fired == 0
+
+
 def test_balanced_half_bin_mover_at_the_bound():
     """A mover at half a record bin (below the Doppler guard, reported static): ``balanced``'s range
     error spread over frames within 1.3x the Cramer-Rao bound (white noise, from the truth), and its

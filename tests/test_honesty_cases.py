@@ -192,6 +192,21 @@ def test_case6_two_sub_guard_movers_are_each_within_their_sigma(receiver, loss_d
         assert all(p.speed_measured and abs(p.speed_z) <= Z for p in v.points), [p.speed_z for p in v.points]
 
 
+def test_half_bin_mover_at_its_13_db_rung_is_found():
+    """The map's ``length N=2^16 v=0.5 bin`` row at its 13 dB rung (its seed): a mover half a record
+    bin up fades the static lines with ``2*cos(2*pi*f_d*t + Phi0)``, of which the whole-record fit
+    keeps ``|mean|`` -- near 0 for some ``Phi0`` -- and the free envelope fit needs 19-21 dB a line:
+    5 of 16 frames were ``no_target`` in ``balanced``. The sinusoidal envelope (two parameters,
+    :func:`~mtcw_core.dsp.extract._sine_envelope`) keeps the lines' power: every frame has its point,
+    none confidently wrong."""
+    from mtcw_bench.honesty import _target, base_scene
+    sc = with_targets(base_scene(2**16), [_target(1.234, 0.020294189453125003, 76.13475862809875)])
+    runs = run(sc, "balanced", 16, seed=2075620763)
+    assert not confident(runs), confident(runs)
+    missed = [i for i, (_, _, v) in enumerate(runs) if v.missed]
+    assert len(missed) <= 1, missed
+
+
 # -------------------------------------------------------------------------------------------
 # 7. known timing jitter
 def test_case7_known_timing_jitter_enters_the_sigma():

@@ -371,15 +371,55 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
     cols = m.shape[1]
     varying = np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[0] ** 2
-    if varying <= FADING_VARIATION_EDGES * (math.sqrt(segs - 1) + math.sqrt(cols)) ** 2:
+    a = None
+    if varying > FADING_VARIATION_EDGES * (math.sqrt(segs - 1) + math.sqrt(cols)) ** 2:
+        u, sv, _ = np.linalg.svd(m, full_matrices=False)
+        if sv[0] ** 2 > FADING_SIGNAL_EDGES * (math.sqrt(segs) + math.sqrt(cols)) ** 2:
+            a = u[:, 0] * math.sqrt(segs)
+    if a is None:
+        a = _sine_envelope(m, guard_hz * n / fs)
+    if a is None:
         return None
-    u, sv, _ = np.linalg.svd(m, full_matrices=False)
-    if sv[0] ** 2 <= FADING_SIGNAL_EDGES * (math.sqrt(segs) + math.sqrt(cols)) ** 2:
-        return None
-    a = u[:, 0] * math.sqrt(segs)
     if np.sum(a) < 0:
         a = -a
     return (a @ z) / segs
+
+
+#: the sinusoidal envelope (:func:`_sine_envelope`): its Doppler scanned from this many record bins
+#: (a slower one is the constant envelope of the whole-record fit) ...
+FADING_SINE_MIN_BINS = 0.2
+#: ... up to the guard, at most this many, in steps of this many
+FADING_SINE_MAX_BINS, FADING_SINE_STEP_BINS = 1.5, 0.05
+#: it is taken when its energy (whitened) exceeds the constant envelope's by this much ...
+FADING_SINE_GAIN = 30.0
+#: ... and is at least this much in all
+FADING_SINE_SIGNAL = 40.0
+
+
+def _sine_envelope(m: np.ndarray, guard_bins: float) -> np.ndarray | None:
+    """A mover below one record bin: the envelope ``a_s = 2*cos(2*pi*f_d*t_s + Phi_0)`` its carrier
+    puts on the static lines, fitted with two parameters instead of one per segment.
+
+    ``m`` (S, 2T): the segments' lines, real and imaginary parts, whitened. For each trial
+    ``f_d`` from :data:`FADING_SINE_MIN_BINS` record bins up to the guard (``guard_bins``, at most
+    :data:`FADING_SINE_MAX_BINS`) the best rank-1 ``a b^T`` with ``a`` in the span of ``cos`` and
+    ``sin`` at ``f_d`` over the segments' centres; taken where its energy exceeds the constant
+    envelope's (the whole-record fit) by :data:`FADING_SINE_GAIN` and reaches
+    :data:`FADING_SINE_SIGNAL`. Returns ``a`` (S,), ``mean a^2 = 1``, or None."""
+    segs = m.shape[0]
+    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
+    e0 = segs * float(np.sum(m.mean(axis=0) ** 2))
+    top = min(guard_bins, FADING_SINE_MAX_BINS)
+    best, best_a = -np.inf, None
+    for fd in np.arange(FADING_SINE_MIN_BINS, top + 1e-9, FADING_SINE_STEP_BINS):
+        q, _ = np.linalg.qr(np.stack([np.cos(2 * np.pi * fd * t), np.sin(2 * np.pi * fd * t)], axis=1))
+        proj = q.T @ m  # (2, 2T)
+        w, v = np.linalg.eigh(proj @ proj.T)
+        if w[-1] > best:
+            best, best_a = float(w[-1]), q @ v[:, -1]
+    if best_a is None or best < FADING_SINE_SIGNAL or best - e0 < FADING_SINE_GAIN:
+        return None
+    return best_a * math.sqrt(segs) / float(np.linalg.norm(best_a))
 
 
 #: a fitted self-beat scale is taken when it leaves this part of the static lines' power at scale 1
