@@ -1199,8 +1199,9 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
         if main:
             # a guard short of the nearest mover found: nearer, its phase-noise pedestal (the laser's,
             # over the echo delay) carries bumps the search's own rule keeps out -- where it has one
-            band = (band[0], min(band[1], min(abs(m) - _pedestal_margin(spec, low, frame.tones_hz, m, guard, x.size)
-                                              for m in main)))
+            # (only where a whole guard's cut reaches into the band: the margin is never wider)
+            band = (band[0], min([band[1], *(abs(m) - _pedestal_margin(spec, low, frame.tones_hz, m, guard, x.size)
+                                             for m in main if abs(m) - guard * spec.df_hz < band[1])]))
         while band[1] > band[0] and len(main) + len(small) < settings.max_targets:
             more = search_small_doppler(x, frame, spec, guard, f_max, settings.doppler_threshold,
                                         (*main, *(d.fd_hz for d in small)), low, band[1])

@@ -731,9 +731,7 @@ class LowBand:
         r = ks / float(m * b)  # cycles per sample
         seg = np.abs(spec[ks % m]) ** 2 / self._droop(r) ** 2
         dc = np.flatnonzero(ks == 0)
-        if dc.size:  # the mean-removal notch and the DC bins are not a line
-            seg[max(int(dc[0]) - 1, 0): int(dc[0]) + 2] = 0.0
-        w = equivalent_width(seg.copy())
+        w = equivalent_width(seg, int(dc[0]) if dc.size else None)  # the DC notch zeroed in seg too
         if w is None:
             return 1.0, 0.0
         k = int(np.argmax(seg))
