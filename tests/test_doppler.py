@@ -270,6 +270,33 @@ class TestSearchDoppler:
         (est,) = search_doppler(power_spectrum(real_record(), FS), list(TONES), 2 * DF)
         assert not est.detected
 
+    @pytest.mark.parametrize("kind", ["real", "iq", "real lazy"])
+    def test_scores_read_every_candidates_own_bins(self, kind, monkeypatch):
+        """The scores of every shift, read as slices of the spectrum (the shifts step one bin), are
+        those of each line's own bin gathered one by one: power over the local floor, baseband,
+        ``f_i + f_d`` and ``|f_i - f_d|`` (``f_i - f_d`` for IQ), the pairs' minimum counted twice."""
+        from mtcw_core.dsp import spectrum as spectrum_module
+        from mtcw_core.dsp.doppler import _score_candidates, search_bmax, search_floor
+
+        if kind == "real lazy":  # the packed spectrum, unpacked where read (as 1e6-sample records keep it)
+            monkeypatch.setattr(spectrum_module, "LAZY_MIN_SAMPLES", 0)
+        x = iq_record(7.1e6) if kind == "iq" else real_record()
+        spec = power_spectrum(x, FS)
+        assert isinstance(spec.power, spectrum_module.PackedPower) == (kind == "real lazy")
+        tones = np.asarray(TONES)
+        bmax = search_bmax(spec, FDMAX)
+        floor = search_floor(spec, tones, bmax)
+        power = np.asarray(spec.power, dtype=np.float64)
+        for sign in ((1, -1) if kind == "iq" else (1,)):
+            sc = _score_candidates(spec, floor, tones, sign, bmax, 4, FDMAX, 8.0, True)
+            fd = sign * np.arange(bmax + 1) * DF
+            ratio = lambda f: power[spec.bin_of(f)] / floor[spec.bin_of(f)]  # noqa: E731
+            want = ratio(fd if kind == "iq" else np.abs(fd))
+            for f in tones:
+                want = want + 2 * np.minimum(ratio(fd + f), ratio(fd - f if kind == "iq" else np.abs(f - fd)))
+            assert np.array_equal(sc.score, want)
+            assert np.array_equal(sc.base_p, power[spec.bin_of(fd if kind == "iq" else np.abs(fd))])
+
 
 class TestBeats:
     """One photodiode: two echoes beat with each other (one is the other's LO) at the difference and,

@@ -485,12 +485,15 @@ def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: b
     nb = power.size
     if ranges is None:
         ranges = [(0, nb)]
-    out = np.full(nb, np.nan)
     tiny = np.finfo(power.dtype).tiny if power.dtype.kind == "f" else 1e-300
     # a real signal's spectrum is even about 0 Hz and about fs/2: at both ends the ring continues
     # on the mirror side (one-sided, it would see only the falling side of a pedestal around
     # 0 Hz); an fftshifted complex spectrum is periodic: the ring wraps around +-fs/2
     merged = _merged(ranges, nb)
+    out = np.empty(nb)
+    edges = [0, *(e for r in merged for e in r), nb]
+    for a, b in zip(edges[::2], edges[1::2]):  # NaN between the ranges (each range is written below)
+        out[a:b] = np.nan
     if hasattr(power, "prefetch"):  # a PackedPower: unpack every band the rings reach at once
         reach = [(max(lo - outer, 0), min(hi + outer, nb)) for lo, hi in merged]
         if mirror_dc:
