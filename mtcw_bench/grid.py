@@ -53,6 +53,10 @@ NOISY_SPREAD = 0.10
 REFERENCES: tuple[str, ...] = ("pass", "fft_f64", "fft_volts", "fft_raw")
 #: The reference every ratio is taken against.
 RATIO_REFERENCE = "fft_f64"
+#: ... and, when another FFT backend is in force (``--fft-backend``), the same float64 transform
+#: on scipy's own pocketfft, timed alongside: the chain on FFTW against the reference of the
+#: default install (the targets' own ratio stays against the backend's own rfft)
+POCKETFFT_REFERENCE = "fft_f64_pocketfft"
 #: The key of the time inside ``process_frame`` that no stage accounts for.
 UNACCOUNTED = "unaccounted"
 
@@ -147,6 +151,12 @@ def reference_tasks(frame: Frame, settings) -> dict[str, Callable[[], object]]:
              "fft_volts": lambda: fft_x(x), "fft_raw": lambda: scipy.fft.rfft(raw)}
     if x64 is x:  # the volts are float64 already: one transform, timed once (its time serves both)
         del tasks["fft_volts"]
+    if not fft_backend().startswith("scipy default"):
+        def pocketfft() -> object:
+            with scipy.fft.set_backend("scipy", only=True):
+                return fft_x(x64)
+
+        tasks[POCKETFFT_REFERENCE] = pocketfft
     return tasks
 
 
@@ -254,7 +264,7 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
     # 3. timed repeats, references interleaved in rotating order
     status: dict[str, int] = {}
     log = ErrorLog(outlier_m=_finest_wavelength(scene.modulator.tones_hz) / 4)
-    times: dict[str, list[float]] = {k: [] for k in ("chain",) + REFERENCES}
+    times: dict[str, list[float]] = {k: [] for k in ("chain",) + REFERENCES + (POCKETFFT_REFERENCE,)}
     stages: list[dict[str, float]] = []
     for i in range(repeats):
         fr = frames[i % n_frames]
@@ -278,7 +288,7 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
     n_ok = status.get("ok", 0)
     err = log.summary()
     ratio = ratio_stats(times["chain"], times[RATIO_REFERENCE])
-    med = {k: statistics.median(v) for k, v in times.items()}
+    med = {k: statistics.median(v) for k, v in times.items() if v}
     breakdown = stage_breakdown(stages, times["chain"])
     rec = {
         "profile": profile, "method": method, "frames": n_frames, "repeats": repeats, "status": status,
@@ -289,6 +299,9 @@ def run_cell(frames: list, scene: Scene, profile: str, method: str, spec: GridSp
         "time_over_rfft_volts": ratio_stats(times["chain"], times["fft_volts"])["median"],
         "time_over_rfft_raw": ratio_stats(times["chain"], times["fft_raw"])["median"],
         "time_over_pass": ratio_stats(times["chain"], times["pass"])["median"],
+        "time_over_rfft_pocketfft": (ratio_stats(times["chain"], times[POCKETFFT_REFERENCE])["median"]
+                                     if times[POCKETFFT_REFERENCE] else None),
+        "pocketfft_rfft_s": med.get(POCKETFFT_REFERENCE),
         "reference_s": {k: med[k] for k in REFERENCES},
         "reference_spread": {k: spread(times[k]) for k in REFERENCES},
         "volts_dtype": str(_volts(frames[0], settings).dtype), "raw_dtype": str(frames[0].samples.dtype),

@@ -170,6 +170,9 @@ def speed_target_rows(cells: list[dict]) -> list[dict]:
             row.update(cell=f"{c['loss_db']:g} dB, {c['method']}, {c['samples']} samples, {c.get('repeats', c['frames'])} repeats",
                        median=c.get("time_over_rfft"), spread=c.get("ratio_spread"), noisy=c.get("ratio_noisy"),
                        verdict=verdict(c.get("time_over_rfft"), lim), why=_largest_stage(c))
+            if c.get("time_over_rfft_pocketfft") is not None:  # another backend: the default install's reference too
+                row["why"] += (f"; × pocketfft's float64 rfft ({1e3 * c['pocketfft_rfft_s']:.1f} ms): "
+                               f"{c['time_over_rfft_pocketfft']:.2f}")
             if c["samples"] != TARGET_SAMPLES:
                 row["verdict"] += f" (indicative: {c['samples']} samples, the target is set at {TARGET_SAMPLES})"
         rows.append(row)
@@ -392,7 +395,10 @@ def _method_lines(result: dict, refs: dict) -> list[str]:
         "process, on the same frame, times the references: one pass over the volts (`np.add.reduce`), one `scipy.fft.rfft` "
         "of the volts in float64, in the volts' own dtype (the array the validate stage produces) and of the raw codes as "
         f"stored ({n_dtype}; when the volts are float64 already that transform is timed once and serves both columns). "
-        "The order of the five rotates by one from repeat to repeat.",
+        "The order of the five rotates by one from repeat to repeat. Every transform runs on the FFT backend named "
+        "under Software, the references' too; with another backend than scipy's own (`--fft-backend pyfftw`) the "
+        "float64 rfft is also timed on pocketfft (`scipy.fft.set_backend('scipy', only=True)`), and the targets' "
+        "`why` column gives the chain over it: the default install's reference.",
         "- **Ratios per repeat.** A cell's ×rfft is the median over its repeats of (chain time / float64 rfft time of the "
         "same repeat). Its **spread is the interquartile range over the median**, (p75 − p25) / median, of those per-repeat "
         f"ratios; a ratio whose spread exceeds {100 * noisy:.0f} % is marked **noisy** (so is one with fewer than 2 repeats). "

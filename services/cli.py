@@ -302,6 +302,9 @@ def bench(
     threads: int = typer.Option(1, min=0, help="BLAS/OpenMP threads of this process, as a worker's MTCW_THREADS "
                                                "(1: the chain on one core, like its one-core rfft reference; "
                                                "0: the libraries' own)"),
+    fft_backend: str = typer.Option("pocketfft", help="FFT implementation of every transform, the rfft reference's "
+                                    "too, as a worker's MTCW_FFT_BACKEND: pocketfft (scipy's) | pyfftw (FFTW; "
+                                    "pip install 'mtcw[fftw]')"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB,
     each cell timed against one rfft of its frame interleaved with the chain; stage breakdown and
@@ -322,9 +325,14 @@ def bench(
 
     from mtcw_bench.grid import GridSpec, cell_count, machine_info, run_grid, simulation_costs
     from mtcw_bench.report import write_report
+    from mtcw_core.dsp.spectrum import use_fft_backend
     from services.worker import limit_threads
 
     limit_threads(threads)  # before machine_info, which records the pools' threads
+    try:
+        use_fft_backend(fft_backend)  # before machine_info, which records it
+    except ValueError as err:
+        _fail(str(err))
 
     def csv_list(v: Optional[str], default: list) -> list:
         return [x.strip() for x in v.split(",") if x.strip()] if v else default
@@ -369,7 +377,8 @@ def bench(
             _fail(f"stream-json: {stream_json} holds a {type(result['stream']).__name__}, not an object with `rows`")
     result["total_s"] = time.perf_counter() - t_start
     given = {"--quick": quick, "-o": out, "--frames": frames, "--samples": samples, "--scenes": scenes,
-             "--profiles": profiles, "--losses": losses, "--repeats": repeats, "--stream-json": stream_json}
+             "--profiles": profiles, "--losses": losses, "--repeats": repeats, "--stream-json": stream_json,
+             "--fft-backend": fft_backend if fft_backend != "pocketfft" else None}
     cmd = "mtcw bench" + "".join(f" {k}" if v is True else f" {k} {shlex.quote(str(v))}"
                                  for k, v in given.items() if v not in (None, False))
     path = write_report(result, out, cmd)
@@ -714,6 +723,8 @@ def worker(
                                                       help="one photodiode: say the direction of motion where the "
                                                       "sidebands' own Doppler shift decides its sign "
                                                       "[MTCW_SIDEBAND_DIRECTION; default off: unknown]"),
+    fft_backend: Optional[str] = typer.Option(None, "--fft-backend", help="FFT implementation: pocketfft | pyfftw "
+                                              "(pip install 'mtcw[fftw]') [MTCW_FFT_BACKEND; default pocketfft]"),
 ) -> None:
     """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError
@@ -724,7 +735,7 @@ def worker(
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
                            timing_jitter_s=timing_jitter_s, laser_linewidth_hz=laser_linewidth_hz,
                            lo_path_difference_m=lo_path_difference_m, accumulate=accumulate,
-                           sideband_direction=sideband_direction)
+                           sideband_direction=sideband_direction, fft_backend=fft_backend)
     try:
         w = Worker(st)
     except CalibrationError as err:

@@ -19,6 +19,7 @@ import zmq
 
 from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
+from mtcw_core.dsp.spectrum import fft_backend, use_fft_backend
 from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator
 
 from .auth import terminate
@@ -104,6 +105,8 @@ class Worker:
         if self.calibration is None:
             log.warning("worker %s: no calibration: using the frames' tone phases and tau0 = 0", self.settings.name)
         limits = limit_threads(self.settings.threads)  # for as long as the worker runs
+        fft_before = use_fft_backend(self.settings.fft_backend)  # process-wide: restored when the worker stops
+        log.info("worker %s: FFT backend %s", self.settings.name, fft_backend())
         poller = zmq.Poller()
         poller.register(self.pull, zmq.POLLIN)
         try:
@@ -136,6 +139,7 @@ class Worker:
                      self.received, self.sent, self.unsent)
             if limits is not None:
                 limits.restore_original_limits()
+            use_fft_backend(fft_before)
             self.pull.close()
             self.push.close()  # LINGER points_linger_ms: the last points still go out while the context terminates
             if self._own_ctx:

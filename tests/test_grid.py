@@ -10,7 +10,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from mtcw_bench import grid
+from mtcw_bench import grid, report
 from mtcw_bench.grid import (NOISY_SPREAD, REFERENCES, UNACCOUNTED, GridSpec, peak_memory, ratio_stats,
                              reference_tasks, run_cell, spread, stage_breakdown)
 from mtcw_core.chain import STAGE_NAMES, get_profile
@@ -148,3 +148,30 @@ def test_machine_info_names_what_timings_depend_on():
     m = grid.machine_info()
     assert {"cpu", "cores", "python", "numpy", "scipy", "fft_backend", "scipy_fft_workers"} <= set(m)
     assert m["numpy"] == np.__version__ and m["cores"] >= 1
+
+
+def test_on_another_fft_backend_the_cell_also_times_pocketffts_rfft():
+    """``--fft-backend pyfftw``: the references run on FFTW, and the float64 rfft is timed on
+    pocketfft too (the same transform), its ratio kept beside the target's own; none on the default."""
+    pytest.importorskip("pyfftw")
+    from mtcw_core.dsp.spectrum import use_fft_backend
+
+    sc, frames = _frames(2**14, 2)
+    spec = GridSpec(scenes=[], losses_db=[], profiles=["fast"], methods=["ml"], frames=2, repeats=3)
+    plain = run_cell(frames, sc, "fast", "ml", spec, None)
+    assert plain["time_over_rfft_pocketfft"] is None
+    before = use_fft_backend("pyfftw")
+    try:
+        tasks = reference_tasks(frames[0], get_profile("fast"))
+        assert grid.POCKETFFT_REFERENCE in tasks
+        x = frames[0].signal()
+        np.testing.assert_allclose(tasks[grid.POCKETFFT_REFERENCE](), tasks["fft_f64"](), rtol=0,
+                                   atol=1e-9 * np.abs(x).sum())
+        c = run_cell(frames, sc, "fast", "ml", spec, None)
+    finally:
+        use_fft_backend(before)
+    assert c["time_over_rfft_pocketfft"] > 0 and c["pocketfft_rfft_s"] > 0
+    row = [r for r in report.speed_target_rows([{**c, "scene": "cw-bench", "profile": "fast", "loss_db": 20.0,
+                                                 "method": "ml", "samples": 2**14}]) if r["scene"] == "cw-bench"
+           and r["profile"] == "fast"][0]
+    assert "pocketfft's float64 rfft" in row["why"]

@@ -529,3 +529,72 @@ class TestLowBand:
         assert np.max(np.abs(xs - exact)) < 0.02 * np.max(np.abs(exact))
         k = int(np.argmax(np.abs(xs)))
         assert abs(abs(f[k]) - 5.3 * df) < 0.25 * df  # a real cosine: both signs alike for IQ
+
+
+class TestFFTBackend:
+    """The optional FFTW backend (``use_fft_backend``): every transform of the chain on it, the same
+    spectra to single precision and the same points, and the default restored."""
+
+    @pytest.fixture
+    def fftw(self):
+        pytest.importorskip("pyfftw")
+        from mtcw_core.dsp.spectrum import use_fft_backend
+
+        before = use_fft_backend("pyfftw")
+        yield
+        use_fft_backend(before)
+
+    def test_unknown_backend_names_the_setting(self):
+        from mtcw_core.dsp.spectrum import fft_backend, use_fft_backend
+
+        with pytest.raises(ValueError, match="fft_backend='mkl'"):
+            use_fft_backend("mkl")
+        assert fft_backend() == "scipy default (pocketfft)"
+
+    def test_fftw_runs_scipy_fft_and_reports_itself(self, fftw):
+        from mtcw_core.dsp.spectrum import fft_backend
+
+        assert fft_backend().startswith("pyfftw ")
+        x = np.random.default_rng(1).standard_normal(1000)
+        with scipy.fft.set_backend("scipy", only=True):  # pocketfft alone, for the reference
+            want = scipy.fft.rfft(x)
+        got = scipy.fft.rfft(x)
+        assert np.allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+
+    @pytest.mark.parametrize("n", [2**14, 2**18 + 2, 2**18 + 1])
+    def test_the_spectrum_is_pocketffts_to_single_precision(self, n):
+        """The real spectrum of an even record takes FFTW's own real transform (not the packed
+        complex route: no :class:`PackedPower`), the same powers to float32's rounding (~1e-7 of the
+        strongest bin, the single-precision floor the chain's spectrum has anyway)."""
+        pytest.importorskip("pyfftw")
+        from mtcw_core.dsp.spectrum import use_fft_backend
+
+        rng = np.random.default_rng(2)
+        t = np.arange(n)
+        x = 0.3 + np.cos(2 * np.pi * 0.1234567 * t) + 1e-3 * rng.standard_normal(n)
+        ref = power_spectrum(x, 1e9, single=True)
+        before = use_fft_backend("pyfftw")
+        try:
+            got = power_spectrum(x, 1e9, single=True)
+        finally:
+            use_fft_backend(before)
+        assert not isinstance(got.power, PackedPower)
+        a, b = np.asarray(ref.power, dtype=np.float64), np.asarray(got.power, dtype=np.float64)
+        assert a.shape == b.shape and got.df_hz == ref.df_hz and got.total == ref.total
+        assert np.max(np.abs(a - b)) < 1e-6 * a.max()
+
+    def test_the_chain_gives_the_same_points(self, fftw):
+        from mtcw_core.chain import process_frame
+        from mtcw_core.dsp.spectrum import use_fft_backend
+        from mtcw_core.scene import load_scene, scene_variant
+        from mtcw_core.simulate import Simulator
+
+        sc = scene_variant(load_scene("moving-target"), digitizer={"samples": 2**16})
+        fr = next(Simulator(sc, seed=4).frames(1))
+        on = process_frame(fr, "balanced")
+        use_fft_backend("pocketfft")
+        off = process_frame(fr, "balanced")
+        assert on.status == off.status == "ok" and len(on.targets) == len(off.targets) >= 1
+        for a, b in zip(on.targets, off.targets):
+            assert abs(a.range_m - b.range_m) < 1e-3 * b.range_sigma_m
+            assert abs(a.velocity_mps - b.velocity_mps) < 1e-3 * b.velocity_sigma_mps

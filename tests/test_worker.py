@@ -79,12 +79,18 @@ def test_a_chain_failure_is_a_rejected_point(worker, frame, monkeypatch):
     assert msg.status == "rejected" and msg.reason == "chain_error: RuntimeError: a bug" and msg.seq == 7
 
 
-def test_run_accounts_for_every_message_between_good_frames(ctx, frame):
-    """Good, malformed and good frames through a live worker: three points, in order, the worker alive."""
+@pytest.mark.parametrize("fft", ["pocketfft", "pyfftw"])
+def test_run_accounts_for_every_message_between_good_frames(ctx, frame, fft):
+    """Good, malformed and good frames through a live worker: three points, in order, the worker alive;
+    on either FFT backend (``MTCW_FFT_BACKEND``), scipy's default in force again once it stops."""
+    from mtcw_core.dsp.spectrum import fft_backend
+
+    if fft == "pyfftw":
+        pytest.importorskip("pyfftw")
     push = S.open_socket(ctx, S.SocketSpec("t", zmq.PUSH, "tcp://127.0.0.1:0", True, 10, 0))
     pull = S.open_socket(ctx, S.SocketSpec("t", zmq.PULL, "tcp://127.0.0.1:0", True, 10, 0))
     w = Worker(WorkerSettings(frames_endpoint=S.bound_endpoint(push), points_endpoint=S.bound_endpoint(pull),
-                              profile="fast"), ctx)
+                              profile="fast", fft_backend=fft), ctx)
     stop = threading.Event()
     t = threading.Thread(target=w.run, args=(stop,))
     t.start()
@@ -99,11 +105,13 @@ def test_run_accounts_for_every_message_between_good_frames(ctx, frame):
             time.sleep(0.01)
         assert t.is_alive() and w.received == 3 and w.sent == 3
         assert np.isfinite(got[0].targets[0].range_m)
+        assert fft_backend().startswith(fft if fft == "pyfftw" else "scipy default")
     finally:
         stop.set()
         t.join(10)
         push.close()
         pull.close()
+    assert fft_backend() == "scipy default (pocketfft)"
 
 
 def test_accumulate_averages_each_sources_frames_and_says_how_many(ctx):
@@ -189,6 +197,17 @@ def test_threads_setting_is_validated_naming_the_field(monkeypatch):
     assert WorkerSettings().threads == 2
     monkeypatch.delenv("MTCW_THREADS")
     assert WorkerSettings().threads == 1
+
+
+def test_fft_backend_setting_is_validated_naming_the_field(monkeypatch):
+    monkeypatch.setenv("MTCW_FFT_BACKEND", "mkl")
+    with pytest.raises(ValueError, match="fft_backend"):
+        WorkerSettings()
+    monkeypatch.delenv("MTCW_FFT_BACKEND")
+    assert WorkerSettings().fft_backend == "pocketfft"
+    pytest.importorskip("pyfftw")
+    monkeypatch.setenv("MTCW_FFT_BACKEND", "pyfftw")
+    assert WorkerSettings().fft_backend == "pyfftw"
 
 
 def test_a_worker_with_sideband_direction_says_which_way_one_photodiode_moves(ctx):
