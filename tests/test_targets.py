@@ -280,6 +280,25 @@ class TestSelectTargets:
         skirt = point(8.0, [38.0] * 3, residual=1.0)
         assert select_targets([(0, static), (1, skirt)], self.ST) == [static]
 
+    def test_a_mover_far_above_the_declared_lasers_wings_is_kept(self):
+        """Random-looking phases (a blend) do not make a candidate the static lines' wings where the
+        declared laser's wings in one bin stay 20 dB below it: 100 kHz at 5 m, 5 kHz bins, the
+        wings 55 dB below the static lines (the delayed self-heterodyne pedestal beside the line,
+        2*pi*linewidth*dtau^2 per Hz); a 5.3 GHz laser's wings are its whole line."""
+        from mtcw_core.ranging.targets import shared_phase_psd, wings_level_db
+
+        static = point(5.0, [40.0] * 3)
+        mover = point(8.0, [38.0] * 3, residual=1.0)
+        dfb = get_profile("balanced", laser_linewidth_hz=100e3)
+        want = 10 * math.log10(shared_phase_psd(dfb, 5.0) * 5e3)
+        assert want == pytest.approx(-54.6, abs=0.1)
+        assert wings_level_db(dfb, static, 5e3) == pytest.approx(want, abs=0.05)
+        assert select_targets([(0, static), (1, mover)], dfb, 5e3) == [static, mover]
+        low = get_profile("balanced", laser_linewidth_hz=5.3e9)
+        assert wings_level_db(low, static, 5e3) == 0.0
+        assert select_targets([(0, static), (1, mover)], low, 5e3) == [static]
+        assert select_targets([(0, static), (1, mover)], dfb) == [static]  # no bin: nothing bounds the wings
+
     def test_incoherent_residual_kept_without_static(self):
         mover = point(8.0, [38.0] * 3, residual=1.0)
         assert select_targets([(1, mover)], self.ST) == [mover]

@@ -353,7 +353,32 @@ def is_finite(p: TargetPoint) -> bool:
     return all(math.isfinite(v) for v in (p.range_m, p.range_sigma_m, p.velocity_mps, p.velocity_sigma_mps))
 
 
-def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings) -> list[TargetPoint]:
+#: a "mover" this far (dB) above the highest level the static target's wings reach in one record
+#: bin cannot be made of them: a periodogram's largest bin over 1e6 bins of a flat pedestal stands
+#: ~11 dB above its mean (exponential), the margin leaves 9 dB more
+WINGS_MARGIN_DB = 20.0
+
+
+def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float | None) -> float | None:
+    """The static target's phase-noise wings in one record bin (``bin_hz``), dB relative to its
+    line there, at most 0 dB (an incoherent echo's line is all wings). None where nothing bounds
+    them: no laser declared (linewidth 0) or no bin width given.
+
+    The LO x echo beat of a Lorentzian laser, delayed ``dtau`` (:func:`carrier_coherence`), keeps
+    ``exp(-a)`` of its power in the line (``a = 2*pi*linewidth*dtau``); the rest is a pedestal whose
+    density peaks beside the line at ``(1 - exp(-a)*(1 + a))/(pi*linewidth)`` of the beat's power per Hz
+    (the delayed self-heterodyne spectrum at f -> 0: ``2*pi*linewidth*dtau^2``, :func:`shared_phase_psd`,
+    for a coherent echo; a Lorentzian's ``1/(pi*linewidth)`` for an incoherent one)."""
+    if settings.laser_linewidth_hz <= 0 or not bin_hz:
+        return None
+    a = 2 * math.pi * settings.laser_linewidth_hz * abs(2 * static.range_m - settings.lo_path_difference_m) / C
+    pedestal = -math.expm1(-a) - a * math.exp(-a)  # 1 - exp(-a)*(1 + a), without cancellation at small a
+    level = pedestal / (math.pi * settings.laser_linewidth_hz) * bin_hz / max(math.exp(-a), 1e-300)
+    return 10.0 * math.log10(min(level, 1.0)) if level > 0 else -math.inf
+
+
+def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings,
+                   bin_hz: float | None = None) -> list[TargetPoint]:
     """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
 
     - A candidate without a finite range, speed and sigmas is no measurement: never reported.
@@ -363,7 +388,10 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
 
     - A "moving target" whose line phases are random at high SNR is the wings of the static
       lines (a laser incoherent at the echo's delay), not a target: dropped when a static
-      target is there.
+      target is there -- unless the declared laser's wings (:func:`wings_level_db` in a record bin
+      of ``bin_hz``) stay :data:`WINGS_MARGIN_DB` below its lines (issue 12 case 3: a mover 6 dB
+      above the static target, 100 kHz laser, whose blended lines miss one range by 0.26 rad; the
+      wings there lie 70 dB below the static lines in a 5 kHz bin).
     - The static candidate of a frame with moving targets is often their own self-beat
       (``|E_echo|^2`` has no Doppler): at a mover's range, or far weaker than the movers' LO
       beats (a self-beat is ``sqrt(P_echo/P_lo)`` below them), it is not a second target.
@@ -374,10 +402,12 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     # no Doppler line where the carrier beat is no line: a "mover" there is the wings of the
     # static lines (a laser declared incoherent at that range; issue 12's quasi-CW target at 930 m)
     points = [(k, p) for k, p in points if k == 0 or carrier_coherence(settings, p.range_m) >= MIN_CARRIER_COHERENCE]
-    if any(k == 0 for k, _ in points):
-        points = [(k, p) for k, p in points if k == 0 or not (
-            p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0)]
     static = next((p for k, p in points if k == 0), None)
+    if static is not None:
+        wings = wings_level_db(settings, static, bin_hz)
+        points = [(k, p) for k, p in points if k == 0 or not (
+            p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0
+            and (wings is None or median_snr(p) - median_snr(static) < wings + WINGS_MARGIN_DB))]
     movers = [p for k, p in points if k > 0]
     if static is not None and movers:
         loudest = max(median_snr(m) for m in movers)
