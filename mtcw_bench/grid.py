@@ -37,6 +37,7 @@ import scipy
 import scipy.fft
 
 from mtcw_core.chain import STAGE_NAMES, get_profile, process_frame, run_stages
+from mtcw_core.dsp.spectrum import fft_backend_name
 from mtcw_core.evaluate import ErrorLog, range_bound
 from mtcw_core.frame import Frame
 from mtcw_core.phase import C
@@ -151,7 +152,7 @@ def reference_tasks(frame: Frame, settings) -> dict[str, Callable[[], object]]:
              "fft_volts": lambda: fft_x(x), "fft_raw": lambda: scipy.fft.rfft(raw)}
     if x64 is x:  # the volts are float64 already: one transform, timed once (its time serves both)
         del tasks["fft_volts"]
-    if not fft_backend().startswith("scipy default"):
+    if fft_backend_name() != "pocketfft":
         def pocketfft() -> object:
             with scipy.fft.set_backend("scipy", only=True):
                 return fft_x(x64)

@@ -302,15 +302,9 @@ class WorkerSettings(TransportSettings):
     @field_validator("fft_backend")
     @classmethod
     def _fft_backend(cls, v: str) -> str:
-        from mtcw_core.dsp.spectrum import FFT_BACKENDS
+        from mtcw_core.dsp.spectrum import fft_backend_module
 
-        if v not in FFT_BACKENDS:
-            raise ValueError(f"unknown FFT backend {v!r} (one of {', '.join(FFT_BACKENDS)})")
-        if v == "pyfftw":
-            try:
-                import pyfftw  # noqa: F401
-            except ImportError as err:
-                raise ValueError(f"pyfftw is not installed (pip install 'mtcw[fftw]'): {err}") from err
+        fft_backend_module(v)  # an unknown name, or pyfftw not installed: a ValueError naming fft_backend
         return v
 
     @field_validator("profile")

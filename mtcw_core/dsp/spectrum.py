@@ -45,22 +45,40 @@ def use_fft_backend(name: str) -> str:
     """
     global _fft_backend
     before = _fft_backend
-    if name not in FFT_BACKENDS:
-        raise ValueError(f"fft_backend={name!r}: one of {', '.join(FFT_BACKENDS)}")
+    backend = fft_backend_module(name)
     if name == "pyfftw":
-        try:
-            import pyfftw
-            import pyfftw.interfaces.scipy_fft as fftw_scipy
-        except ImportError as err:
-            raise ValueError(f"fft_backend='pyfftw' needs pyFFTW (pip install 'mtcw[fftw]'): {err}") from err
+        import pyfftw
+
         pyfftw.interfaces.cache.enable()
         pyfftw.interfaces.cache.set_keepalive_time(60.0)
         pyfftw.config.PLANNER_EFFORT = "FFTW_ESTIMATE"
-        scipy.fft.set_global_backend(fftw_scipy)
-    else:
-        scipy.fft.set_global_backend("scipy")
+    scipy.fft.set_global_backend(backend)
     _fft_backend = name
     return before
+
+
+def fft_backend_module(name: str):
+    """What ``scipy.fft.set_global_backend`` takes for the backend ``name``: ``"scipy"``, or
+    pyFFTW's ``scipy_fft`` interface (imported here). The check a setting makes at start-up.
+
+    Raises
+    ------
+    ValueError naming ``fft_backend`` for an unknown name, or for ``pyfftw`` when pyFFTW is not installed
+    """
+    if name not in FFT_BACKENDS:
+        raise ValueError(f"fft_backend={name!r}: one of {', '.join(FFT_BACKENDS)}")
+    if name == "pocketfft":
+        return "scipy"
+    try:
+        import pyfftw.interfaces.scipy_fft as fftw_scipy
+    except ImportError as err:
+        raise ValueError(f"fft_backend='pyfftw' needs pyFFTW (pip install 'mtcw[fftw]'): {err}") from err
+    return fftw_scipy
+
+
+def fft_backend_name() -> str:
+    """The name (one of :data:`FFT_BACKENDS`) of the backend in force."""
+    return _fft_backend
 
 
 def _aligned_empty(m: int, dtype) -> np.ndarray:
