@@ -20,7 +20,7 @@ import statistics
 import time
 
 from mtcw_core.chain import STAGE_NAMES, process_frame
-from mtcw_core.dsp.spectrum import FFT_BACKENDS, use_fft_backend
+from mtcw_core.dsp.spectrum import FFT_BACKENDS, fft_backend_module, use_fft_backend
 from mtcw_core.simulate import Simulator
 
 from .grid import _scene_variant
@@ -57,8 +57,7 @@ def installed(backends: list[str]) -> tuple[list[str], list[str]]:
     ok, missing = [], []
     for be in backends:
         try:
-            prev = use_fft_backend(be)
-            use_fft_backend(prev)
+            fft_backend_module(be)  # the check alone: nothing switched
             ok.append(be)
         except ValueError as err:
             missing.append(f"{be}: {err}")

@@ -23,13 +23,13 @@ def test_alternates_the_backends_and_leaves_the_default(capsys):
 def test_a_backend_not_installed_is_left_out_and_said(monkeypatch):
     import mtcw_bench.fftab as F
 
-    real = F.use_fft_backend
+    real = F.fft_backend_module
 
     def fake(name):
         if name == "pyfftw":
             raise ValueError("fft_backend='pyfftw' needs pyFFTW")
         return real(name)
 
-    monkeypatch.setattr(F, "use_fft_backend", fake)
+    monkeypatch.setattr(F, "fft_backend_module", fake)
     ok, missing = F.installed(["pocketfft", "pyfftw"])
     assert ok == ["pocketfft"] and missing == ["pyfftw: fft_backend='pyfftw' needs pyFFTW"]

@@ -281,7 +281,7 @@ def _score_candidates(spec: Spectrum, floor: np.ndarray, tones: np.ndarray, sign
             # the shifts step one bin, so a band's bins are consecutive (up, or down for a lower
             # line): read as a slice, not gathered (the same values, without the gather's cost)
             step = int(idx[1] - idx[0]) if idx.size > 1 else 1
-            if step in (1, -1) and int(idx[-1] - idx[0]) == step * (idx.size - 1) and np.all(np.diff(idx) == step):
+            if step in (1, -1) and np.all(np.diff(idx) == step):
                 lo = int(min(idx[0], idx[-1]))
                 p = spec.power[lo:lo + idx.size].astype(np.float64)[::step]
                 return p, p / floor[lo:lo + idx.size][::step]

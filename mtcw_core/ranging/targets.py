@@ -39,14 +39,18 @@ class Reference:
     tau0_s: float
 
 
+def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
+    """``|dtau|`` (s): the delay of an echo from ``range_m`` relative to the LO, ``|2*L - d_LO|/c``."""
+    return abs(2 * range_m - settings.lo_path_difference_m) / C
+
+
 def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
     """The part of the LO x echo carrier beat that stays one line, ``exp(-2*pi*linewidth*|dtau|)``.
 
     ``dtau = (2*L - d_LO)/c`` is the echo's delay relative to the LO (Lorentzian laser, delay much
     shorter than the record); 1 for an ideal laser or one declared coherent (linewidth 0).
     """
-    dtau = abs(2 * range_m - settings.lo_path_difference_m) / C
-    return math.exp(-2 * math.pi * settings.laser_linewidth_hz * dtau)
+    return math.exp(-2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, range_m))
 
 
 
@@ -67,8 +71,7 @@ def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
     ``2*pi*linewidth*dtau^2`` for ``f << 1/dtau`` (its integral is the familiar
     ``2*pi*linewidth*dtau``). 0 for a laser declared coherent (linewidth 0).
     """
-    dtau = abs(2 * range_m - settings.lo_path_difference_m) / C
-    return 2 * math.pi * settings.laser_linewidth_hz * dtau**2
+    return 2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, range_m) ** 2
 
 
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
@@ -371,7 +374,7 @@ def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float |
     for a coherent echo; a Lorentzian's ``1/(pi*linewidth)`` for an incoherent one)."""
     if settings.laser_linewidth_hz <= 0 or not bin_hz:
         return None
-    a = 2 * math.pi * settings.laser_linewidth_hz * abs(2 * static.range_m - settings.lo_path_difference_m) / C
+    a = 2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, static.range_m)
     pedestal = -math.expm1(-a) - a * math.exp(-a)  # 1 - exp(-a)*(1 + a), without cancellation at small a
     level = pedestal / (math.pi * settings.laser_linewidth_hz) * bin_hz / max(math.exp(-a), 1e-300)
     return 10.0 * math.log10(min(level, 1.0)) if level > 0 else -math.inf
