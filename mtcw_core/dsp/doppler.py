@@ -27,7 +27,7 @@ from ..phase import C
 from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
                        window_sum)
-from .tones import PartDFTs, _dirichlet, exact_dft, solve_lines
+from .tones import PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, solve_lines, solve_lines_many
 
 
 @dataclass(frozen=True)
@@ -1286,12 +1286,13 @@ LINE_FREQUENCY_SNR = 30.0
 
 
 @lru_cache(maxsize=4)
-def _window_and_slope(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The reassignment's Kaiser window over ``n`` samples and its derivative per sample (read-only)."""
+def _window_and_slope(n: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The reassignment's Kaiser window over ``n`` samples and its derivative per sample (read-only),
+    and the sums of the window and of the derivative's square."""
     w = cached_window(("kaiser", REASSIGN_BETA), n)
     dw = np.gradient(w)
     dw.setflags(write=False)
-    return w, dw
+    return w, dw, float(np.sum(w)), float(np.sum(dw**2))
 
 
 def _above_threshold(snr: np.ndarray) -> np.ndarray:
@@ -1337,14 +1338,17 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     use = _separable(freqs, freqs, near, REASSIGN_SEPARATION_BINS * fs / n, iq)
     if n < 256 or not use.any():
         return est
-    w, dw = _window_and_slope(n)
-    xm = x - x.mean()
-    xw, xd = xm * w, xm * dw
+    w, dw, sw, sdw2 = _window_and_slope(n)
+    # the record less its mean, windowed and weighted by the window's slope: two rows of one buffer,
+    # read together by each step's transform
+    rows = np.empty((2, n), dtype=np.result_type(x.dtype, np.float64))
+    np.subtract(x, x.mean(), out=rows[1])
+    np.multiply(rows[1], w, out=rows[0])
+    rows[1] *= dw
     s2 = spec.noise_variances(freqs[use], list(freqs[use]) + list(near))
     for step in range(REASSIGN_STEPS):
         freqs, slope = target_lines(frame.tones_hz, fd, iq)
-        zw = exact_dft(xw, freqs[use], fs)
-        zd = exact_dft(xd, freqs[use], fs)
+        zw, zd = exact_dft_parts(rows, freqs[use], fs)
         if not np.all(np.abs(zw) > 0):
             return est
         if step == 0:  # lines at the noise leave the estimate (the threshold effect)
@@ -1357,14 +1361,13 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
         if not math.isfinite(delta) or abs(fd + delta - est.fd_hz) > REASSIGN_SEPARATION_BINS * fs / n:
             return est  # walked off the line the search found
         fd += delta
-    sdw2 = float(np.sum(dw**2))
     var_line = (fs / (2 * np.pi)) ** 2 * s2 * sdw2 / (2 * wt)
     shift = modulation_doppler(frame.tones_hz, fd, iq, frame.wavelength_m)[use]
     combined, spread, lines_chi2, sign = _combine_lines(wt, slope[use], d_line, var_line, shift, iq)
     fd += combined - delta  # the last step's correction with the sidebands' own shift taken out
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
-    gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * float(np.sum(w)) ** 2)
+    gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * sw**2)
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
                    lines_chi2=lines_chi2, motion_sign=sign)
 
@@ -1421,22 +1424,29 @@ PEDESTAL_FACTOR = 2.0
 STATIC_COVER_Z = 5.0
 
 
-def _parabola_peak(fun, x0: float, h: float, lo: float, hi: float, steps: int) -> tuple[float, float]:
-    """The top of a smooth peak of ``fun`` near ``x0``: ``steps`` times, the vertex of the parabola
-    through ``fun`` at ``x - h, x, x + h`` (clipped to ``[lo, hi]``); returns it and the last
-    parabola's second derivative (``>= 0``: no peak there, the walk stops). The last step's
-    points are :data:`SMALL_FINAL_STEP_FRACTION` of ``h`` apart: a parabola's vertex through points
-    ``h`` about an asymmetric peak misses it by ~``h^2`` (0.02 bin: 4e-4 bin near 0 Hz, where the
-    line and its image make it asymmetric -- 15 sigma at 70 dB; 0.1 of it still 6 sigma at 110 dB)."""
-    x, curv = x0, 0.0
+def _parabola_peaks(fun, count: int, h: float, lo: float, hi: float, steps: int,
+                    x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The tops of ``count`` smooth peaks at once: ``steps`` times, each one's vertex of the parabola
+    through ``fun`` at ``x - h, x, x + h`` (clipped to ``[lo, hi]``); returns them and each one's last
+    parabola's second derivative (``>= 0``: no peak there, that one's walk stops). ``fun(idx, xs)``:
+    the values at ``xs`` (shape (len(idx), 3)) of the peaks ``idx``. The last step's points are
+    :data:`SMALL_FINAL_STEP_FRACTION` of ``h`` apart: a parabola's vertex through points ``h`` about
+    an asymmetric peak misses it by ~``h^2`` (0.02 bin: 4e-4 bin near 0 Hz, where the line and its
+    image make it asymmetric -- 15 sigma at 70 dB; 0.1 of it still 6 sigma at 110 dB)."""
+    x = np.zeros(count) if x0 is None else np.array(x0, dtype=np.float64)
+    curv, live = np.zeros(count), np.ones(count, dtype=bool)
     for k in range(steps):
         if k == steps - 1:
             h = h * SMALL_FINAL_STEP_FRACTION  # the vertex's bias grows as h^2 (an asymmetric peak)
-        f_lo, f_0, f_hi = fun(x - h), fun(x), fun(x + h)
-        curv = (f_hi - 2 * f_0 + f_lo) / h**2
-        if not curv < 0:
+        idx = np.flatnonzero(live)
+        if not idx.size:
             break
-        x = float(np.clip(x - (f_hi - f_lo) / (2 * h) / curv, lo, hi))
+        f = np.asarray(fun(idx, x[idx, None] + np.array([-h, 0.0, h])), dtype=np.float64)
+        c = (f[:, 2] - 2 * f[:, 1] + f[:, 0]) / h**2
+        curv[idx] = c
+        top = c < 0
+        x[idx[top]] = np.clip(x[idx[top]] - (f[top, 2] - f[top, 0]) / (2 * h) / c[top], lo, hi)
+        live[idx[~top]] = False
     return x, curv
 
 
@@ -1473,7 +1483,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     search bin past the guard; at its peak (a local maximum inside the band), every line of the
     mover -- baseband, ``f_i + f_d``, ``|f_i - f_d|`` -- fitted jointly with the static lines (``f_i``,
     the DC; ``+-f_i`` and 0 Hz for IQ), first all at one trial ``f_d`` (the joint energy's
-    maximum), then each line's own frequency with the others held (:func:`_parabola_peak`). Each
+    maximum), then each line's own frequency with the others held (:func:`_parabola_peaks`). Each
     line's error: the local floor -- the spectrum's wide ring, or the near one
     (:data:`SMALL_NEAR_HALF_WIDTH`) where a partly coherent carrier's pedestal lies -- times
     :data:`PEDESTAL_FACTOR`, over the fitted energy's curvature in that line's frequency (its
@@ -1594,17 +1604,19 @@ def _small_peak(fit: "_SmallFit", spec: Spectrum, fd0: float, lo: float, hi: flo
     """The joint energy's maximum within half a scan step of ``fd0`` (Hz, inside ``[lo, hi]`` in
     ``|f_d|``), and there: the fit's amplitudes ``c`` (held lines first), the mover's lines ``fm``
     (Hz), their exact DFTs ``dm``, the noise variance ``s2`` about each, each line's SNR, the beats
-    held (:meth:`_SmallFit.beats`), and the peak's shape: its curvature over a lone line's of the
-    energy the mover's lines add (0.81-1.02 at SNR >= 100 on 474 case-6-like fits, up to 1.55 a
-    bin or two from 0 Hz, where the line's image bends it; ~3 for a bump that two nearly collinear
-    fits make beside a held line, or a slope's edge: :data:`SMALL_SHAPE`)."""
+    held (lines and exact DFTs, :meth:`_SmallFit.beat_lines`), and the peak's shape: its curvature
+    over a lone line's of the energy the mover's lines add (0.81-1.02 at SNR >= 100 on 474
+    case-6-like fits, up to 1.55 a bin or two from 0 Hz, where the line's image bends it; ~3 for a
+    bump that two nearly collinear fits make beside a held line, or a slope's edge:
+    :data:`SMALL_SHAPE`)."""
     fs, n, iq = fit.fs, fit.x.size, fit.iq
     dfr = fs / n
     a_, b_ = abs(fd0) - 0.5 * SMALL_SCAN_STEP * dfr, abs(fd0) + 0.5 * SMALL_SCAN_STEP * dfr
     sgn = 1.0 if fd0 > 0 else -1.0
-    top, curv = _parabola_peak(lambda f: fit.energy(sgn * f), abs(fd0), SMALL_CURVATURE_STEP * dfr,
-                               max(a_, lo), min(b_, hi), 3)
-    fd = sgn * top
+    top, curv = _parabola_peaks(lambda _, xs: [[j[0] for j in fit.joints(sgn * xs[0])]], 1,
+                                SMALL_CURVATURE_STEP * dfr, max(a_, lo), min(b_, hi), 3, [abs(fd0)])
+    fd = sgn * float(top[0])
+    curv = float(curv[0])
     energy, c, fm, dm, beats = fit.joint(fd)
     # a line's own peak: the energy it adds falls off as sinc^2 about it, curvature -(2/3)(pi*N/fs)^2
     # times that energy
@@ -1909,34 +1921,45 @@ class _SmallFit:
             c = solve_lines(self.d_static, self.static, fs, x.size, self.total, iq)[1]
             self.other_amps = c[self.n_static::1 + 2 * tones.size][:len(self.others)]
 
-    def beats(self, fd: float) -> tuple[np.ndarray, np.ndarray]:
+    def beat_lines(self, fd: float) -> np.ndarray:
         """The lines (Hz) of a mover at ``fd`` beating with the movers already found
-        (:func:`cross_beats`; none but on one photodiode), and their exact DFTs."""
+        (:func:`cross_beats`; none but on one photodiode)."""
         fb = [target_lines(self.tones, abs(abs(fd) - abs(o)), self.iq)[0] for o in self.others
               if self.cross and cross_beats((fd, o), self.iq, self.fs / self.x.size)]
         base = np.concatenate([self.static, target_lines(self.tones, fd, self.iq)[0]])
-        fb = _add_apart(base, fb, 0.5 * self.fs / self.x.size)[base.size:]
-        if not fb.size:
-            return np.empty(0), np.empty(0, dtype=np.complex128)
-        return fb, exact_dft(self.x, fb, self.fs)
+        return _add_apart(base, fb, 0.5 * self.fs / self.x.size)[base.size:]
 
     def explained(self, fm: np.ndarray, dm: np.ndarray, beats: tuple[np.ndarray, np.ndarray] | None = None
                   ) -> tuple[float, np.ndarray]:
         """Energy explained by the static lines, ``fm`` (whose exact DFT is ``dm``) and ``beats``
-        (:meth:`beats`), and the amplitudes of the first two (the held lines', then ``fm``'s)."""
+        (lines and exact DFTs, :meth:`beat_lines`), and the amplitudes of the first two (the held
+        lines', then ``fm``'s)."""
         fb, db = beats if beats is not None else (np.empty(0), np.empty(0, dtype=np.complex128))
         e, c = solve_lines(np.concatenate([self.d_static, dm, db]), np.concatenate([self.static, fm, fb]), self.fs,
                            self.x.size, self.total, self.iq)
         return e, c[:c.size - fb.size]
 
-    def joint(self, fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        fm, _ = target_lines(self.tones, fd, self.iq)
-        dm = exact_dft(self.x, fm, self.fs)
-        beats = self.beats(fd)
-        return (*self.explained(fm, dm, beats), fm, dm, beats)
+    def joints(self, fds) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]]:
+        """At each trial Doppler (Hz): the energy explained, the amplitudes (:meth:`explained`), the
+        mover's lines and their exact DFTs, and its beats with the movers already found (lines,
+        DFTs); every trial's lines read in one pass over the record."""
+        sets = [(target_lines(self.tones, fd, self.iq)[0], self.beat_lines(fd)) for fd in fds]
+        d_all = exact_dft(self.x, np.concatenate([f for pair in sets for f in pair]), self.fs)
+        parts, at = [], 0
+        for fm, fb in sets:
+            parts.append((fm, d_all[at:at + fm.size], (fb, d_all[at + fm.size:at + fm.size + fb.size])))
+            at += fm.size + fb.size
+        if len(sets) == 1 or len({fm.size + fb.size for fm, fb in sets}) > 1:
+            return [(*self.explained(fm, dm, beats), fm, dm, beats) for fm, dm, beats in parts]
+        # every trial the same size: one batched solve
+        f = np.stack([np.concatenate([self.static, fm, fb]) for fm, _, (fb, _) in parts])
+        d = np.stack([np.concatenate([self.d_static, dm, db]) for _, dm, (_, db) in parts])
+        energy, c = solve_lines_many(d, f, self.fs, self.x.size, self.total, self.iq)
+        keep = self.static.size + sets[0][0].size
+        return [(float(e), ci[:keep], fm, dm, beats) for e, ci, (fm, dm, beats) in zip(energy, c, parts)]
 
-    def energy(self, fd: float) -> float:
-        return self.joint(fd)[0]
+    def joint(self, fd: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        return self.joints([fd])[0]
 
     @property
     def held_energy(self) -> float:
@@ -1972,26 +1995,30 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
                  snr: np.ndarray, beats: tuple[np.ndarray, np.ndarray] | None = None
                  ) -> tuple[float, float, float] | None:
     """Each line's own frequency, the others held (``beats``: the mover's beats with the movers
-    already found, :meth:`_SmallFit.beats`, among them), and the lines' combined Doppler correction
-    and error (Hz) and the lines' chi2 per dof (:func:`_combine_lines`); None when the baseband
-    line has no peak of its own."""
+    already found, :meth:`_SmallFit.beat_lines` with their exact DFTs, among them), and the lines'
+    combined Doppler correction and error (Hz) and the lines' chi2 per dof (:func:`_combine_lines`);
+    None when the baseband line has no peak of its own."""
     dfr = fit.fs / fit.x.size
-    h = SMALL_CURVATURE_STEP * dfr
     use = snr >= LINE_FREQUENCY_SNR
     use[0] = True
+    fb, db = beats if beats is not None else (np.empty(0), np.empty(0, dtype=np.complex128))
+    held_f, held_d = np.concatenate([fit.static, fm, fb]), np.concatenate([fit.d_static, dm, db])
+    lines = np.flatnonzero(use)
+
+    def gains(idx: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        # the energy line j adds at each offset, every other line held (one pass over the record
+        # for every line's three trials)
+        trial = fm[lines[idx], None] + offsets
+        d_trial = exact_dft(fit.x, trial.ravel(), fit.fs).reshape(trial.shape)
+        return line_gains(held_d, held_f, fit.fs, fit.x.size, fit.total, fit.iq, fit.static.size + lines[idx],
+                          trial, d_trial)
+
+    # the energy's curvature there (V^2/Hz^2) is the Fisher information of the line's frequency with
+    # every amplitude of the model free -- near 0 Hz, its image and the static line, less than an
+    # isolated line's
     d_line, curv = np.zeros(fm.size), np.zeros(fm.size)
-    for j in np.flatnonzero(use):
-
-        def energy(d: float, j: int = j) -> float:
-            f2, d2 = fm.copy(), dm.copy()
-            f2[j] += d
-            d2[j] = exact_dft(fit.x, f2[j:j + 1], fit.fs)[0]
-            return fit.explained(f2, d2, beats)[0]
-
-        # the energy's curvature there (V^2/Hz^2) is the Fisher information of the line's frequency
-        # with every amplitude of the model free -- near 0 Hz, its image and the static line, less
-        # than an isolated line's
-        d_line[j], curv[j] = _parabola_peak(energy, 0.0, h, -0.5 * dfr, 0.5 * dfr, 2)
+    d_line[lines], curv[lines] = _parabola_peaks(gains, lines.size, SMALL_CURVATURE_STEP * dfr, -0.5 * dfr,
+                                                 0.5 * dfr, 2)
     # a line whose energy has no peak near its frequency (a weak line's noise: no concave top, or
     # one beyond the half bin searched) tells nothing of it; without the baseband, no estimate
     use &= (curv < 0) & (np.abs(d_line) < 0.5 * dfr)
