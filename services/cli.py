@@ -304,7 +304,7 @@ def bench(
                                                "0: the libraries' own)"),
     fft_backend: str = typer.Option("pocketfft", help="FFT implementation of every transform, the rfft reference's "
                                     "too, as a worker's MTCW_FFT_BACKEND: pocketfft (scipy's) | pyfftw (FFTW; "
-                                    "pip install 'mtcw[fftw]')"),
+                                    "pip install 'mtcw\\[fftw]')"),
 ) -> None:
     """Measure the speed-accuracy trade: scenes x losses x profiles x methods, against the CRB,
     each cell timed against one rfft of its frame interleaved with the chain; stage breakdown and
@@ -724,7 +724,7 @@ def worker(
                                                       "sidebands' own Doppler shift decides its sign "
                                                       "[MTCW_SIDEBAND_DIRECTION; default off: unknown]"),
     fft_backend: Optional[str] = typer.Option(None, "--fft-backend", help="FFT implementation: pocketfft | pyfftw "
-                                              "(pip install 'mtcw[fftw]') [MTCW_FFT_BACKEND; default pocketfft]"),
+                                              "(pip install 'mtcw\\[fftw]') [MTCW_FFT_BACKEND; default pocketfft]"),
 ) -> None:
     """Worker: frames in, the chain (PB-MTCW by default), points out."""
     from mtcw_core.calibration import CalibrationError

@@ -167,3 +167,12 @@ def test_process_sideband_direction_says_which_way_one_photodiode_moves(tmp_path
         rows = list(csv.DictReader(open(tmp_path / "p.csv")))
         assert [row["direction"] for row in rows] == [want] * 2, rows
         assert all(float(row["velocity_mps"]) > 0 for row in rows)
+
+
+@pytest.mark.parametrize("command", ["bench", "worker"])
+def test_help_shows_the_fftw_extras_install_line(command):
+    """The FFT backend's help names the extra to install, ``mtcw[fftw]``: rich's markup would read a
+    bare ``[fftw]`` as a style tag and print ``pip install 'mtcw'``."""
+    r = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0
+    assert "mtcw[fftw]" in r.stdout
