@@ -801,10 +801,18 @@ class TestSmallDopplerSimulated:
             z.append((d.fd_hz - truth) / d.refine_error_hz)
         assert np.sqrt(np.mean(np.square(z))) < 1.3 and np.max(np.abs(z)) < 4, z
 
-    @staticmethod
-    def map_frame_speed_z(slice_, label, first_loss_db, seed, frame, profile="fast"):
+    @classmethod
+    def map_frame_speed_z(cls, slice_, label, first_loss_db, seed, frame, profile="fast"):
         """The speed z of every point of one frame of an honesty-map cell (its rung's first-target
         loss and its seed, from ``cells.json``), the laser declared as the map declares it."""
+        points = cls.map_frame_points(slice_, label, first_loss_db, seed, frame, profile)
+        assert points and all(p.speed_measured for p in points)
+        return [p.speed_z for p in points]
+
+    @staticmethod
+    def map_frame_points(slice_, label, first_loss_db, seed, frame, profile="fast", **settings):
+        """The judged points of one frame of an honesty-map cell (:meth:`map_frame_speed_z`), with
+        ``settings`` added to the profile's."""
         from mtcw_bench.honesty import MapSpec, map_configs, shifted
         from mtcw_core.chain import process_frame
         from mtcw_core.evaluate import judge_frame
@@ -813,11 +821,9 @@ class TestSmallDopplerSimulated:
         c = next(c for c in map_configs(MapSpec()) if c.slice == slice_ and c.label == label)
         sc = shifted(c.scene, first_loss_db - c.scene.targets[0].loss_db)
         st = get_profile(profile, laser_linewidth_hz=sc.laser.linewidth_hz,
-                         lo_path_difference_m=sc.paths.lo_path_difference_m)
+                         lo_path_difference_m=sc.paths.lo_path_difference_m, **settings)
         fr = list(Simulator(sc, seed).frames(frame + 1))[frame]
-        points = judge_frame(process_frame(fr, st), fr.truth).points
-        assert points and all(p.speed_measured for p in points)
-        return [p.speed_z for p in points]
+        return judge_frame(process_frame(fr, st), fr.truth).points
 
     def test_a_biased_baseband_line_beyond_the_unambiguous_range_stays_within_five_sigma(self):
         """The honesty map's six-tone mover at 0.45x the tone spacing (2^16, 20 dB rung, frame 12) in
@@ -828,9 +834,14 @@ class TestSmallDopplerSimulated:
         0.5) and z is 4.9. What is left out is physics the frame cannot see: the echo lies one
         period beyond the unambiguous range (16.5 m against 15 m), so the laser's phase noise over
         its delay is ~100x what the reported 1.5 m's delay gives. The point must stay within 5 sigma
-        (not confident wrong)."""
+        (not confident wrong); with ``range_max_m`` declared past the echo, the point is in the right
+        period, flagged ``cycle_ambiguous``, and its speed sigma, from that period's delay, covers the
+        error."""
         (z,) = self.map_frame_speed_z("six-tone", "N=2^16 v=0.45 spacing", 68.98300063327697, 513574295, 12)
         assert abs(z) < 5, z
+        (point,) = self.map_frame_points("six-tone", "N=2^16 v=0.45 spacing", 68.98300063327697, 513574295, 12,
+                                         range_max_m=30.0)
+        assert point.flagged and abs(point.range_z) < 3 and abs(point.speed_z) < 2, point
 
     def test_pedestal_factor_stays_beside_another_mover(self):
         """The honesty map's two movers (IQ, 2^16, 100 kHz laser declared, 20 dB rung, frame 13) in
