@@ -233,30 +233,16 @@ def _guard_bins(spec: Spectrum, tones_hz, min_bins: int, width: float | None = N
     return max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
 
 
-#: a Doppler line's width (:func:`_line_wander`) is read over this many search bins either side of it
-WANDER_HALF_SPAN = 16
-
-
 def _line_wander(spec: Spectrum, tones_hz, fd: float) -> float:
     """The Doppler line's own wander (Hz) from the width of its lines (baseband, f_i +- f_d).
 
     A Lorentzian's equivalent width is pi/2 FWHM on top of the window's ~2.3 bins; a coherent
-    line measures 2.3-3 bins (scalloping), so only wider lines count. A line whose window
-    (:data:`WANDER_HALF_SPAN` bins, and 2 more for a static line's main lobe) reaches a static line
-    (a tone, 0 Hz) is not read: the window's strongest line is then the static one, whose width is
-    not the Doppler line's (a mover 6 bins from its tones at 2^16, 100 kHz laser, read a 36 kHz
-    wander, 100x its error); with none left, no wander is read -- a line that close to the static
-    ones is narrow, or the search's guard (:func:`_guard_bins`) would have kept it out.
+    line measures 2.3-3 bins (scalloping), so only wider lines count.
     """
     t = np.asarray(tones_hz, float)
     centres = np.concatenate([[fd], fd + t, fd - t]) if spec.complex_input else np.abs(
         np.concatenate([[fd], t + fd, t - fd]))
-    static = np.concatenate([[0.0], t, -t]) if spec.complex_input else np.concatenate([[0.0], t])
-    clear = (WANDER_HALF_SPAN + 2) * spec.df_hz
-    centres = [float(c) for c in centres if np.min(np.abs(static - c)) > clear]
-    if not centres:
-        return 0.0
-    wd = widths_at(spec, centres, half_span=WANDER_HALF_SPAN)
+    wd = widths_at(spec, [float(c) for c in centres], half_span=16)
     fwhm_hz = (wd - 2.3) * spec.df_hz * 2 / math.pi if wd > 3.2 else 0.0
     return math.sqrt(fwhm_hz * spec.df_hz / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # over T ~ 1/df
 
