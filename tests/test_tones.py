@@ -313,6 +313,23 @@ def test_solve_lines_many_is_solve_lines_per_set(iq):
         np.testing.assert_allclose(c[b], c1, rtol=1e-9)
 
 
+
+@pytest.mark.parametrize("iq", [False, True])
+def test_lines_signal_is_the_fit_models_record(iq):
+    """The record of known lines (chunked, phases from the integer index) against the model's sum
+    written out, and fitted back to its amplitudes."""
+    from mtcw_core.dsp.tones import lines_signal
+
+    n, fs = 100_003, 1e6
+    f = np.array([1234.5, 250e3, 251.7e3]) * (np.array([1, -1, 1]) if iq else 1)
+    amps = np.array([1 + 2j, 0.3 - 0.1j, -0.5j])
+    x = lines_signal(amps, f, fs, n, iq, chunk=4096)
+    k = np.arange(n) - (n - 1) / 2
+    want = (amps[None, :] * np.exp(2j * np.pi * np.outer(k, f) / fs)).sum(axis=1)
+    np.testing.assert_allclose(x, want if iq else want.real, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fit_lines(x, f, fs), amps, rtol=0, atol=1e-10)
+
+
 def test_cached_tables_serve_repeated_frequencies_only():
     """A second transform at the same frequencies (a stream's static lines) reuses the tables and
     gives the same numbers; other frequencies get their own (checked against the direct sum)."""

@@ -27,7 +27,8 @@ from ..phase import C
 from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
                        window_sum)
-from .tones import PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, solve_lines, solve_lines_many
+from .tones import (PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, lines_signal, solve_lines,
+                    solve_lines_many)
 
 
 @dataclass(frozen=True)
@@ -233,16 +234,30 @@ def _guard_bins(spec: Spectrum, tones_hz, min_bins: int, width: float | None = N
     return max(min_bins, int(math.ceil(w + 2 if w < 4 else 4 * w)))
 
 
+#: a Doppler line's width (:func:`_line_wander`) is read over this many search bins either side of it
+WANDER_HALF_SPAN = 16
+
+
 def _line_wander(spec: Spectrum, tones_hz, fd: float) -> float:
     """The Doppler line's own wander (Hz) from the width of its lines (baseband, f_i +- f_d).
 
     A Lorentzian's equivalent width is pi/2 FWHM on top of the window's ~2.3 bins; a coherent
-    line measures 2.3-3 bins (scalloping), so only wider lines count.
+    line measures 2.3-3 bins (scalloping), so only wider lines count. A line whose window
+    (:data:`WANDER_HALF_SPAN` bins, and 2 more for a static line's main lobe) reaches a static line
+    (a tone, 0 Hz) is not read: the window's strongest line is then the static one, whose width is
+    not the Doppler line's (a mover 6 bins from its tones at 2^16, 100 kHz laser, read a 36 kHz
+    wander, 100x its error); with none left, no wander is read -- a line that close to the static
+    ones is narrow, or the search's guard (:func:`_guard_bins`) would have kept it out.
     """
     t = np.asarray(tones_hz, float)
     centres = np.concatenate([[fd], fd + t, fd - t]) if spec.complex_input else np.abs(
         np.concatenate([[fd], t + fd, t - fd]))
-    wd = widths_at(spec, [float(c) for c in centres], half_span=16)
+    static = np.concatenate([[0.0], t, -t]) if spec.complex_input else np.concatenate([[0.0], t])
+    clear = (WANDER_HALF_SPAN + 2) * spec.df_hz
+    centres = [float(c) for c in centres if np.min(np.abs(static - c)) > clear]
+    if not centres:
+        return 0.0
+    wd = widths_at(spec, centres, half_span=WANDER_HALF_SPAN)
     fwhm_hz = (wd - 2.3) * spec.df_hz * 2 / math.pi if wd > 3.2 else 0.0
     return math.sqrt(fwhm_hz * spec.df_hz / (2 * math.pi)) if fwhm_hz > 0 else 0.0  # over T ~ 1/df
 
@@ -1187,14 +1202,7 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
     iq = np.iscomplexobj(x)
     main_refined = ests
     if ests[0].detected and not (settings.doppler_refine == "parabolic" or (gated and settings.doppler_refine == "phase")):
-        others = [e.fd_hz for e in ests]
-        if settings.doppler_refine == "phase":
-            out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
-        else:
-            out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
-        main_refined = [replace(new, method="phase") if new is not old else
-                        (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
-                        for new, old in zip(out, ests)]
+        main_refined = _refine_found(x, frame, ests, iq, [e.fd_hz for e in ests], spec, settings)
     small: list[DopplerEstimate] = []
     if not gated and settings.doppler_refine != "parabolic":
         # below the guard, on the whole record: a mover there, alone or beside those found beyond it
@@ -1232,6 +1240,8 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             main_refined, small = _neighbour_beats(beats, main_refined, small)
         if len(small) > 1 or (small and main):
             small = remeasure_small(x, frame, spec, small, *band, held=main)
+        if small and main:
+            main_refined = _refine_beside_small(x, frame, ests, main_refined, small, iq, spec, settings)
         small.sort(key=lambda d: -d.score)
         if beats is not None:
             # the search's own check saw its movers only: with those found below the guard too
@@ -1241,6 +1251,59 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             return small or [replace(ests[0], min_detectable_hz=small_doppler_floor_hz(
                 spec, frame.tones_hz, guard, frame.fs_hz, x.size, width))]
     return main_refined + small if ests[0].detected else ests
+
+
+def _refine_found(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], iq: bool, others: list[float],
+                  spec: Spectrum, settings: ChainSettings) -> list[DopplerEstimate]:
+    """The search's movers refined (:func:`refine_by_phase` or :func:`refine_exact`, by the profile;
+    where no line is separable there, :func:`refine_reassigned`), ``others`` (Hz) the Doppler lines
+    of every mover the search found, whose lines each refinement keeps out."""
+    if settings.doppler_refine == "phase":
+        out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
+    else:
+        out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
+    return [replace(new, method="phase") if new is not old else
+            (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
+            for new, old in zip(out, ests)]
+
+
+#: a mover found beyond the search's guard is refined again without the lines of those found below
+#: it (:func:`_refine_beside_small`) where one of them lies within this many record bins of it: the
+#: quarters' main lobe is 4 x 4.6 bins wide, the reassignment's 4.6
+CLEAN_NEIGHBOUR_BINS = 20.0
+
+
+def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], refined: list[DopplerEstimate],
+                         small: list[DopplerEstimate], iq: bool, spec: Spectrum, settings: ChainSettings
+                         ) -> list[DopplerEstimate]:
+    """The movers beyond the guard (``refined``, from ``ests``) refined again on the record without
+    the lines of the movers found below it (``small``), where one of those lies within
+    :data:`CLEAN_NEIGHBOUR_BINS` of it.
+
+    They were refined before the movers below the guard were known, and those movers' lines leaked
+    in (issue 12 case 6 in IQ: 20 and 65 kHz, 4.5 record bins apart at ~90 dB, the 65 kHz mover's
+    reassignment 0.48 Hz off against a stated 0.009 Hz). Keeping those lines out leaves none to
+    refine on; taking them out of the record does not: every mover's lines, the static lines and
+    the movers' beats are fitted together on the whole record (:class:`_SmallFit`), and the lines
+    of the movers below the guard are subtracted (:func:`~.tones.lines_signal`) before the
+    refinement runs again. Each refined estimate keeps the flags the others' stages gave it.
+    """
+    fs, n = frame.fs_hz, x.size
+    near = {i for i, m in enumerate(refined) if m.detected
+            and any(abs(abs(m.fd_hz) - abs(d.fd_hz)) < CLEAN_NEIGHBOUR_BINS * fs / n for d in small)}
+    if not near:
+        return refined
+    tones = np.asarray(frame.tones_hz, float)
+    main = tuple(m.fd_hz for m in refined if m.detected)
+    fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
+    c = solve_lines(fit.d_static, fit.static, fs, n, fit.total, iq)[1]
+    per = target_lines(tones, 0.0, iq)[0].size
+    take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
+    clean = x - lines_signal(c[take], fit.static[take], fs, n, iq)
+    again = _refine_found(clean, frame, ests, iq, [e.fd_hz for e in ests], spec, settings)
+    return [replace(m, fd_hz=a.fd_hz, refine_error_hz=a.refine_error_hz, method=a.method,
+                    shared_phase_gain=a.shared_phase_gain, lines_chi2=a.lines_chi2, motion_sign=a.motion_sign)
+            if i in near else m for i, (m, a) in enumerate(zip(refined, again))]
 
 
 #: a mover's line has no phase-noise pedestal about it where its near floor is within this factor of

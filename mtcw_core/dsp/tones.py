@@ -499,6 +499,33 @@ def line_gains(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, tota
     return cos_gain + sin_gain
 
 
+
+def lines_signal(amps: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, iq: bool,
+                 chunk: int = 1 << 16) -> np.ndarray:
+    """The record of :func:`fit_lines`' model without its DC: ``sum_l Re(c_l * exp(j*w_l*(k - (N-1)/2)))``
+    (complex, without ``Re``, for IQ), built ``chunk`` samples at a time (a line's phasors over a
+    1e6-sample record would be 16 MB each), every phase from the integer index modulo one cycle.
+
+    Parameters
+    ----------
+    amps : ndarray, shape (K,), complex (V, phase at the record's centre)
+    freqs_hz : ndarray, shape (K,), Hz
+
+    Returns
+    -------
+    ndarray, shape (n,), float64 (complex128 for IQ), V
+    """
+    r = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64)) / fs_hz
+    amps = np.atleast_1d(np.asarray(amps, dtype=np.complex128))
+    out = np.empty(n, dtype=np.complex128 if iq else np.float64)
+    c = (n - 1) / 2.0
+    for start in range(0, n, chunk):
+        count = min(chunk, n - start)
+        z = np.conj(phasors(start - c, count, r)) @ amps  # (count,)
+        out[start:start + count] = z if iq else z.real
+    return out
+
+
 def centre_turn(parts: int, length: int, n: int, freqs_hz, fs_hz: float) -> np.ndarray:
     """``exp(-2j*pi*f*(s*L + (L-1)/2 - (N-1)/2)/fs)``: what turns a phase about part ``s``'s centre
     (``parts`` consecutive parts of ``length`` samples) into one about the record's, cycles from
