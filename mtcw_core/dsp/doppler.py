@@ -1278,9 +1278,9 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
                          ) -> list[DopplerEstimate]:
     """The movers beyond the guard (``refined``, from ``ests``) refined again on the record without
     the lines of the movers found below it (``small``), where one of those lies within
-    :data:`CLEAN_NEIGHBOUR_BINS` of it (and further than :data:`WRAP_SIGMAS` of its own error; neither
-    a blend the search could not resolve: the mover below the guard may then be that one itself,
-    and taking it out left a 2^16 ``fast`` mover at 0.45x the tone spacing 15 sigmas off).
+    :data:`CLEAN_NEIGHBOUR_BINS` of it and further than :data:`WRAP_SIGMAS` of its own error (closer,
+    the mover below the guard may be that one itself: taken out, it left a 2^16 ``fast`` mover at
+    0.45x the tone spacing 15 sigmas off).
 
     They were refined before the movers below the guard were known, and those movers' lines leaked
     in (issue 12 case 6 in IQ: 20 and 65 kHz, 4.5 record bins apart at ~90 dB, the 65 kHz mover's
@@ -1293,11 +1293,10 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
     fs, n = frame.fs_hz, x.size
 
     def beside(m: DopplerEstimate, d: DopplerEstimate) -> bool:
-        # another mover: neither a blend the search could not resolve, nor within the refined one's
-        # own error (a first step known to a cycle: the mover below the guard is then that mover)
+        # another mover, not within the refined one's own error (a first step known to a cycle: the
+        # mover below the guard is then that mover)
         gap = abs(abs(m.fd_hz) - abs(d.fd_hz))
-        return (not (m.unresolved or d.unresolved) and gap < CLEAN_NEIGHBOUR_BINS * fs / n
-                and gap > WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz))
+        return WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz) < gap < CLEAN_NEIGHBOUR_BINS * fs / n
 
     near = {i for i, m in enumerate(refined) if m.detected and any(beside(m, d) for d in small)}
     if not near:
