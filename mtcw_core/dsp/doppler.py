@@ -1294,9 +1294,11 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
 
     def beside(m: DopplerEstimate, d: DopplerEstimate) -> bool:
         # another mover, not within the refined one's own error (a first step known to a cycle: the
-        # mover below the guard is then that mover)
+        # mover below the guard is then that mover), nor so close that the joint fit cannot tell
+        # their lines apart (the sub-guard scan's own keep-out)
         gap = abs(abs(m.fd_hz) - abs(d.fd_hz))
-        return WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz) < gap < CLEAN_NEIGHBOUR_BINS * fs / n
+        return (max(WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz), SMALL_OTHER_BINS * fs / n) < gap
+                < CLEAN_NEIGHBOUR_BINS * fs / n)
 
     near = {i for i, m in enumerate(refined) if m.detected and any(beside(m, d) for d in small)}
     if not near:
