@@ -1216,3 +1216,20 @@ def test_sub_guard_lines_own_frequencies_match_the_fit_differenced(iq):
     _, slope = target_lines(tones, fd, iq)
     want = _combine_lines(np.abs(cm) ** 2, slope, d_line, var)[:3]
     np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_refine_beside_small_leaves_movers_whose_lines_coincide():
+    """Two movers whose sidebands fall on one frequency (10 MHz + 1.45 MHz = 13 MHz - 1.55 MHz) have
+    no joint fit to take one out of the record: the refined mover is returned as it was."""
+    from mtcw_core.dsp.doppler import _refine_beside_small
+    from mtcw_core.frame import Frame
+    from mtcw_core.profiles import get_profile
+
+    n, fs = 2**14, 163.84e6
+    tones = (10e6, 13e6)
+    x = np.random.default_rng(0).standard_normal(n)
+    frame = Frame(samples=x[None, :], fs_hz=fs, tones_hz=tones, wavelength_m=1.55e-6)
+    main = DopplerEstimate(1.55e6, True, 50.0, 10.0, 0.0, refine_error_hz=1.0)
+    small = [DopplerEstimate(1.45e6, True, 50.0, 10.0, 0.0, refine_error_hz=1.0, method="fit")]
+    spec = power_spectrum(x, fs)
+    assert _refine_beside_small(x, frame, [main], [main], small, False, spec, get_profile("balanced")) == [main]

@@ -1305,8 +1305,16 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
         return refined
     tones = np.asarray(frame.tones_hz, float)
     main = tuple(m.fd_hz for m in refined if m.detected)
-    fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
-    c = solve_lines(fit.d_static, fit.static, fs, n, fit.total, iq)[1]
+    lines = np.concatenate([target_lines(tones, f, iq)[0] for f in main + tuple(d.fd_hz for d in small)])
+    held = np.concatenate([np.concatenate([[0.0], tones, -tones]) if iq else tones, lines])
+    gaps = np.abs(held[:, None] - held[None, :]) + np.eye(held.size) * fs
+    if gaps.min() < 0.5 * fs / n:
+        return refined  # two lines on one frequency (a sideband of one on another's): no joint fit
+    try:
+        fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
+        c = solve_lines(fit.d_static, fit.static, fs, n, fit.total, iq)[1]
+    except np.linalg.LinAlgError:
+        return refined
     per = target_lines(tones, 0.0, iq)[0].size
     take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
     clean = x - lines_signal(c[take], fit.static[take], fs, n, iq)
