@@ -1312,16 +1312,17 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
         return refined  # two lines on one frequency (a sideband of one on another's): no joint fit
     try:
         fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
-        c = solve_lines(fit.d_static, fit.static, fs, n, fit.total, iq)[1]
     except np.linalg.LinAlgError:
         return refined
     per = target_lines(tones, 0.0, iq)[0].size
     take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
-    clean = x - lines_signal(c[take], fit.static[take], fs, n, iq)
-    again = _refine_found(clean, frame, ests, iq, [e.fd_hz for e in ests], spec, settings)
-    return [replace(m, fd_hz=a.fd_hz, refine_error_hz=a.refine_error_hz, method=a.method,
-                    shared_phase_gain=a.shared_phase_gain, lines_chi2=a.lines_chi2, motion_sign=a.motion_sign)
-            if i in near else m for i, (m, a) in enumerate(zip(refined, again))]
+    clean = x - lines_signal(fit.held_amps[take], fit.static[take], fs, n, iq)
+    order = sorted(near)
+    again = dict(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq, [e.fd_hz for e in ests],
+                                          spec, settings)))
+    return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
+                    shared_phase_gain=again[i].shared_phase_gain, lines_chi2=again[i].lines_chi2,
+                    motion_sign=again[i].motion_sign) if i in again else m for i, m in enumerate(refined)]
 
 
 #: a mover's line has no phase-noise pedestal about it where its near floor is within this factor of
@@ -1998,9 +1999,11 @@ class _SmallFit:
         # the baseband amplitudes (V, at the record's centre) of the movers already found, fitted with
         # the static lines and all their lines, shape (len(others),)
         self.other_amps = np.empty(0, dtype=np.complex128)
+        #: every held line's amplitude (V, at the record's centre), fitted together, shape (len(static),)
+        self.held_amps = np.empty(0, dtype=np.complex128)
         if self.others:
-            c = solve_lines(self.d_static, self.static, fs, x.size, self.total, iq)[1]
-            self.other_amps = c[self.n_static::1 + 2 * tones.size][:len(self.others)]
+            self.held_amps = solve_lines(self.d_static, self.static, fs, x.size, self.total, iq)[1]
+            self.other_amps = self.held_amps[self.n_static::1 + 2 * tones.size][:len(self.others)]
 
     def beat_lines(self, fd: float) -> np.ndarray:
         """The lines (Hz) of a mover at ``fd`` beating with the movers already found

@@ -449,9 +449,9 @@ def _schur_gains(gram: np.ndarray, proj: np.ndarray, moved: np.ndarray, kernel: 
     ignored), ``diag`` (J, P) its own, ``trial_proj`` (J, P) its projection; returns (J, P), real.
     """
     k = gram.shape[0]
-    keep = np.array([np.delete(np.arange(k), j) for j in moved], dtype=np.intp).reshape(len(moved), k - 1)
     if k == 1:
         return np.abs(trial_proj) ** 2 / diag
+    keep = np.array([np.delete(np.arange(k), j) for j in moved], dtype=np.intp).reshape(len(moved), k - 1)
     g_rest = gram[keep[:, :, None], keep[:, None, :]]  # (J, K-1, K-1)
     kr = np.take_along_axis(kernel, keep[:, None, :], axis=2)  # (J, P, K-1)
     sol = np.linalg.solve(g_rest, np.concatenate([proj[keep][:, :, None], kr.transpose(0, 2, 1)], axis=2))
@@ -497,7 +497,6 @@ def line_gains(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, tota
                             trial_dft.real)
     sin_gain = _schur_gains(gs, -dft.imag, moved, 0.5 * (dm - dp)[:, :, 1:], 0.5 * (n - d2), -trial_dft.imag)
     return cos_gain + sin_gain
-
 
 
 def lines_signal(amps: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, iq: bool,
