@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -222,6 +222,15 @@ def _near(x: np.ndarray, marks: np.ndarray, tol: float) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------
 # the search
+def _static_lines(tones: np.ndarray, iq: bool, dc: bool = True) -> np.ndarray:
+    """The static lines (Hz) of a record: 0 Hz and the tones, ``+-f_i`` for IQ; ``dc=False`` leaves
+    a real record's 0 Hz out (a fit that holds it as its own column)."""
+    t = np.asarray(tones, dtype=float)
+    if iq:
+        return np.concatenate([[0.0], t, -t])
+    return np.concatenate([[0.0], t]) if dc else t.copy()
+
+
 def _guard_bins(spec: Spectrum, tones_hz, min_bins: int, width: float | None = None) -> int:
     """How far (bins) a Doppler line must lie from the static lines to be told from their skirts.
 
@@ -252,7 +261,7 @@ def _line_wander(spec: Spectrum, tones_hz, fd: float) -> float:
     t = np.asarray(tones_hz, float)
     centres = np.concatenate([[fd], fd + t, fd - t]) if spec.complex_input else np.abs(
         np.concatenate([[fd], t + fd, t - fd]))
-    static = np.concatenate([[0.0], t, -t]) if spec.complex_input else np.concatenate([[0.0], t])
+    static = _static_lines(t, spec.complex_input)
     clear = (WANDER_HALF_SPAN + 2) * spec.df_hz
     centres = [float(c) for c in centres if np.min(np.abs(static - c)) > clear]
     if not centres:
@@ -591,7 +600,7 @@ def search_bmax(spec: Spectrum, fd_max_hz: float) -> int:
 def search_floor(spec: Spectrum, tones: np.ndarray, bmax: int) -> np.ndarray:
     """The local noise floor (:func:`~.spectrum.local_floor`) where the search looks: about 0 Hz
     and about every tone (+-f_i for IQ), +-``bmax`` bins; NaN elsewhere. Shape of ``spec.power``."""
-    centres = np.concatenate([[0.0], tones, -tones]) if spec.complex_input else np.concatenate([[0.0], tones])
+    centres = _static_lines(tones, spec.complex_input)
     around = [(int(b) - bmax - 2, int(b) + bmax + 3) for b in spec.bin_of(centres)]
     return local_floor(spec.power, mirror_dc=not spec.complex_input, ranges=around)
 
@@ -1305,18 +1314,17 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
         return refined
     tones = np.asarray(frame.tones_hz, float)
     main = tuple(m.fd_hz for m in refined if m.detected)
-    lines = np.concatenate([target_lines(tones, f, iq)[0] for f in main + tuple(d.fd_hz for d in small)])
-    held = np.concatenate([np.concatenate([[0.0], tones, -tones]) if iq else tones, lines])
-    gaps = np.abs(held[:, None] - held[None, :]) + np.eye(held.size) * fs
+    fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
+    gaps = np.abs(fit.static[:, None] - fit.static[None, :]) + np.eye(fit.static.size) * fs
     if gaps.min() < 0.5 * fs / n:
         return refined  # two lines on one frequency (a sideband of one on another's): no joint fit
     try:
-        fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
+        amps = fit.held_amps
     except np.linalg.LinAlgError:
         return refined
     per = target_lines(tones, 0.0, iq)[0].size
     take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
-    clean = x - lines_signal(fit.held_amps[take], fit.static[take], fs, n, iq)
+    clean = x - lines_signal(amps[take], fit.static[take], fs, n, iq)
     order = sorted(near)
     again = dict(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq, [e.fd_hz for e in ests],
                                           spec, settings)))
@@ -1911,7 +1919,7 @@ def _small_worth_fitting(low: LowBand, spec: Spectrum, fd: float, tones: np.ndar
     wide and the near ring's (beside a mover, its phase-noise pedestal): so 6 dB leaves every line
     the fit would keep. The joint fit (tens of passes
     over the record) then runs only on a real line."""
-    static = np.concatenate([[0.0], tones, -tones]) if iq else np.concatenate([[0.0], tones])
+    static = _static_lines(tones, iq)
     f_abs = [fd if iq else abs(fd)]
     s2 = float(_small_floor(spec, f_abs, static)[0])
     if not s2 > 0:
@@ -1989,21 +1997,27 @@ class _SmallFit:
         # is singular
         self.cross = (not iq) if cross is None else bool(cross) and not iq
         self.total = 0.0 if iq else float(np.sum(x))
-        static = np.concatenate([[0.0], tones, -tones]) if iq else tones.copy()
+        static = _static_lines(tones, iq, dc=False)
         self.n_static = static.size
         self.other_base = np.array([o if iq else abs(o) for o in self.others], dtype=float)
         held = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
         crossed = cross_beats(self.others, iq, fs / x.size) if self.cross else []
         self.static = _add_apart(held, [target_lines(tones, b, iq)[0] for b in crossed], 0.5 * fs / x.size)
         self.d_static = exact_dft(x, self.static, fs)
-        # the baseband amplitudes (V, at the record's centre) of the movers already found, fitted with
-        # the static lines and all their lines, shape (len(others),)
-        self.other_amps = np.empty(0, dtype=np.complex128)
-        #: every held line's amplitude (V, at the record's centre), fitted together, shape (len(static),)
-        self.held_amps = np.empty(0, dtype=np.complex128)
-        if self.others:
-            self.held_amps = solve_lines(self.d_static, self.static, fs, x.size, self.total, iq)[1]
-            self.other_amps = self.held_amps[self.n_static::1 + 2 * tones.size][:len(self.others)]
+
+    @cached_property
+    def held_amps(self) -> np.ndarray:
+        """Every held line's amplitude (V, at the record's centre), fitted together; shape
+        (len(static),), empty with no mover held."""
+        if not self.others:
+            return np.empty(0, dtype=np.complex128)
+        return solve_lines(self.d_static, self.static, self.fs, self.x.size, self.total, self.iq)[1]
+
+    @property
+    def other_amps(self) -> np.ndarray:
+        """The baseband amplitudes (V, at the record's centre) of the movers already found, fitted
+        with the static lines and all their lines, shape (len(others),)."""
+        return self.held_amps[self.n_static::1 + 2 * self.tones.size][:len(self.others)]
 
     def beat_lines(self, fd: float) -> np.ndarray:
         """The lines (Hz) of a mover at ``fd`` beating with the movers already found
