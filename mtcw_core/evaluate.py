@@ -234,7 +234,9 @@ class PointVerdict:
     m/s; z-scores are error over the point's own sigma. ``speed_measured`` is False for a point
     that reports ``static`` (speed 0 with the smallest detectable speed as its sigma) and for one
     whose speed could not be measured (``unknown``, 0 with the search's largest speed as its sigma:
-    :func:`speed_measured`).
+    :attr:`~mtcw_core.results.TargetPoint.speed_measured`). ``rate_error_mps``/``rate_z``: the
+    point's range rate over frames (:mod:`mtcw_core.ranging.track`) against the truth's velocity
+    (positive receding), None where the point carries none.
     """
 
     truth_index: int | None
@@ -244,16 +246,18 @@ class PointVerdict:
     speed_z: float | None
     speed_measured: bool
     flags: tuple[str, ...]
+    rate_error_mps: float | None = None
+    rate_z: float | None = None
 
     @property
     def flagged(self) -> bool:
         return bool(self.flags)
 
     def wrong(self, z_wrong: float = Z_WRONG) -> bool:
-        """A false target, or a range or speed off by more than ``z_wrong`` of its own sigma."""
+        """A false target, or a range, speed or range rate off by more than ``z_wrong`` of its own sigma."""
         if self.truth_index is None:
             return True
-        return abs(self.range_z) > z_wrong or abs(self.speed_z) > z_wrong
+        return abs(self.range_z) > z_wrong or abs(self.speed_z) > z_wrong or abs(self.rate_z or 0.0) > z_wrong
 
 
 @dataclass(frozen=True)
@@ -327,23 +331,15 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
     verdicts = []
     for i, p in enumerate(points):
         j = owner.get(i)
-        measured = speed_measured(p)
+        measured = p.speed_measured
         if j is None:
             verdicts.append(PointVerdict(None, None, None, None, None, measured, flags_of(p)))
             continue
         er, ev = range_error_m(p, res, truths[j]), speed_error_mps(p, truths[j])
+        ed = None if p.range_rate_mps is None else p.range_rate_mps - truths[j].velocity_mps
         verdicts.append(PointVerdict(j, er, _z(er, p.range_sigma_m), ev, _z(ev, p.velocity_sigma_mps), measured,
-                                     flags_of(p)))
+                                     flags_of(p), ed, None if ed is None else _z(ed, p.range_rate_sigma_mps)))
     return FrameVerdict(res.status, tuple(verdicts), tuple(j for j in range(len(truths)) if j not in taken), z_wrong)
-
-
-def speed_measured(p: TargetPoint) -> bool:
-    """Whether the point's speed is an estimate, not a bound: not ``static``, and not the 0 of a
-    speed that could not be measured (direction ``unknown``, its sigma the smallest speed the frame
-    could have measured, which is then the search's largest: the laser incoherent at its range)."""
-    if p.direction == "static":
-        return False
-    return not (p.direction == "unknown" and p.velocity_mps == 0.0 and p.velocity_sigma_mps >= p.speed_min_mps > 0)
 
 
 #: a point agrees with a truth on speed within the larger of 5 of its sigmas, a quarter of the

@@ -85,6 +85,17 @@ class TargetPoint:
     accumulated_frames : int
         How many frames the point rests on: 1 for the chain's per-frame points; K for a point of
         :class:`mtcw_core.ranging.accumulate.Accumulator` (its range is the mean over those frames).
+    track_id : int or None
+        The track of :class:`mtcw_core.ranging.track.Tracker` the point joined (per source; None:
+        no tracking, or a flagged point).
+    track_frames : int
+        Points of that track its range rate rests on, this one included (0: no track).
+    range_rate_mps : float or None
+        The track's range rate (m/s, positive receding), the weighted slope of its points' ranges
+        over their trigger times; None below the tracker's ``min_frames``.
+    range_rate_sigma_mps : float or None
+        Its sigma (m/s), from the points' range sigmas, scaled by the residuals' Birge ratio when
+        above 1.
     """
 
     range_m: float
@@ -106,11 +117,25 @@ class TargetPoint:
     seed_sigma_k_m: float | None = None
     fit_r2: float | None = None
     accumulated_frames: int = 1
+    track_id: int | None = None
+    track_frames: int = 0
+    range_rate_mps: float | None = None
+    range_rate_sigma_mps: float | None = None
 
     @property
     def flagged(self) -> bool:
         """The point says its number may be wrong (any of :data:`FLAGS`)."""
         return any(getattr(self, f) for f in FLAGS)
+
+    @property
+    def speed_measured(self) -> bool:
+        """Whether the speed is an estimate, not a bound: not ``static``, and not the 0 of a speed
+        that could not be measured (direction ``unknown``, its sigma the smallest speed the frame
+        could have measured, which is then the search's largest: the laser incoherent at its range)."""
+        if self.direction == "static":
+            return False
+        return not (self.direction == "unknown" and self.velocity_mps == 0.0
+                    and self.velocity_sigma_mps >= self.speed_min_mps > 0)
 
 
 @dataclass
