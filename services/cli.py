@@ -124,6 +124,28 @@ def _accumulator(frames: int, settings, calibration: Optional[Path]):
         _fail(f"--accumulate: {err}")
 
 
+def _tracker(frames: int, max_speed_mps: Optional[float]):
+    """``--track K``: a :class:`~mtcw_core.ranging.track.Tracker` over windows of K points (None for 0);
+    a bad K or speed ends the command naming the option."""
+    if not frames:
+        return None
+    from pydantic import ValidationError
+
+    from mtcw_core.ranging.track import Tracker, TrackSettings
+
+    try:
+        return Tracker(TrackSettings(frames=frames, max_speed_mps=max_speed_mps))
+    except ValidationError as err:
+        e = err.errors()[0]
+        name = "--track-max-speed" if "max_speed" in str(e.get("loc")) else "--track"
+        _fail(f"{name}: {e['msg']} (got {max_speed_mps if name != '--track' else frames})")
+
+
+TRACK_HELP = ("range rate over frames: each target's ranges over its last K frames (3-64; 0: off), "
+              "a speed where the laser is incoherent and the direction on one photodiode (range_rate_mps)")
+TRACK_SPEED_HELP = "with --track: the fastest range rate a target may have (m/s; default: any step within L/2)"
+
+
 def _calibration(path: Optional[Path]):
     """The calibration file at ``path`` (None: none); a bad file ends the command naming it."""
     from mtcw_core.calibration import Calibration, CalibrationError
@@ -166,6 +188,8 @@ def process(
     sideband_direction: bool = typer.Option(False, "--sideband-direction", help="one photodiode: say the direction "
                                             "of motion where the sidebands' own Doppler shift decides its sign (high "
                                             "SNR; off: direction unknown, as the interface says)"),
+    track: int = typer.Option(0, "--track", help=TRACK_HELP),
+    track_max_speed: Optional[float] = typer.Option(None, "--track-max-speed", help=TRACK_SPEED_HELP),
 ) -> None:
     """Run the chain of a technique (PB-MTCW by default) on every frame of a recording: one point per frame and
     target."""
@@ -180,6 +204,7 @@ def process(
     settings = _settings(profile, method, technique, timing_jitter_s, laser_linewidth_hz, lo_path_difference_m,
                          sideband_direction)
     acc = _accumulator(accumulate, settings, calibration)
+    tracker = _tracker(track, track_max_speed)
     cal = _calibration(calibration)
     if cal is None:
         typer.secho("no calibration: using the recording's tone phases (mtcw:tone_phases_rad, else 0) and tau0 = 0",
@@ -197,6 +222,8 @@ def process(
                 truths[fr.seq] = fr.truth or ()
                 truth = mean_truth([truths[s] for s in acc.window_seqs() if s in truths])
                 truths = {s: truths[s] for s in acc.window_seqs() if s in truths}
+            if tracker is not None:
+                res = tracker.update(res)
             status[res.status] = status.get(res.status, 0) + 1
             times.append(sum(res.stage_seconds.values()))
             for name, sec in res.stage_seconds.items():
@@ -219,6 +246,9 @@ def process(
                "median_ms_per_stage": {k: round(1e3 * float(np.median(v)), 3) for k, v in stages.items()}}
     if acc is not None:  # truth of an accumulated point: the mean over the frames it rests on
         summary["accumulate"] = {"frames": accumulate, "new_windows": dict(acc.resets)}
+    if tracker is not None:
+        summary["track"] = {"frames": track, "ended": dict(tracker.ends), "restarts": tracker.restarts,
+                            "withheld_disagreeing_with_doppler": tracker.disagree}
     if log.range_error_m:
         summary.update(log.summary())
     typer.echo(json.dumps(summary, indent=2))
@@ -723,6 +753,9 @@ def worker(
                                                       help="one photodiode: say the direction of motion where the "
                                                       "sidebands' own Doppler shift decides its sign "
                                                       "[MTCW_SIDEBAND_DIRECTION; default off: unknown]"),
+    track: Optional[int] = typer.Option(None, "--track", help=TRACK_HELP + " [MTCW_TRACK; default 0: off]"),
+    track_max_speed: Optional[float] = typer.Option(None, "--track-max-speed", help=TRACK_SPEED_HELP +
+                                                    " [MTCW_TRACK_MAX_SPEED_MPS]"),
     fft_backend: Optional[str] = typer.Option(None, "--fft-backend", help="FFT implementation: pocketfft | pyfftw "
                                               "(pip install 'mtcw\\[fftw]') [MTCW_FFT_BACKEND; default pocketfft]"),
 ) -> None:
@@ -735,7 +768,8 @@ def worker(
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
                            timing_jitter_s=timing_jitter_s, laser_linewidth_hz=laser_linewidth_hz,
                            lo_path_difference_m=lo_path_difference_m, accumulate=accumulate,
-                           sideband_direction=sideband_direction, fft_backend=fft_backend)
+                           sideband_direction=sideband_direction, fft_backend=fft_backend, track=track,
+                           track_max_speed_mps=track_max_speed)
     try:
         w = Worker(st)
     except CalibrationError as err:

@@ -287,6 +287,12 @@ class WorkerSettings(TransportSettings):
     accumulate: int = Field(0, ge=0, le=32, description="static targets beyond the laser's coherence: range from "
                             "the whole band's digital IF mixing averaged over the last K frames of each source "
                             "(1-32; 0: off, the chain per frame); docs/reach.md")
+    track: int = Field(0, ge=0, le=64, description="range rate over frames: each target's ranges over its last K "
+                       "frames of the worker's share of a source (3-64; 0: off): a speed where the laser is "
+                       "incoherent, the direction on one photodiode (range_rate_mps; mtcw_core.ranging.track)")
+    track_max_speed_mps: Optional[float] = Field(None, gt=0, description="with track: the fastest range rate a "
+                                                 "target may have (m/s; default: any step within half the "
+                                                 "unambiguous range)")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
     threads: int = Field(1, ge=0, le=1024, description="threads of the numerical libraries (OpenBLAS/OpenMP) in "
@@ -298,6 +304,13 @@ class WorkerSettings(TransportSettings):
                              "1e6-sample spectrum's real transform ~4x faster; FFTW is GPL)")
 
     _worker_paths = field_validator("calibration", mode="before")(_path_given)
+
+    @field_validator("track")
+    @classmethod
+    def _track(cls, v: int) -> int:
+        if 0 < v < 3:
+            raise ValueError(f"{v}: a rate needs a window of at least 3 frames (0: off)")
+        return v
 
     @field_validator("fft_backend")
     @classmethod

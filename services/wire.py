@@ -115,6 +115,11 @@ class TargetMessage(Struct, kw_only=True, frozen=True):
     speed_min_mps: NonNegative = 0.0
     fit_r2: Optional[Finite] = None  # the AB-MTCW sine fit's R^2 (technique ab only)
     accumulated_frames: Annotated[int, Meta(ge=1, le=1024)] = 1  # frames the point rests on (--accumulate K)
+    # --track K (mtcw_core.ranging.track): the point's track, the points its rate rests on, the rate (m/s)
+    track_id: Optional[Annotated[int, Meta(ge=1)]] = None
+    track_frames: Annotated[int, Meta(ge=0, le=1024)] = 0
+    range_rate_mps: Optional[Finite] = None
+    range_rate_sigma_mps: Optional[NonNegative] = None
 
 
 class PointMessage(Struct, kw_only=True, frozen=True, omit_defaults=True):

@@ -21,6 +21,7 @@ from mtcw_core.calibration import Calibration
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.dsp.spectrum import fft_backend, use_fft_backend
 from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator
+from mtcw_core.ranging.track import Tracker, TrackSettings
 
 from .auth import terminate
 from .settings import WorkerSettings, log_settings
@@ -49,6 +50,8 @@ class Worker:
     #: ``--accumulate K`` (None: the chain per frame) and its accumulators by source
     _accumulate: AccumulateSettings | None = None
     _accumulators: dict[str, Accumulator]
+    #: ``--track K`` (None: off): range rate over frames, per source
+    tracker: Tracker | None = None
 
     def __init__(self, settings: WorkerSettings, ctx: zmq.Context | None = None) -> None:
         self.settings = settings
@@ -64,6 +67,9 @@ class Worker:
         self._accumulate = AccumulateSettings(frames=settings.accumulate) if settings.accumulate else None
         if self._accumulate is not None and settings.technique != "pb":
             raise ValueError(f"accumulate: technique {settings.technique!r} has no accumulation (pb only)")
+        # --track K: range rate over frames, per source (tracks of this worker's share of each)
+        self.tracker = (Tracker(TrackSettings(frames=settings.track, max_speed_mps=settings.track_max_speed_mps),
+                                max_sources=MAX_SOURCES) if settings.track else None)
         self._own_ctx = ctx is None
         self.ctx = zmq.Context() if ctx is None else ctx
         self.pull, self.push = open_sockets(self.ctx, [frames_pull(settings), points_push(settings)], self._own_ctx)
@@ -93,6 +99,8 @@ class Worker:
                     acc = self._accumulators[frame.source] = Accumulator(self._accumulate, self.chain,
                                                                          self.calibration)
                 res = acc.add(frame)
+            if self.tracker is not None:
+                res = self.tracker.update(res, run=frame.run)
         except Exception as err:  # a chain bug must not stop the worker; the frame is counted
             log.exception("worker %s: chain failed on seq %d", self.settings.name, frame.seq)
             return rejected_point(frame.source, frame.seq, frame.t_ns, f"chain_error: {type(err).__name__}: {err}",

@@ -119,6 +119,30 @@ def test_an_endpoint_that_cannot_be_used_is_a_settings_error_naming_the_field(cm
     assert f"settings: {field}: " in r.stderr and "tcp://127.0.0.1:x" in r.stderr, r.stderr
 
 
+def test_process_track_gives_the_range_rate_and_names_a_bad_window(tmp_path):
+    """``mtcw process --track K`` on the moving target (one photodiode, 10 cm/s, 2^15 samples): every
+    row carries its track; from the third frame on a range rate within 5 sigma of the truth's
+    velocity; the summary counts what the tracker ended; a bad K or speed names its option."""
+    from importlib.resources import files
+
+    scene = tmp_path / "mt.toml"
+    scene.write_text(files("mtcw_core.scenes").joinpath("moving-target.toml").read_text())
+    rec = tmp_path / "mt"
+    r = CliRunner().invoke(app, ["simulate", str(scene), "-o", str(rec), "-n", "5", "--samples", str(2**15)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["process", str(rec), "--profile", "fast", "--track", "4", "-o", str(tmp_path / "p.csv")])
+    assert r.exit_code == 0, r.output
+    s = _summary(r.stdout)
+    assert s["track"] == {"frames": 4, "ended": {}, "restarts": 0, "withheld_disagreeing_with_doppler": 0}
+    rows = list(csv.DictReader(open(tmp_path / "p.csv")))
+    assert [int(row["track_frames"]) for row in rows] == [1, 2, 3, 4, 4] and len({row["track_id"] for row in rows}) == 1
+    for row in rows[2:]:
+        assert abs(float(row["range_rate_mps"]) - 0.10) < 5 * float(row["range_rate_sigma_mps"])
+    for bad, name in ((["--track", "2"], "--track"), (["--track", "4", "--track-max-speed", "-1"], "--track-max-speed")):
+        out = CliRunner().invoke(app, ["process", str(rec), *bad])
+        assert out.exit_code != 0 and name in out.output and "Traceback" not in out.output, out.output
+
+
 def test_process_accumulate_ranges_beyond_coherence_and_names_a_bad_k(tmp_path):
     """``mtcw process --accumulate K`` on the low-coherence scene at 70 dB (the chain: no target);
     the errors are against the truth averaged over each point's frames."""

@@ -114,6 +114,30 @@ def test_run_accounts_for_every_message_between_good_frames(ctx, frame, fft):
     assert fft_backend() == "scipy default (pocketfft)"
 
 
+def test_track_gives_each_sources_points_a_range_rate(ctx):
+    """``--track K``: a source's points join one track and carry its range rate from the third
+    frame on (on the wire too); another source's frames start their own track; K < 3 names ``track``."""
+    from mtcw_core.scene import load_scene, scene_variant
+    from mtcw_core.simulate import Simulator
+
+    sc = scene_variant(load_scene("moving-target"), digitizer={"samples": 2**14})
+    w = Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9",
+                              profile="fast", track=3), ctx)
+    try:
+        got = []
+        for i, fr in enumerate(Simulator(sc, 2).frames(5)):
+            msg = w.handle(list(encode_frame(fr.with_(source="a" if i != 2 else "b", seq=i))))
+            got.append((msg.source, msg.targets[0].track_frames, msg.targets[0].range_rate_mps is not None))
+        assert got == [("a", 1, False), ("a", 2, False), ("b", 1, False), ("a", 3, True), ("a", 3, True)], got
+        t = decode_points(encode_points(msg)).targets[0]
+        assert t.track_id == 1 and abs(t.range_rate_mps - 0.10) < 5 * t.range_rate_sigma_mps
+    finally:
+        w.pull.close(linger=0)
+        w.push.close(linger=0)
+    with pytest.raises(ValueError, match="track"):
+        WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9", track=2)
+
+
 def test_accumulate_averages_each_sources_frames_and_says_how_many(ctx):
     """``--accumulate K``: a point per frame, resting on that source's last K frames (at most);
     a source's frames do not mix with another's; the point message carries ``accumulated_frames``."""
