@@ -84,6 +84,7 @@ from mtcw_core.dsp.tones import fit_lines
 from mtcw_core.evaluate import Z_WRONG, FrameVerdict, judge_frame, phase_noise_bound, range_bound
 from mtcw_core.phase import C
 from mtcw_core.ranging.accumulate import AccumulateSettings, Accumulator, mean_truth
+from mtcw_core.ranging.track import Tracker, TrackSettings
 from mtcw_core.scene import Scene, load_scene, scene_from_dict, scene_variant
 from mtcw_core.simulate import Simulator
 
@@ -160,6 +161,9 @@ class Config:
     note: str = ""
     #: K > 0: also a cell of mtcw_core.ranging.accumulate's points over K frames (profile "balanced+accK")
     accumulate: int = 0
+    #: K > 0: also a cell of ``balanced``'s points with their range rate over K frames
+    #: (mtcw_core.ranging.track, profile "balanced+trkK"): the range rate's z counts as a speed's
+    track: int = 0
 
     @property
     def key(self) -> str:
@@ -351,7 +355,30 @@ def _movers(bins: tuple[float, ...], losses_db: tuple[float, ...], receiver: str
 
 def case_configs() -> list[Config]:
     return [Config("cases", name, sc, frames=n, note=what) for name, (what, sc, n) in case_scenes().items()] + \
-        case9_accumulate_configs()
+        case9_accumulate_configs() + track_configs()
+
+
+def track_label(k: int) -> str:
+    """The profile name of a tracked cell: ``balanced``'s points, their range rate over K frames."""
+    return f"balanced+trk{k}"
+
+
+#: the window of the tracked cells, and their frames (the last 12 points of a cell rest on 12)
+TRACK_FRAMES, TRACK_CELL_FRAMES = 12, 24
+
+
+def track_configs() -> list[Config]:
+    """Range rate over frames (:mod:`mtcw_core.ranging.track`): issue 12 case 4's mover (5.3 GHz laser:
+    no Doppler line, speed unknown per frame), the coherent moving target on one photodiode (the
+    rate's sign is its direction; its |v| from the Doppler line checks it) and two movers apart."""
+    case4 = case_scenes()["4 low-coherence mover"][1]
+    rows = (("4 low-coherence mover", case4, "case 4's mover (1e6): speed from the ranges of 12 frames"),
+            ("moving-target 2^18", scene_variant(load_scene("moving-target"), digitizer={"samples": 2**18}),
+             "one photodiode, 10 cm/s: the direction from the range rate"),
+            ("two movers 1 pd", _movers((40.0, 120.0), (30.0, 33.0), "single"),
+             "two movers at 0.31 and 0.93 m/s, one photodiode: one track each"))
+    return [Config("cases", f"{name} trk{TRACK_FRAMES}", sc, frames=TRACK_CELL_FRAMES,
+                   note=f"range rate over frames: {what}", track=TRACK_FRAMES) for name, sc, what in rows]
 
 
 def accumulate_label(k: int) -> str:
@@ -546,12 +573,14 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
     the chain had to find (all missed when ``must`` is None).
     """
     status: dict[str, int] = {}
-    rz, sz_meas, sz_all, rz_clean, sz_clean = [], [], [], [], []
+    rz, sz_meas, sz_all, rz_clean, sz_clean, ratez = [], [], [], [], [], []
     for v in verdicts:
         status[v.status] = status.get(v.status, 0) + 1
         for p in v.points:
             if p.truth_index is None:
                 continue
+            if p.rate_z is not None:
+                ratez.append(p.rate_z)
             rz.append(p.range_z)
             sz_all.append(p.speed_z)
             if p.speed_measured:
@@ -561,7 +590,7 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
                 if p.speed_measured:
                     sz_clean.append(p.speed_z)
     r, s = _stats(rz), _stats(sz_meas)
-    rc, sc = _stats(rz_clean), _stats(sz_clean)
+    rc, sc, rt = _stats(rz_clean), _stats(sz_clean), _stats(ratez)
     sa = np.asarray(sz_all, float)
     return {
         "frames": len(verdicts), "ok": status.get("ok", 0), "no_target": status.get("no_target", 0),
@@ -582,6 +611,7 @@ def summarise(verdicts: list[FrameVerdict], n_truths: int, must: list[bool] | No
         "speed_z_max": float(np.max(np.abs(sa))) if sa.size else None,
         "range_z_unflagged_n": rc["n"], "range_z_unflagged_mean": rc["mean"], "range_z_unflagged_std": rc["std"],
         "speed_z_unflagged_n": sc["n"], "speed_z_unflagged_mean": sc["mean"], "speed_z_unflagged_std": sc["std"],
+        "rate_z_n": rt["n"], "rate_z_mean": rt["mean"], "rate_z_std": rt["std"], "rate_z_max": rt["max_abs"],
     }
 
 
@@ -662,7 +692,11 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     lam_min = C / (2 * (tones[-1] - tones[0]))
     cells, rows = [], []
     known = declared(sc)
-    runs = list(profiles) + ([accumulate_label(g.config.accumulate)] if g.config.accumulate else [])
+    # a tracked configuration's cells: balanced's points per frame, then the same with their range rate
+    runs = [p for p in profiles if not g.config.track or p == "balanced"] + \
+        ([accumulate_label(g.config.accumulate)] if g.config.accumulate else []) + \
+        ([track_label(g.config.track)] if g.config.track else [])
+    done: dict[str, list] = {}  # each profile's results, for the tracked cell
     first_snr = predicted_snr_db(sc, True, g.seed) if g.config.self_beat else (bound.line_snr_db if bound else None)
     must = must_find(sc, first_snr, g.config.self_beat, g.seed)
     pn = crb_phase_noise(g, bound)
@@ -670,10 +704,16 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
         settings = get_profile(prof.split("+")[0], **known)
         # case 9: the accumulator's points answer the truth averaged over the frames they rest on
         acc = Accumulator(AccumulateSettings(frames=g.config.accumulate), settings) if "+acc" in prof else None
+        trk = Tracker(TrackSettings(frames=g.config.track)) if "+trk" in prof else None
         verdicts, times, truths = [], [], {}
         for i, fr in enumerate(frames):
             t1 = time.perf_counter()
-            res = process_frame(fr, settings) if acc is None else acc.add(fr)
+            if trk is not None:  # the profile's own results when it ran, else the chain's now
+                base = done[prof.split("+")[0]][i] if prof.split("+")[0] in done else process_frame(fr, settings)
+                res = trk.update(base)
+            else:
+                res = process_frame(fr, settings) if acc is None else acc.add(fr)
+                done.setdefault(prof, []).append(res)
             times.append(time.perf_counter() - t1)
             truths[fr.seq] = fr.truth
             truth = fr.truth if acc is None else mean_truth([truths[q] for q in acc.window_seqs()])
@@ -863,7 +903,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 __all__ = ["Config", "Group", "MapSpec", "grid", "map_configs", "case_scenes", "case_configs", "issue_scene",
-           "case9_accumulate_configs", "accumulate_label", "plan", "run_group",
+           "case9_accumulate_configs", "accumulate_label", "track_configs", "track_label", "plan", "run_group",
            "run_map", "summarise", "must_find", "check_targets", "crb_phase_noise", "in_crb_domain", "predicted_bound", "predicted_snr_db", "with_targets", "shifted",
            "bin_speed_mps", "spacing_speed_mps", "base_scene", "self_beat_snr_db", "self_beat_amplitude_v",
            "loss_shift_for", "read_result", "main"]

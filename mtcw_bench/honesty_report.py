@@ -294,7 +294,7 @@ def write_honesty_report(result: dict, out: Path) -> Path:
          f"reported `static` says 0 with the smallest detectable speed as its sigma: its z counts for the largest "
          f"|z| and for confident-wrong, not for the speed mean/std.",
          f"- **confident wrong** (issue 12): status ok, no flag (`near_edge`, `cycle_ambiguous`, `blended`), "
-         f"|z| > {Z_WRONG:g} on range or speed. **confident false**: an unflagged point that answers no truth (a "
+         f"|z| > {Z_WRONG:g} on range, speed or (tracked cells) range rate. **confident false**: an unflagged point that answers no truth (a "
          f"ghost). Points and truths are paired one to one, nearest in speed first. **flagged wrong**: a wrong "
          f"number beside a flag (counted, not excused: issue 12 case 3).",
          f"- **above threshold**: the bound's median line SNR of the first target (from the truth, white noise "
@@ -327,6 +327,19 @@ def write_honesty_report(result: dict, out: Path) -> Path:
             L.append(f"| {c['config']} ({c['note']}) | {c['profile']} | {c['frames']} | {c['ok']} | "
                      f"{c['confident_wrong']} | {c['confident_false']} | {c['flagged_wrong']} | {c['missed']} | "
                      f"{_z_cell(c, 'range')} | {_z_cell(c, 'speed')} |")
+        L.append("")
+    tracked = [c for c in cells if c.get("rate_z_n")]
+    if tracked:
+        L += ["## Range rate over frames (`mtcw_core.ranging.track`)", "",
+              "Each point's range rate, the weighted slope of its track's last ranges over their trigger times, "
+              "judged against the truth's velocity (positive receding); its |z| > 5 on an unflagged point counts as "
+              "confident wrong above. Consecutive points share most of their window, so a cell's rate z values are "
+              "strongly correlated: its std says less than the number of points suggests.", "",
+              "| configuration | profile | frames | points with a rate | confident wrong | rate z mean / std / max |",
+              "| --- | --- | --- | --- | --- | --- |"]
+        for c in tracked:
+            L.append(f"| {c['config']} ({c['note']}) | {c['profile']} | {c['frames']} | {c['rate_z_n']} | "
+                     f"{c['confident_wrong']} | {_z_cell(c, 'rate')} |")
         L.append("")
     # targets
     L += ["## Issue 12's targets", "", "| target | measured | met? |", "| --- | --- | --- |"]

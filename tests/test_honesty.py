@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mtcw_bench.honesty import (MapSpec, case_scenes, check_targets, grid, must_find, plan, predicted_bound, run_map,
+from mtcw_bench.honesty import (Config, MapSpec, case_scenes, check_targets, grid, must_find, plan, predicted_bound, run_map,
                                 self_beat_amplitude_v, summarise, with_targets)
 from mtcw_bench.honesty_report import (monotonic_violations, write_honesty_report, z_band_probability,
                                        z_scatter_inconsistent)
@@ -123,6 +123,19 @@ class TestJudgeFrame:
 
 
 class TestSummarise:
+    def test_a_range_rate_far_from_the_velocity_is_confident_wrong(self):
+        """A tracked point's range rate (mtcw_core.ranging.track) is judged against the truth's
+        velocity (positive receding): 0.10 +- 0.004 against 0.10 is right, against -0.10 (the wrong
+        direction) 50 sigma off and confident wrong; an untracked point has no rate z."""
+        p = pt(1.0, 0.10, range_rate_mps=0.10, range_rate_sigma_mps=0.004, track_id=1, track_frames=12)
+        v = judge_frame(res(p), [TruthTarget(1.0, 0.10)])
+        assert v.points[0].rate_z == pytest.approx(0.0) and not v.confident_wrong
+        v = judge_frame(res(p), [TruthTarget(1.0, -0.10)])
+        assert v.points[0].rate_z == pytest.approx(50.0) and v.confident_wrong
+        assert judge_frame(res(pt(1.0)), [TruthTarget(1.0, 0.0)]).points[0].rate_z is None
+        s = summarise([judge_frame(res(p), [TruthTarget(1.0, 0.10)])] * 2, 1)
+        assert s["rate_z_n"] == 2 and s["rate_z_max"] == pytest.approx(0.0)
+
     def test_counts_and_z_statistics(self):
         truths = [TruthTarget(1.0, 0.0)]
         zs = [0.5, -1.0, 2.0, 12.0]
@@ -273,6 +286,23 @@ class TestGrid:
         _, sc, _ = cases["6 small Doppler"]
         fd = 2 * sc.targets[0].velocity_mps / sc.laser.wavelength_m
         assert fd == pytest.approx(45e3, rel=0.01) and sc.digitizer.sample_rate_hz / sc.digitizer.samples == 10e3
+
+
+    def test_the_tracked_cases_run_balanced_and_its_range_rate(self):
+        """The tracked configurations (case 4's mover among them) give a ``balanced`` cell and a
+        ``balanced+trk12`` cell over the same results; the tracked cell's rate z counts."""
+        from mtcw_bench.honesty import TRACK_FRAMES, run_group, track_configs, track_label
+
+        cfgs = track_configs()
+        assert cfgs[0].label.startswith("4 low-coherence mover") and all(c.track == TRACK_FRAMES for c in cfgs)
+        small = Config("cases", "mover trk3", scene_variant(load_scene("moving-target"), digitizer={"samples": 2**14}),
+                       frames=5, track=3)
+        (g,) = plan([small], 2)
+        out = run_group(g, ("fast", "balanced"))
+        a, b = out["cells"]
+        assert (a["profile"], b["profile"]) == ("balanced", track_label(3))
+        assert a["rate_z_n"] == 0 and b["rate_z_n"] == 3 and b["confident_wrong"] == 0 and b["rate_z_max"] < 5
+        assert (a["range_z_mean"], a["ok"]) == (b["range_z_mean"], b["ok"])  # the same points, with a rate
 
 
 class TestQuickMap:
