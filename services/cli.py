@@ -845,6 +845,7 @@ def run(
     port: int = typer.Option(8000, min=0, max=65535, help="HTTP port of the API (127.0.0.1; 0 = a free one)"),
     base_port: int = typer.Option(5555, min=0, max=65533, help="first of three ZeroMQ ports (frames, monitor, "
                                                                "points); 0 = free ports, as the services report them"),
+    track: int = typer.Option(0, "--track", help=TRACK_HELP + "; each worker tracks its share of the frames"),
 ) -> None:
     """All-in-one: simulator + worker(s) + API on loopback. Ctrl-C or SIGTERM stops everything."""
     from services.settings import WorkerSettings
@@ -854,7 +855,7 @@ def run(
         sc = load_scene(scene)
     except SceneError as err:
         _fail(str(err))
-    _service_settings(WorkerSettings, profile=profile, technique=technique)  # bad ones fail here, not in a child
+    _service_settings(WorkerSettings, profile=profile, technique=technique, track=track)  # bad ones fail here
     # with --base-port 0 the services bind free ports and report them, except the monitor port: the
     # API (started first) subscribes to it for the live view's spectra, so it is chosen here
     ports = (base_port, base_port + 1, base_port + 2) if base_port else (0, free_ports(1)[0], 0)
@@ -866,7 +867,8 @@ def run(
             env={"MTCW_WAIT_FOR_WORKERS": str(workers), "MTCW_WAIT_FOR_WORKER_S": "60"})
     for i in range(workers):
         sup.add(f"worker-{i}", "worker", "--profile", profile, "--technique", technique, "--name", f"worker-{i}",
-                *(("--calibration", str(calibration.resolve())) if calibration is not None else ()))
+                *(("--calibration", str(calibration.resolve())) if calibration is not None else ()),
+                *(("--track", str(track)) if track else ()))
 
     def banner(s: Supervisor) -> None:
         url = s.endpoints["http_url"]

@@ -311,7 +311,7 @@ def test_mtcw_run_serves_points_and_stops_cleanly_on_sigterm(tmp_path):
     scene = Bench(tmp_path).scene
     log = open(tmp_path / "run.log", "wb")
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--scene", str(scene),
-                             "--port", str(p[0]), "--base-port", str(p[1]), "--rate", "10"],
+                             "--port", str(p[0]), "--base-port", str(p[1]), "--rate", "10", "--track", "3"],
                             cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         found = {}
@@ -326,6 +326,11 @@ def test_mtcw_run_serves_points_and_stops_cleanly_on_sigterm(tmp_path):
         Bench.wait(lambda: httpx.get(url, timeout=1).status_code == 200, "a point from mtcw run", 60)
         t = httpx.get(url).json()["points"]["bench"]["targets"][0]
         assert abs(t["range_m"] - RANGE) < 5 * t["range_sigma_m"] + 1e-5
+        # --track 3: from the third frame on, the (static) target's range rate through wire and API
+        Bench.wait(lambda: httpx.get(url).json()["points"]["bench"]["targets"][0]["track_frames"] >= 3,
+                   "a tracked point", 30)
+        t = httpx.get(url).json()["points"]["bench"]["targets"][0]
+        assert t["track_id"] >= 1 and abs(t["range_rate_mps"]) < 5 * t["range_rate_sigma_mps"]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
         out = (tmp_path / "run.log").read_text()

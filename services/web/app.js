@@ -201,7 +201,10 @@ function drawLatest() {
     const flags = tg ? ["blended", "cycle_ambiguous", "near_edge"].filter(f => tg[f]) : [];
     parts.push(`<span class="src" data-source="${name}" ${tg ? `data-range-m="${tg.range_m}"` : ""} data-seq="${p.seq}">` +
       `${name}: ` + (tg ? `<b>${fmt(tg.range_m, 8)} m</b> ± ${fmtSigma(tg.range_sigma_m)}, ` +
-      `<b>${fmt(tg.velocity_mps, 4)} m/s</b> ± ${fmt(tg.velocity_sigma_mps, 2)} (${tg.direction})` : `<b>${p.status}</b> ${p.reason || ""}`) +
+      `<b>${fmt(tg.velocity_mps, 4)} m/s</b> ± ${fmt(tg.velocity_sigma_mps, 2)} (${tg.direction})` +
+      (tg.range_rate_mps !== undefined && tg.range_rate_mps !== null ?
+        `, range rate <b>${fmt(tg.range_rate_mps, 4)} m/s</b> ± ${fmt(tg.range_rate_sigma_mps, 2)} over ${tg.track_frames} frames` : "")
+      : `<b>${p.status}</b> ${p.reason || ""}`) +
       ` <span class="dim">seq ${p.seq}${p.latency_s !== undefined && p.latency_s !== null ? `, point ${(p.latency_s * 1e3).toFixed(0)} ms after trigger` : ""}</span>` +
       flags.map(f => `<span class="flag">${f}</span>`).join("") + `</span>`);
   }
