@@ -76,16 +76,19 @@ def test_ranges_wrapped_at_the_unambiguous_range_are_unwrapped_along_the_track()
         assert abs(out[-1].range_rate_mps - v) < 1e-6 and out[-1].range_rate_sigma_mps < 1e-2
 
 
-def test_each_target_keeps_its_track_and_flagged_points_join_none():
-    """Two targets 1 m apart at +0.2 and -0.3 m/s: two tracks, each with its own rate; a point
-    flagged ``cycle_ambiguous`` joins no track and carries no rate."""
+@pytest.mark.parametrize("period", [3.0, None])
+def test_each_target_keeps_its_track_and_flagged_points_join_none(period):
+    """Two targets 1 m apart at +0.2 and -0.3 m/s, listed in either order: two tracks, each with its
+    own rate -- with CW ranges (3 m unambiguous) and with absolute ones (quasi-CW: any step may
+    join a one-point track, the nearest does); a point flagged ``cycle_ambiguous`` joins no track
+    and carries no rate."""
     tr = Tracker()
     rng = np.random.default_rng(3)
     for k in range(10):
         t = k * 0.1
         pts = [point(1.0 + 0.2 * t + rng.normal(0, 1e-3), 1e-3), point(2.0 - 0.3 * t + rng.normal(0, 1e-3), 1e-3),
                point(0.4, 1e-3, cycle_ambiguous=True)]
-        res = tr.update(result(pts[::-1] if k % 2 else pts, k))
+        res = tr.update(result(pts[::-1] if k % 2 else pts, k, period=period))
     a, b = sorted((p for p in res.targets if not p.flagged), key=lambda p: p.range_m)
     assert a.track_id != b.track_id and a.track_frames == b.track_frames == 10
     assert abs(a.range_rate_mps - 0.2) < 5 * a.range_rate_sigma_mps and abs(b.range_rate_mps + 0.3) < 5 * b.range_rate_sigma_mps

@@ -191,8 +191,8 @@ class Tracker:
                 bound = reach + st.gate_sigmas * sd
                 if st.max_speed_mps and src.period is not None and bound >= src.period / 2 and reach > 0:
                     continue  # a step of half the unambiguous range: which cycle it took is unknown
-                if abs(step) <= bound:  # fitted tracks first, then one-point tracks
-                    pairs.append((abs(step) / sd if reach == 0 else st.gate_sigmas + abs(step) / bound, i, k, step))
+                if abs(step) <= bound:  # fitted tracks first (|step| <= gate sigmas), then one-point tracks
+                    pairs.append((abs(step) / sd + (st.gate_sigmas if reach > 0 else 0.0), i, k, step))
         pairs.sort(key=lambda q: q[0])
         taken_p, taken_k, out = set(), set(), []
         for _, i, k, step in pairs:
