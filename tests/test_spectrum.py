@@ -223,10 +223,19 @@ class TestSearchSpectrum:
         b = power_spectrum(x, FS, ("kaiser", 14.0))
         np.testing.assert_array_equal(a.power, b.power)
 
-    def test_fraction_of_record(self):
-        x = np.random.default_rng(14).standard_normal(4096)
-        assert search_spectrum(x, FS, 14.0, 0.25, False).n == 1024
-        assert search_spectrum(x, FS, 14.0, 0.01, False).n == 256  # never fewer than 256
+    def test_fraction_of_record_and_never_under_its_minimum(self):
+        """A fraction of the record, never fewer than SEARCH_MIN_SAMPLES (2^16) samples: a 2^20-sample
+        record's eighth (2^17), a 2^18-sample record's quarter, a 2^16-sample record whole."""
+        from mtcw_core.dsp.spectrum import SEARCH_MIN_SAMPLES
+
+        assert SEARCH_MIN_SAMPLES == 2**16
+        x = np.random.default_rng(14).standard_normal(2**20)
+        assert search_spectrum(x, FS, 14.0, 1 / 8, True).n == 2**17
+        assert search_spectrum(x[:2**18], FS, 14.0, 1 / 8, True).n == 2**16
+        sp = search_spectrum(x[:2**16], FS, 14.0, 1 / 8, False)
+        assert sp.n == 2**16 and sp.record_n is None
+        np.testing.assert_array_equal(sp.power, power_spectrum(x[:2**16], FS, ("kaiser", 14.0)).power)
+        assert search_spectrum(x[:4096], FS, 14.0, 0.25, False).n == 4096
 
     def test_windows_use_the_longest(self):
         x = np.random.default_rng(15).standard_normal(8192)
@@ -236,11 +245,14 @@ class TestSearchSpectrum:
         assert sp.n == 3000
         np.testing.assert_array_equal(sp.power, ref.power)
 
-    def test_a_fraction_measures_the_floor_over_the_same_band_in_hz(self):
+    def test_a_fraction_measures_the_floor_over_the_same_band_in_hz(self, monkeypatch):
         """Noise 5x denser within +-5 MHz of a line than elsewhere (known by construction): the
         floor at the line is that density whether the spectrum is of the whole record or of its
         eighth (`fast`), whose bins are 8x wider -- a ring of 256 of *its* bins (+-31 MHz) would
         have measured mostly the thinner noise outside."""
+        import mtcw_core.dsp.spectrum as spectrum_module
+
+        monkeypatch.setattr(spectrum_module, "SEARCH_MIN_SAMPLES", 256)  # an eighth of this short record
         n, f0 = 2**16, 200e6
         rng = np.random.default_rng(21)
         white = rng.standard_normal(n)

@@ -14,6 +14,8 @@ search's guard (a few bins, where the static lines' window skirts would pass for
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from dataclasses import dataclass, replace
 from functools import cached_property, lru_cache
 
@@ -1232,9 +1234,11 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
             if more is None:
                 break
             small.append(more)
-        if main and spec.record_n is not None:
-            # the search's bins are coarse (fast: an eighth of the record): a mover inside the
-            # lobe of one it found is one line there, and its lines leak into every other fit
+        if main:
+            # a mover inside the lobe of one the search found is one line there (``fast``'s eighth
+            # of the record: movers 90 and 120 record bins apart), or lies within the guard rule's
+            # reach of it (one to two guards: movers 8 and 16 record bins up at 2^16, in every
+            # profile), and its lines leak into every other fit
             near = _lobe_neighbours(x, frame, spec, guard, f_max, settings.doppler_threshold, main, small,
                                     band[1], settings.max_targets - len(main) - len(small))
             # ... and where it lies closer than the refinement's quarters resolve, the line the
@@ -1739,10 +1743,13 @@ def _lobe_neighbours(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins: in
                      threshold_factor: float, main: tuple[float, ...], small: list[DopplerEstimate],
                      below_hz: float, room: int) -> list[DopplerEstimate]:
     """Movers beside those the search found, within :data:`LOBE_GUARDS` guards of them, found on the
-    whole record (:func:`search_small_doppler` on that band, every mover found held) where the
-    search spectrum covers part of it (``fast``: movers 90 and 120 record bins up at 2^16 are one
-    line in its eighth-record spectrum, and the hidden one's lines leak through the rectangular
-    window into every fit of the whole record: a mover at 30 bins came out 35 sigma off).
+    whole record (:func:`search_small_doppler` on that band, every mover found held). A partial
+    search spectrum (``fast``: movers 90 and 120 record bins up at 2^16 were one line in its
+    eighth-record spectrum) hides them in a found mover's lobe, and the hidden one's lines leak
+    through the rectangular window into every fit of the whole record (a mover at 30 bins came out
+    35 sigma off); a whole-record spectrum keeps a second line within two guards of a first only
+    across a noise-level valley (movers 8 and 16 record bins up at 2^16 gave one point in every
+    profile, the movers probe's most frequent miss: 1930 -> 908 missed targets with this search).
     ``below_hz``: the top of the band already searched below the guard; ``room``: how many more
     movers may be reported."""
     fs, n = frame.fs_hz, x.size
@@ -1948,6 +1955,27 @@ def _static_leakage(spec: Spectrum, low: LowBand, fd: float, tones: np.ndarray, 
     return float(np.sum(amp * kern))
 
 
+#: the newest record's exact DFTs at the line sets asked of :func:`_record_dft` (per thread)
+_RECORD_DFTS = threading.local()
+
+
+def _record_dft(x: np.ndarray, freqs_hz: np.ndarray, fs: float) -> np.ndarray:
+    """:func:`~mtcw_core.dsp.tones.exact_dft` of ``x`` at ``freqs_hz``, remembered for this record:
+    the search below the guard and the search beside each mover found (:func:`_lobe_neighbours`)
+    hold the same static and movers' lines, and each would take a pass over the record for them.
+    Only the newest record's are kept (by identity, through a weak reference: nothing writes into
+    a record after validate); the array returned is read-only."""
+    memo = getattr(_RECORD_DFTS, "memo", None)
+    if memo is None or memo[0]() is not x:
+        memo = _RECORD_DFTS.memo = (weakref.ref(x), {})
+    key = (np.asarray(freqs_hz, dtype=np.float64).tobytes(), float(fs))
+    out = memo[1].get(key)
+    if out is None:
+        out = memo[1][key] = exact_dft(x, freqs_hz, fs)
+        out.setflags(write=False)
+    return out
+
+
 class _FarMovers:
     """The baseband lines of movers found far from the sub-guard band, for :func:`_small_residual`:
     each line's amplitude from the record's exact DFT at it (``2X/N`` for a real record, ``X/N``
@@ -1956,7 +1984,7 @@ class _FarMovers:
     def __init__(self, x: np.ndarray, fs: float, iq: bool, others: tuple[float, ...]):
         self.x, self.fs, self.iq = x, fs, iq
         self.other_base = np.array([o if iq else abs(o) for o in others], dtype=float)
-        self.other_amps = exact_dft(x, self.other_base, fs) * ((1.0 if iq else 2.0) / x.size)
+        self.other_amps = _record_dft(x, self.other_base, fs) * ((1.0 if iq else 2.0) / x.size)
 
 
 def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:
@@ -2003,7 +2031,7 @@ class _SmallFit:
         held = np.concatenate([static, *(target_lines(tones, o, iq)[0] for o in self.others)])
         crossed = cross_beats(self.others, iq, fs / x.size) if self.cross else []
         self.static = _add_apart(held, [target_lines(tones, b, iq)[0] for b in crossed], 0.5 * fs / x.size)
-        self.d_static = exact_dft(x, self.static, fs)
+        self.d_static = _record_dft(x, self.static, fs)
 
     @cached_property
     def held_amps(self) -> np.ndarray:
