@@ -154,6 +154,8 @@ def test_settings_name_the_field():
         TrackSettings(frames=2)
     with pytest.raises(ValidationError, match="max_speed_mps"):
         TrackSettings(max_speed_mps=-1.0)
+    with pytest.raises(ValidationError, match="min_frames"):
+        TrackSettings(frames=4, min_frames=5)
 
 
 def test_issue12_case4_low_coherence_mover_gets_its_speed_from_its_ranges():

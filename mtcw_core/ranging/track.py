@@ -37,8 +37,9 @@ Honesty rules:
   ``chi2_p`` under constant velocity restarts from its newest point (a manoeuvre, or a point that
   was a different target);
 - a track not seen for ``max_gap_s`` ends; a change of run, tone plan (unambiguous range) or a
-  time stamp that goes back ends every track of the source; at most ``max_tracks`` per source
-  (the longest unseen ends first).
+  time stamp that does not advance ends every track of the source (time is the frames' trigger
+  stamps ``t_ns``: a recording without them, every stamp equal, tracks nothing, each frame's end
+  counted as ``time``); at most ``max_tracks`` per source (the longest unseen ends first).
 
 What the tracker does not do: it leaves the chain's own speed (``velocity_mps``, from one frame's
 Doppler) as it is, and adds ``track_id``, ``track_frames``, ``range_rate_mps`` and
@@ -53,7 +54,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.stats import chi2 as chi2_dist
 
 from ..results import FrameResult, TargetPoint
@@ -82,6 +83,12 @@ class TrackSettings(BaseModel):
     chi2_p: float = Field(1e-4, gt=0, lt=0.5, description="a window less likely than this restarts")
     max_gap_s: float = Field(5.0, gt=0, description="a track unseen this long ends (s)")
     max_tracks: int = Field(8, ge=1, le=64, description="tracks per source")
+
+    @model_validator(mode="after")
+    def _window_holds_min_frames(self) -> "TrackSettings":
+        if self.min_frames > self.frames:
+            raise ValueError(f"min_frames: {self.min_frames} is more than the window holds (frames = {self.frames})")
+        return self
 
 
 @dataclass
