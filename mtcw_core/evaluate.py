@@ -185,13 +185,18 @@ class ErrorLog:
     """Errors of matched points against truth, accumulated over frames.
 
     ``outlier_m``: a range error larger than this (e.g. a quarter of the finest synthetic
-    wavelength: a wrong cycle) is counted as an outlier and kept out of the statistics.
+    wavelength: a wrong cycle) is counted as an outlier and kept out of the statistics. A speed
+    that could not be measured (the 0 of direction ``unknown`` with the search's largest speed as
+    its sigma: a laser incoherent at the target) is no error and kept out of the speed's; a point's
+    range rate over frames (:mod:`mtcw_core.ranging.track`) is compared with the truth's velocity.
     """
 
     outlier_m: float = math.inf
     range_error_m: list[float] = field(default_factory=list)
     range_sigma_m: list[float] = field(default_factory=list)
     speed_error_mps: list[float] = field(default_factory=list)
+    rate_error_mps: list[float] = field(default_factory=list)
+    rate_z: list[float] = field(default_factory=list)
     outliers: int = 0
 
     def add(self, res: FrameResult, truth: TruthTarget) -> None:
@@ -205,12 +210,21 @@ class ErrorLog:
             return
         self.range_error_m.append(e)
         self.range_sigma_m.append(p.range_sigma_m)
-        self.speed_error_mps.append(abs(p.velocity_mps) - abs(truth.velocity_mps))
+        if p.speed_measured or p.direction == "static":  # a static claim's 0 is an answer
+            self.speed_error_mps.append(abs(p.velocity_mps) - abs(truth.velocity_mps))
+        if p.range_rate_mps is not None:
+            self.rate_error_mps.append(p.range_rate_mps - truth.velocity_mps)
+            self.rate_z.append(_z(self.rate_error_mps[-1], p.range_rate_sigma_mps))
 
     def summary(self) -> dict:
         """Bias, sample standard deviation (ddof 1), median reported sigma, largest error, speed bias
-        and spread; None where there are too few matched points."""
-        e, v = np.asarray(self.range_error_m), np.asarray(self.speed_error_mps)
+        and spread; None where there are too few matched points. With range rates (``--track``):
+        their count, bias, spread and largest ``|z|``."""
+        e, v, r = np.asarray(self.range_error_m), np.asarray(self.speed_error_mps), np.asarray(self.rate_error_mps)
+        rates = {} if not r.size else {
+            "range_rates": int(r.size), "range_rate_bias_mps": float(np.mean(r)),
+            "range_rate_std_mps": float(np.std(r, ddof=1)) if r.size > 1 else None,
+            "range_rate_max_abs_z": float(np.max(np.abs(self.rate_z)))}
         return {
             "matched": int(e.size), "outliers": self.outliers,
             "range_bias_m": float(np.mean(e)) if e.size else None,
@@ -219,6 +233,7 @@ class ErrorLog:
             "max_abs_range_error_m": float(np.max(np.abs(e))) if e.size else None,
             "speed_bias_mps": float(np.mean(v)) if v.size else None,
             "speed_std_mps": float(np.std(v, ddof=1)) if v.size > 1 else None,
+            **rates,
         }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -104,6 +105,24 @@ class TestErrorLog:
         s = log.summary()
         assert s["range_bias_m"] == pytest.approx(0.001) and s["range_std_m"] is None
         assert s["speed_std_mps"] is None
+
+
+    def test_an_unmeasured_speed_is_no_error_and_range_rates_are_judged(self):
+        """A point whose speed could not be measured (``unknown``, 0, the search's largest speed as
+        its sigma) adds no speed error (a 10 cm/s mover would read -0.1 m/s of bias); a static claim
+        does (it is an answer). Range rates over frames: their bias, spread and largest |z|."""
+        log = ErrorLog()
+        unknown = TargetPoint(range_m=1.0, range_sigma_m=1e-3, velocity_mps=0.0, velocity_sigma_mps=53.0,
+                              direction="unknown", snr_db=30.0, margin=1.0, speed_min_mps=53.0)
+        for rate in (0.098, 0.104):
+            log.add(result(replace(unknown, range_rate_mps=rate, range_rate_sigma_mps=0.002)), TruthTarget(1.0, 0.1))
+        log.add(result(replace(unknown, direction="static", velocity_sigma_mps=0.01)), TruthTarget(1.0, 0.0))
+        s = log.summary()
+        assert s["matched"] == 3 and s["speed_bias_mps"] == 0.0
+        assert s["range_rates"] == 2 and s["range_rate_bias_mps"] == pytest.approx(0.001)
+        assert s["range_rate_std_mps"] == pytest.approx(np.std([-0.002, 0.004], ddof=1))
+        assert s["range_rate_max_abs_z"] == pytest.approx(2.0)
+        assert "range_rates" not in self.filled().summary()
 
 
 class TestPhaseNoiseBound:
