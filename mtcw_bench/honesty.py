@@ -701,7 +701,8 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
     must = must_find(sc, first_snr, g.config.self_beat, g.seed)
     pn = crb_phase_noise(g, bound)
     for prof in runs:
-        settings = get_profile(prof.split("+")[0], **known)
+        chain = prof.split("+")[0]  # the chain's profile under an accumulated or tracked cell
+        settings = get_profile(chain, **known)
         # case 9: the accumulator's points answer the truth averaged over the frames they rest on
         acc = Accumulator(AccumulateSettings(frames=g.config.accumulate), settings) if "+acc" in prof else None
         trk = Tracker(TrackSettings(frames=g.config.track)) if "+trk" in prof else None
@@ -709,7 +710,7 @@ def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> 
         for i, fr in enumerate(frames):
             t1 = time.perf_counter()
             if trk is not None:  # the profile's own results when it ran, else the chain's now
-                base = done[prof.split("+")[0]][i] if prof.split("+")[0] in done else process_frame(fr, settings)
+                base = done[chain][i] if chain in done else process_frame(fr, settings)
                 res = trk.update(base)
             else:
                 res = process_frame(fr, settings) if acc is None else acc.add(fr)

@@ -168,6 +168,12 @@ def speed_error_mps(point: TargetPoint, truth: TruthTarget) -> float:
     return abs(point.velocity_mps) - abs(truth.velocity_mps)
 
 
+def range_rate_error_mps(point: TargetPoint, truth: TruthTarget) -> float | None:
+    """``point``'s range rate over frames (:mod:`mtcw_core.ranging.track`) against ``truth``'s
+    velocity (m/s, positive receding: the rate of its range); None where it carries none."""
+    return None if point.range_rate_mps is None else point.range_rate_mps - truth.velocity_mps
+
+
 def match_truth(res: FrameResult, truth: TruthTarget) -> tuple[TargetPoint, float] | None:
     """The point that answers a simulator truth target, and its range error (m).
 
@@ -212,9 +218,10 @@ class ErrorLog:
         self.range_sigma_m.append(p.range_sigma_m)
         if p.speed_measured or p.direction == "static":  # a static claim's 0 is an answer
             self.speed_error_mps.append(abs(p.velocity_mps) - abs(truth.velocity_mps))
-        if p.range_rate_mps is not None:
-            self.rate_error_mps.append(p.range_rate_mps - truth.velocity_mps)
-            self.rate_z.append(_z(self.rate_error_mps[-1], p.range_rate_sigma_mps))
+        ed = range_rate_error_mps(p, truth)
+        if ed is not None:
+            self.rate_error_mps.append(ed)
+            self.rate_z.append(_z(ed, p.range_rate_sigma_mps))
 
     def summary(self) -> dict:
         """Bias, sample standard deviation (ddof 1), median reported sigma, largest error, speed bias
@@ -351,7 +358,7 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
             verdicts.append(PointVerdict(None, None, None, None, None, measured, flags_of(p)))
             continue
         er, ev = range_error_m(p, res, truths[j]), speed_error_mps(p, truths[j])
-        ed = None if p.range_rate_mps is None else p.range_rate_mps - truths[j].velocity_mps
+        ed = range_rate_error_mps(p, truths[j])
         verdicts.append(PointVerdict(j, er, _z(er, p.range_sigma_m), ev, _z(ev, p.velocity_sigma_mps), measured,
                                      flags_of(p), ed, None if ed is None else _z(ed, p.range_rate_sigma_mps)))
     return FrameVerdict(res.status, tuple(verdicts), tuple(j for j in range(len(truths)) if j not in taken), z_wrong)
@@ -378,4 +385,5 @@ def _z(error: float, sigma: float) -> float:
 
 
 __all__ = ["Bound", "range_bound", "PhaseNoiseBound", "phase_noise_bound", "noise_variance", "match_truth", "range_error_m", "speed_error_mps",
+           "range_rate_error_mps",
            "ErrorLog", "FLAGS", "Z_WRONG", "PointVerdict", "FrameVerdict", "flags_of", "judge_frame"]

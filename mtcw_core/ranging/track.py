@@ -177,40 +177,41 @@ class Tracker:
         if res.status != "ok":
             return res
         targets = list(res.targets)
-        for i, k, step in self._associate(src, targets, t):
-            targets[i] = self._join(src, k, targets[i], t, step)
+        for i, k, r in self._associate(src, targets, t):
+            targets[i] = self._join(src, k, targets[i], t, r)
         return replace(res, targets=targets)
 
     # ---------------------------------------------------------------------------------------
     def _associate(self, src: "_SourceTracks", points: list[TargetPoint], t: float):
-        """(point index, track or None, wrapped step m) for every point that may join: nearest in
-        sigmas first, one point per track; None starts a track."""
+        """(point index, track or None, its range unwrapped along that track m) for every point that
+        may join: nearest in sigmas first, one point per track; None starts a track."""
         st = self.settings
         usable = [i for i, p in enumerate(points)
                   if not p.flagged and math.isfinite(p.range_m) and p.range_sigma_m > 0 and math.isfinite(p.range_sigma_m)]
+        preds = [(k, *k.predict(t, st.max_speed_mps, src.period)) for k in src.tracks]  # one fit per track
         pairs = []
         for i in usable:
             p = points[i]
-            for k in src.tracks:
-                r_pred, var, reach = k.predict(t, st.max_speed_mps, src.period)
+            for k, r_pred, var, reach in preds:
                 step = _wrap(p.range_m - r_pred, src.period)
                 sd = math.sqrt(var + p.range_sigma_m**2)
                 bound = reach + st.gate_sigmas * sd
                 if st.max_speed_mps and src.period is not None and bound >= src.period / 2 and reach > 0:
                     continue  # a step of half the unambiguous range: which cycle it took is unknown
                 if abs(step) <= bound:  # fitted tracks first (|step| <= gate sigmas), then one-point tracks
-                    pairs.append((abs(step) / sd + (st.gate_sigmas if reach > 0 else 0.0), i, k, step))
+                    pairs.append((abs(step) / sd + (st.gate_sigmas if reach > 0 else 0.0), i, k, r_pred + step))
         pairs.sort(key=lambda q: q[0])
         taken_p, taken_k, out = set(), set(), []
-        for _, i, k, step in pairs:
+        for _, i, k, r in pairs:
             if i not in taken_p and k.id not in taken_k:
                 taken_p.add(i)
                 taken_k.add(k.id)
-                out.append((i, k, step))
-        out += [(i, None, 0.0) for i in usable if i not in taken_p]
+                out.append((i, k, r))
+        out += [(i, None, points[i].range_m) for i in usable if i not in taken_p]
         return out
 
-    def _join(self, src: "_SourceTracks", k: _Track | None, p: TargetPoint, t: float, step: float) -> TargetPoint:
+    def _join(self, src: "_SourceTracks", k: _Track | None, p: TargetPoint, t: float, r: float) -> TargetPoint:
+        """Point ``p`` at range ``r`` (m, unwrapped along ``k``) joins track ``k`` (None: a new one)."""
         st = self.settings
         if k is None:
             if len(src.tracks) >= st.max_tracks:
@@ -218,10 +219,6 @@ class Tracker:
             k = _Track(src.next_id)
             src.next_id += 1
             src.tracks.append(k)
-            r = p.range_m
-        else:
-            r_pred = k.predict(t, st.max_speed_mps, src.period)[0]
-            r = r_pred + step  # unwrapped along the track
         k.points.append((t, r, p.range_sigma_m))
         while len(k.points) > st.frames:
             k.points.popleft()
