@@ -143,7 +143,8 @@ def _tracker(frames: int, max_speed_mps: Optional[float]):
 
 TRACK_HELP = ("range rate over frames: each target's ranges over its last K frames (3-64; 0: off), "
               "a speed where the laser is incoherent and the direction on one photodiode (range_rate_mps)")
-TRACK_SPEED_HELP = "with --track: the fastest range rate a target may have (m/s; default: any step within L/2)"
+TRACK_SPEED_HELP = ("with --track: the fastest range rate a target may have (m/s; default: each point's own "
+                    "bound, its Doppler speed or the search's largest: a laser incoherent at the target needs it)")
 
 
 def _calibration(path: Optional[Path]):
@@ -248,7 +249,8 @@ def process(
         summary["accumulate"] = {"frames": accumulate, "new_windows": dict(acc.resets)}
     if tracker is not None:
         summary["track"] = {"frames": track, "ended": dict(tracker.ends), "restarts": tracker.restarts,
-                            "withheld_disagreeing_with_doppler": tracker.disagree}
+                            "withheld_disagreeing_with_doppler": tracker.disagree,
+                            "steps_of_unknown_cycle": tracker.ambiguous}
     if log.range_error_m:
         summary.update(log.summary())
     typer.echo(json.dumps(summary, indent=2))

@@ -291,8 +291,9 @@ class WorkerSettings(TransportSettings):
                        "frames of the worker's share of a source (3-64; 0: off): a speed where the laser is "
                        "incoherent, the direction on one photodiode (range_rate_mps; mtcw_core.ranging.track)")
     track_max_speed_mps: Optional[float] = Field(None, gt=0, description="with track: the fastest range rate a "
-                                                 "target may have (m/s; default: any step within half the "
-                                                 "unambiguous range)")
+                                                 "target may have (m/s; default: each point's own bound, its "
+                                                 "Doppler speed or the search's largest: a laser incoherent at "
+                                                 "the target needs it)")
     name: str = Field("worker", description="worker name in logs")
     metrics_port: int = Field(0, ge=0, le=65535, description="Prometheus exporter port (0 = off)")
     threads: int = Field(1, ge=0, le=1024, description="threads of the numerical libraries (OpenBLAS/OpenMP) in "

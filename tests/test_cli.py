@@ -133,7 +133,8 @@ def test_process_track_gives_the_range_rate_and_names_a_bad_window(tmp_path):
     r = CliRunner().invoke(app, ["process", str(rec), "--profile", "fast", "--track", "4", "-o", str(tmp_path / "p.csv")])
     assert r.exit_code == 0, r.output
     s = _summary(r.stdout)
-    assert s["track"] == {"frames": 4, "ended": {}, "restarts": 0, "withheld_disagreeing_with_doppler": 0}
+    assert s["track"] == {"frames": 4, "ended": {}, "restarts": 0, "withheld_disagreeing_with_doppler": 0,
+                          "steps_of_unknown_cycle": 0}
     rows = list(csv.DictReader(open(tmp_path / "p.csv")))
     assert [int(row["track_frames"]) for row in rows] == [1, 2, 3, 4, 4] and len({row["track_id"] for row in rows}) == 1
     for row in rows[2:]:

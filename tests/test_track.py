@@ -18,6 +18,8 @@ from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
 T0_NS = 1_767_225_600_000_000_000  # a trigger stamp of today's size (float64 s keeps 0.2 us there)
+#: the bench's declared largest speed (m/s) for points whose speed is unknown (the helper's default)
+SLOW = 2.0
 
 
 def point(r: float, sigma: float, **kw) -> TargetPoint:
@@ -43,7 +45,7 @@ def test_rate_is_the_weighted_slope_with_its_least_squares_variance():
     rng = np.random.default_rng(1)
     k, s, dt, v = 12, 0.004, 0.1, 0.1
     t = np.arange(20) * dt
-    out = feed(Tracker(TrackSettings(frames=k)), 1.12 + v * t + rng.normal(0, s, t.size), s, dt)
+    out = feed(Tracker(TrackSettings(frames=k, max_speed_mps=SLOW)), 1.12 + v * t + rng.normal(0, s, t.size), s, dt)
     assert [p.range_rate_mps is None for p in out[:2]] == [True, True] and out[2].range_rate_mps is not None
     assert [p.track_frames for p in out] == list(range(1, k + 1)) + [k] * (20 - k)
     assert len({p.track_id for p in out}) == 1
@@ -61,7 +63,7 @@ def test_rate_sigma_covers_its_error_over_many_tracks():
     for _ in range(600):
         v, s = rng.uniform(-1, 1), rng.uniform(1e-3, 1e-2)
         t = np.arange(8) * 0.1
-        p = feed(Tracker(TrackSettings(frames=8)), 1.0 + v * t + rng.normal(0, s, t.size), s)[-1]
+        p = feed(Tracker(TrackSettings(frames=8, max_speed_mps=SLOW)), 1.0 + v * t + rng.normal(0, s, t.size), s)[-1]
         z.append((p.range_rate_mps - v) / p.range_rate_sigma_mps)
     assert abs(np.mean(z)) < 0.15 and 0.8 <= np.std(z) <= 1.05, (np.mean(z), np.std(z))
 
@@ -71,7 +73,7 @@ def test_ranges_wrapped_at_the_unambiguous_range_are_unwrapped_along_the_track()
     track, rate +0.5 m/s; approaching through 0 likewise."""
     for v in (0.5, -0.5):
         t = np.arange(10) * 0.1
-        out = feed(Tracker(), np.mod(2.8 + v * t if v > 0 else 0.2 + v * t, 3.0), 1e-3)
+        out = feed(Tracker(TrackSettings(max_speed_mps=SLOW)), np.mod(2.8 + v * t if v > 0 else 0.2 + v * t, 3.0), 1e-3)
         assert len({p.track_id for p in out}) == 1
         assert abs(out[-1].range_rate_mps - v) < 1e-6 and out[-1].range_rate_sigma_mps < 1e-2
 
@@ -82,7 +84,7 @@ def test_each_target_keeps_its_track_and_flagged_points_join_none(period):
     own rate -- with CW ranges (3 m unambiguous) and with absolute ones (quasi-CW: any step may
     join a one-point track, the nearest does); a point flagged ``cycle_ambiguous`` joins no track
     and carries no rate."""
-    tr = Tracker()
+    tr = Tracker(TrackSettings(max_speed_mps=SLOW))
     rng = np.random.default_rng(3)
     for k in range(10):
         t = k * 0.1
@@ -103,9 +105,9 @@ def test_a_manoeuvre_ends_the_window_and_the_rate_follows():
     restarts from its newest point."""
     t = np.arange(24) * 0.1
     r = np.where(t < 1.0, 1.0 + 0.5 * t, 1.5) + np.random.default_rng(2).normal(0, 1e-3, t.size)
-    out = feed(Tracker(TrackSettings(frames=12)), r, 1e-3)
+    out = feed(Tracker(TrackSettings(frames=12, max_speed_mps=SLOW)), r, 1e-3)
     assert out[-1].track_id != out[0].track_id and abs(out[-1].range_rate_mps) < 5 * out[-1].range_rate_sigma_mps
-    tr = Tracker(TrackSettings(frames=12, gate_sigmas=50))  # a wide gate: the 0.1 m/s change stays in the track
+    tr = Tracker(TrackSettings(frames=12, gate_sigmas=50, max_speed_mps=SLOW))  # a wide gate: the 0.1 m/s change stays in the track
     r = np.where(t < 1.0, 1.0 + 0.5 * t, 1.5 + 0.4 * (t - 1.0)) + np.random.default_rng(2).normal(0, 1e-3, t.size)
     out = feed(tr, r, 1e-3)
     assert tr.restarts >= 1 and len({p.track_id for p in out}) == 1
@@ -133,12 +135,24 @@ def test_max_speed_bounds_a_tracks_second_step():
     tr = Tracker(TrackSettings(max_speed_mps=20.0))  # 2 m in 0.1 s: beyond 1.5 m
     out = feed(tr, [1.0, 1.01], 1e-3)
     assert out[0].track_id != out[1].track_id
-    out = feed(Tracker(), [1.0, 1.01, 1.02], 1e-3)  # the default: any step within L/2
-    assert len({p.track_id for p in out}) == 1
+
+
+def test_a_step_whose_cycle_is_unknown_gives_no_rate():
+    """A target at 20 m/s, its speed unknown (a laser incoherent at it: the search's largest speed,
+    60 m/s, as its sigma), 3 m unambiguous range, 10 frames/s: each 2 m step wraps to -1 m. Taking the
+    nearest cycle once made a confident -10 m/s. Without a declared max speed the step's cycle is
+    unknown: no track joins, no rate. Where the chain measured the speed (1.0 m/s) it bounds the step
+    itself, and a 1 m/s target is tracked without any declaration."""
+    t = np.arange(6) * 0.1
+    tr = Tracker()
+    out = feed(tr, np.mod(1.0 + 20.0 * t, 3.0), 1e-3)
+    assert all(p.range_rate_mps is None and p.track_frames == 1 for p in out) and tr.ambiguous >= 5
+    out = feed(Tracker(), 1.0 + 1.0 * t, 1e-3, velocity_mps=1.0, velocity_sigma_mps=1e-3, speed_min_mps=0.01)
+    assert len({p.track_id for p in out}) == 1 and abs(out[-1].range_rate_mps - 1.0) < 5 * out[-1].range_rate_sigma_mps
 
 
 def test_a_new_run_a_new_plan_or_time_going_back_ends_the_tracks():
-    tr = Tracker()
+    tr = Tracker(TrackSettings(max_speed_mps=SLOW))
     feed(tr, [1.0, 1.01], 1e-3)
     p = tr.update(result([point(1.02, 1e-3)], 2), run=5).targets[0]
     assert p.track_frames == 1 and tr.ends == {"run": 1}
@@ -167,7 +181,7 @@ def test_issue12_case4_low_coherence_mover_gets_its_speed_from_its_ranges():
                        digitizer={"samples": 2**16})
     st = get_profile("fast", laser_linewidth_hz=sc.laser.linewidth_hz,
                      lo_path_difference_m=sc.paths.lo_path_difference_m)
-    tr = Tracker(TrackSettings(frames=10))
+    tr = Tracker(TrackSettings(frames=10, max_speed_mps=SLOW))  # the bench declares its target slow
     for fr in Simulator(sc, 4).frames(10):
         res = tr.update(process_frame(fr, st))
         v = judge_frame(res, fr.truth)

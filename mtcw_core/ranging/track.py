@@ -22,12 +22,14 @@ Honesty rules:
 - a point joins the track whose prediction it lies closest to, in sigmas, within ``gate_sigmas``
   (prediction variance from the fit plus the point's own); one point per track per frame;
   a point no track takes starts a new one;
-- a track of one point takes a second within ``max_speed_mps`` times the time between them (plus
-  the gate): the largest range rate the bench declares. For CW frames every step is wrapped into
-  half the unambiguous range ``L``; where ``max_speed_mps`` allows a step of ``L/2``, the step is
-  ambiguous and the point starts a track of its own instead. Without ``max_speed_mps`` the nearest
-  cycle is taken: a target faster than ``L/(2*dt)`` would alias, which the next rule catches
-  wherever the chain measured the point's speed;
+- a track of one point takes a second within the fastest the point may move times the time
+  between them (plus the gate): its speed where the chain measured one (``|v|`` + 5 sigma), 5 of
+  its sigmas for a ``static`` claim, the search's largest speed where its speed is unknown, and no
+  more than ``max_speed_mps`` where the bench declares one. For CW frames every step is wrapped into
+  half the unambiguous range ``L``; where that allows a step of ``L/2``, the step's cycle is unknown
+  (a target faster than ``L/(2*dt)`` aliases) and the point starts a track of its own instead: a
+  laser incoherent at the target (speed unknown, up to tens of m/s) tracks only with
+  ``max_speed_mps`` declared;
 - where the chain measured the point's speed from its Doppler line (:attr:`TargetPoint.speed_measured`),
   the track's rate must agree with it within ``gate_sigmas`` (in |v| on one photodiode, signed
   for IQ); a rate that does not is withheld (:attr:`Tracker.disagree`);
@@ -78,7 +80,7 @@ class TrackSettings(BaseModel):
     frames: int = Field(12, ge=3, le=MAX_FRAMES, description="the most points a track's rate rests on")
     min_frames: int = Field(3, ge=3, le=MAX_FRAMES, description="points before a rate is reported")
     max_speed_mps: float | None = Field(None, gt=0, description="the fastest range rate a target may have (m/s; "
-                                        "default: any step within half the unambiguous range)")
+                                        "default: each point's own bound, from its Doppler or the search)")
     gate_sigmas: float = Field(5.0, gt=0, le=100, description="sigmas from its prediction a point may join a track")
     chi2_p: float = Field(1e-4, gt=0, lt=0.5, description="a window less likely than this restarts")
     max_gap_s: float = Field(5.0, gt=0, description="a track unseen this long ends (s)")
@@ -119,17 +121,16 @@ class _Track:
         chi2 = float(np.sum(w * (r - rbar - rate * dt) ** 2))
         return tbar, rbar, 1.0 / float(np.sum(w)), rate, 1.0 / sxx, chi2
 
-    def predict(self, t: float, max_speed: float | None, period: float | None) -> tuple[float, float, float]:
-        """(range m, its variance m^2, the step's half-width bound m) at time ``t``: from the fit
-        with two points or more (bound 0); with one, its range, its variance and
-        ``max_speed*|t - t0|`` (without a max speed: half the period, or inf without one)."""
+    def predict(self, t: float) -> tuple[float, float, float | None]:
+        """(range m, its variance m^2, None) at time ``t`` from the fit with two points or more;
+        with one, (its range, its variance, the time since it s): the step's reach is then the
+        joining point's speed bound times that time."""
         f = self.fit()
         t0, r0, s0 = self.points[-1]
         if f is None:
-            reach = max_speed * abs(t - t0) if max_speed else (period / 2 if period else math.inf)
-            return r0, s0**2, reach
+            return r0, s0**2, abs(t - t0)
         tbar, rbar, var_r, rate, var_rate, _ = f
-        return rbar + rate * (t - tbar), var_r + (t - tbar) ** 2 * var_rate, 0.0
+        return rbar + rate * (t - tbar), var_r + (t - tbar) ** 2 * var_rate, None
 
 
 class Tracker:
@@ -148,6 +149,9 @@ class Tracker:
         Windows restarted from their newest point (chi-square below ``chi2_p``).
     disagree : int
         Rates withheld because the chain's own Doppler speed of the point says otherwise.
+    ambiguous : int
+        Steps not taken because their cycle was unknown (a one-point track, a speed bound allowing
+        half the unambiguous range: declare ``max_speed_mps``).
     """
 
     def __init__(self, settings: TrackSettings | None = None, max_sources: int = 64) -> None:
@@ -155,7 +159,7 @@ class Tracker:
         self.max_sources = max_sources
         self._sources: dict[str, _SourceTracks] = {}
         self.ends: dict[str, int] = {}
-        self.restarts = self.disagree = 0
+        self.restarts = self.disagree = self.ambiguous = 0
 
     def update(self, res: FrameResult, run: int | None = None) -> FrameResult:
         """``res`` with its points annotated (a new result; ``res`` itself is not changed)."""
@@ -188,16 +192,18 @@ class Tracker:
         st = self.settings
         usable = [i for i, p in enumerate(points)
                   if not p.flagged and math.isfinite(p.range_m) and p.range_sigma_m > 0 and math.isfinite(p.range_sigma_m)]
-        preds = [(k, *k.predict(t, st.max_speed_mps, src.period)) for k in src.tracks]  # one fit per track
+        preds = [(k, *k.predict(t)) for k in src.tracks]  # one fit per track
         pairs = []
         for i in usable:
             p = points[i]
-            for k, r_pred, var, reach in preds:
+            for k, r_pred, var, dt_one in preds:
                 step = _wrap(p.range_m - r_pred, src.period)
                 sd = math.sqrt(var + p.range_sigma_m**2)
+                reach = 0.0 if dt_one is None else self._speed_bound(p) * dt_one
                 bound = reach + st.gate_sigmas * sd
-                if st.max_speed_mps and src.period is not None and bound >= src.period / 2 and reach > 0:
-                    continue  # a step of half the unambiguous range: which cycle it took is unknown
+                if reach > 0 and src.period is not None and bound >= src.period / 2:
+                    self.ambiguous += 1  # a step of half the unambiguous range: which cycle it took is unknown
+                    continue
                 if abs(step) <= bound:  # fitted tracks first (|step| <= gate sigmas), then one-point tracks
                     pairs.append((abs(step) / sd + (st.gate_sigmas if reach > 0 else 0.0), i, k, r_pred + step))
         pairs.sort(key=lambda q: q[0])
@@ -209,6 +215,19 @@ class Tracker:
                 out.append((i, k, r))
         out += [(i, None, points[i].range_m) for i in usable if i not in taken_p]
         return out
+
+    def _speed_bound(self, p: TargetPoint) -> float:
+        """The fastest point ``p`` may move (m/s): its measured speed plus ``gate_sigmas`` of its sigma,
+        ``gate_sigmas`` sigmas of a ``static`` claim, the search's largest speed (its sigma) where its
+        speed is unknown; no more than a declared ``max_speed_mps``."""
+        st = self.settings
+        if p.speed_measured:
+            v = abs(p.velocity_mps) + st.gate_sigmas * p.velocity_sigma_mps
+        elif p.direction == "static":
+            v = st.gate_sigmas * p.velocity_sigma_mps
+        else:
+            v = p.velocity_sigma_mps
+        return min(v, st.max_speed_mps) if st.max_speed_mps else v
 
     def _join(self, src: "_SourceTracks", k: _Track | None, p: TargetPoint, t: float, r: float) -> TargetPoint:
         """Point ``p`` at range ``r`` (m, unwrapped along ``k``) joins track ``k`` (None: a new one)."""
