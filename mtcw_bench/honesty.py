@@ -329,6 +329,10 @@ def case_scenes() -> dict[str, tuple[str, Scene, int]]:
                                                 _movers((12.0, 40.0), (10.0, 12.0), "single"), 6),
         "movers: one at the sum of two 1 pd": ("40, 60 and 100 bins, 40/42/44 dB, one photodiode: 100 - 40 = 60",
                                                _movers((40.0, 60.0, 100.0), (40.0, 42.0, 44.0), "single"), 6),
+        # found in the 2026-11-27 review: the echo's self-beat 10 dB above its own LO beats, at one range
+        "3 echo above the LO 1 pd": ("moving-target at 0 dB loss (1e6): the self-beat stronger than the mover's "
+                                     "Doppler lines", scene_variant(mt, targets=[{"loss_db": 0.0}],
+                                                                    digitizer={"samples": 1_000_000}), 6),
         "7 timing jitter": ("60 ps trigger jitter (cw-bench, 1e6)", scene_variant(
             load_scene("cw-bench"), noise={"trigger_jitter_s": JITTER_S}), 12),
         "8 moving-target 60 dB": ("moving-target at 60 dB (sigma/CRB)", scene_variant(

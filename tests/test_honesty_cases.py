@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mtcw_bench.honesty import JITTER_S, PE_TONES, SIX_TONES, case_scenes, with_targets
+from mtcw_bench.honesty import JITTER_S, PE_TONES, SIX_TONES, case_scenes, declared, with_targets
 from mtcw_bench.honesty import _movers as movers
 from mtcw_bench.honesty import issue_scene as scene
 from mtcw_core.chain import get_profile, process_frame
@@ -482,14 +482,24 @@ def test_a_mover_one_to_two_guards_from_another_is_found_in_every_profile(profil
         assert r.status == "ok" and not v.missed, (v.missed, [(p.range_z, p.speed_z) for p in v.points])
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "found in the 2026-11-27 review, not fixed: an echo stronger than the LO on one photodiode. Its self-beat at "
-    "the tones (64 dB) is 10 dB above its own LO beats (54 dB, a clean Doppler line at 188 kHz); select_targets "
-    "keeps the stronger of two candidates at one range (its rule for a static target's phase-noise sidebands) "
-    "and reports the self-beat as a static target, unflagged: speed z -7.5 at 1e6 samples in balanced/accurate"))
 def test_an_echo_stronger_than_the_lo_is_not_reported_static():
     """moving-target (10 cm/s, one photodiode, 100 kHz laser) at 0 dB echo loss, 1e6 samples: the
-    mover must be reported, or the static point flagged; never a confident ``static``."""
+    echo's self-beat at the tones (67 dB) stands 10 dB above its own LO beats (57 dB, a clean
+    Doppler line), at one range. Found in the 2026-11-27 review: select_targets kept the stronger
+    of the two (its rule for a static target's phase-noise wings) and reported the self-beat as an
+    unflagged static target, speed z -7.5. With the laser declared, the wings at 1 m lie 69 dB
+    below the static lines, so the "mover" is a Doppler line: it is reported, right within its
+    sigma. With none declared, the static point stays and its speed is not measured (a sigma that
+    covers the twin's speed), never a confident ``static``."""
     sc = scene_variant(load_scene("moving-target"), targets=[{"loss_db": 0.0}], digitizer={"samples": 1_000_000})
-    runs = run(sc, "balanced", 1, seed=11)
-    assert not confident(runs), confident(runs)
+    (fr,) = Simulator(sc, 11).frames(1)
+    for profile in ("fast", "balanced", "accurate"):
+        r = process_frame(fr, get_profile(profile, **declared(sc)))
+        v = judge_frame(r, fr.truth)
+        assert not confident([(fr, r, v)]), (profile, confident([(fr, r, v)]))
+        assert len(r.targets) == 1 and r.targets[0].speed_measured and not v.missed, (profile, r.targets)
+        assert abs(v.points[0].speed_z) < 5 and not v.points[0].flagged
+    r = process_frame(fr, "balanced")
+    (p,) = r.targets
+    assert not p.speed_measured and p.direction == "unknown" and p.velocity_sigma_mps >= 0.1
+    assert not confident([(fr, r, judge_frame(r, fr.truth))])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from mtcw_core.profiles import ChainSettings, get_profile
 from mtcw_core.ranging.mixing import mix
 from mtcw_core.chain import process_frame
 from mtcw_core.ranging.targets import (SPEED_FLOOR_BINS, Reference, median_snr, resolve_targets, select_targets,
-                                       shared_phase_psd, solve_target, velocity)
+                                       shared_phase_psd, solve_target, velocity, wings_level_db)
 from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
 from mtcw_core.results import TargetPoint
 from mtcw_core.simulate import Simulator
@@ -254,10 +255,38 @@ class TestSelectTargets:
         assert select_targets([(0, static), (1, mover)], self.ST) == [mover]
 
     def test_weak_mover_at_the_static_range_dropped(self):
+        """No laser declared: the weak twin may be the static target's wings or a mover whose
+        self-beat the static lines are; the static point stays, its speed not measured (0,
+        ``unknown``, a sigma covering the twin's 0.25 m/s by 5 of its sigmas)."""
         static = point(5.0, [40.0, 42.0, 38.0])
-        ghost = point(5.0 + 1e-4, [30.0, 31.0, 29.0])
+        ghost = replace(point(5.0 + 1e-4, [30.0, 31.0, 29.0]), velocity_mps=0.25, direction="unknown")
         other = point(12.0, [35.0, 36.0, 34.0])
-        assert select_targets([(0, static), (1, ghost), (2, other)], self.ST) == [static, other]
+        got = select_targets([(0, static), (1, ghost), (2, other)], self.ST)
+        assert got == [replace(static, direction="unknown", velocity_sigma_mps=0.255, speed_min_mps=0.255), other]
+        assert not got[0].speed_measured and static.velocity_mps == got[0].velocity_mps == 0.0
+
+    def test_a_twin_above_the_declared_lasers_wings_is_the_target(self):
+        """An echo stronger than the LO (one photodiode): its self-beat at the tones stands 10 dB
+        above its own Doppler lines, at one range. A 100 kHz laser's wings at 5 m in a 5 kHz bin lie
+        55 dB below the static lines, so a twin 10 dB below them is a Doppler line and the static
+        lines its self-beat: the mover is the target. Within 20 dB of the wings it may be them: the
+        static target stays, ``static``, as before the rule."""
+        static = point(5.0, [50.0] * 3)
+        mover = replace(point(5.0 + 1e-4, [40.0] * 3), velocity_mps=0.1, direction="unknown")
+        dfb = get_profile("balanced", laser_linewidth_hz=100e3)
+        assert select_targets([(0, static), (1, mover)], dfb, 5e3) == [mover]
+        # a flagged twin (a wrong cycle's wide sigma can put it at any range: the honesty map's
+        # static + mover at 2^16, 20 dB) claims nothing: the static target stays
+        # but may have put its self-beat there: the static point's speed is not measured
+        lost = replace(mover, cycle_ambiguous=True)
+        (kept,) = select_targets([(0, static), (1, lost)], dfb, 5e3)
+        assert kept.range_m == static.range_m and not kept.speed_measured and kept.velocity_sigma_mps > 0.1
+        # 3 MHz (the carrier beat still 53 % a line): the wings -39 dB, within 20 dB of a twin 25 dB down
+        wide = get_profile("balanced", laser_linewidth_hz=3e6)
+        assert wings_level_db(wide, static, 5e3) == pytest.approx(-38.8, abs=0.1)
+        faint = replace(mover, tone_snr_db={k: 25.0 for k in mover.tone_snr_db})
+        assert select_targets([(0, static), (1, faint)], wide, 5e3) == [static]
+        assert select_targets([(0, static), (1, mover)], wide, 5e3) == [mover]
 
     def test_same_range_uses_the_sigmas(self):
         static = point(5.0, [40.0] * 3, sigma=1e-3)

@@ -399,7 +399,12 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       (``|E_echo|^2`` has no Doppler): at a mover's range, or far weaker than the movers' LO
       beats (a self-beat is ``sqrt(P_echo/P_lo)`` below them), it is not a second target.
     - A weak "mover" at the static target's range is that target's own phase-noise sidebands
-      (they carry its tone phases): of two candidates at one range, the stronger is the target.
+      (they carry its tone phases): of two candidates at one range, the stronger is the target --
+      unless the declared laser's wings there stay :data:`WINGS_MARGIN_DB` below the "mover": it
+      is then a Doppler line and the static lines its self-beat (an echo stronger than the LO on
+      one photodiode: the self-beat ``sqrt(P_echo/P_lo)`` above the LO beats), not a target. With
+      no laser declared the static point stays, its speed not measured (``unknown``, a sigma that
+      covers the twin's speed): its lines are either's, at one range.
     """
     points = [(k, p) for k, p in points if is_finite(p)]
     # no Doppler line where the carrier beat is no line: a "mover" there is the wings of the
@@ -415,9 +420,31 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     if static is not None and movers:
         loudest = max(median_snr(m) for m in movers)
         twins = [m for m in movers if _same_range(static, m)]
+        lines = [m for m in twins if wings is None or _above_wings(m, static, wings)]
         if median_snr(static) < loudest - settings.self_beat_margin_db or any(
-                median_snr(m) >= median_snr(static) for m in twins):
+                median_snr(m) >= median_snr(static) for m in twins) or any(
+                wings is not None and not m.flagged for m in lines):
             points = [(k, p) for k, p in points if k > 0]
-        else:
-            points = [(k, p) for k, p in points if not any(p is m for m in twins)]
+        elif twins:
+            # a twin that may be a Doppler line (no laser declared, or a flagged one above the
+            # wings: a wrong cycle's sigma can put it at any range) may have put its self-beat on
+            # the static lines: the range is either's, the speed 0 or the twin's: not measured
+            points = [(k, _speed_unknown(p, lines) if k == 0 and lines else p) for k, p in points
+                      if not any(p is m for m in twins)]
     return [p for _, p in sorted(points, key=lambda kp: -median_snr(kp[1]))]
+
+
+def _above_wings(mover: TargetPoint, static: TargetPoint, wings: float) -> bool:
+    """A candidate at the static target's range whose lines stand :data:`WINGS_MARGIN_DB` above
+    the declared laser's wings there (``wings``, dB relative to the static lines) is a Doppler
+    line, not the wings: the static lines are then its self-beat if its own point is unflagged."""
+    return median_snr(mover) - median_snr(static) >= wings + WINGS_MARGIN_DB
+
+
+def _speed_unknown(static: TargetPoint, twins: list[TargetPoint]) -> TargetPoint:
+    """The static point with its speed not measured: 0, direction ``unknown``, a sigma that covers
+    every twin's speed (5 of its sigmas beyond it) -- the static lines may be a twin's self-beat --
+    and as its smallest measurable speed (the frame could not tell 0 from the twin's)."""
+    cover = max([abs(m.velocity_mps) + 5 * m.velocity_sigma_mps for m in twins]
+                + [static.velocity_sigma_mps, static.speed_min_mps])
+    return replace(static, velocity_mps=0.0, direction="unknown", velocity_sigma_mps=cover, speed_min_mps=cover)
