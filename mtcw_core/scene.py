@@ -210,9 +210,35 @@ class Scene(_Model):
                 )
         return self
 
+    @model_validator(mode="after")
+    def _check_delays(self) -> "Scene":
+        """No light arrives before it left: the LO's delay and every echo's, over the scene's own
+        frames (an approaching target must not reach the sensor), are at least 0."""
+        tau_lo = self.paths.tau0_s + self.paths.lo_path_difference_m / C
+        if tau_lo < 0:
+            raise ValueError(f"paths.lo_path_difference_m: the LO's delay tau0_s + d/c = {tau_lo:g} s is negative")
+        for i, t in enumerate(self.targets):
+            late = target_delay_problem(self, i, self.frames.count - 1)
+            if late:
+                raise ValueError(late)
+        return self
+
     @property
     def tones_hz(self) -> list[float]:
         return self.modulator.tones_hz
+
+
+def target_delay_problem(scene: Scene, index: int, frame: int) -> str | None:
+    """Why target ``index`` cannot be simulated up to the end of frame ``frame`` (its echo delay
+    ``tau0_s + 2*R(t)/c`` below 0: an approaching target has reached the sensor), or None."""
+    t = scene.targets[index]
+    t_end = frame / scene.frames.rate_hz + scene.digitizer.samples / scene.digitizer.sample_rate_hz
+    r_min = min(t.range_m, t.range_m + t.velocity_mps * t_end)
+    if scene.paths.tau0_s + 2 * r_min / C >= 0:
+        return None
+    return (f"targets.{index}.range_m: at {t.velocity_mps:g} m/s from {t.range_m:g} m the echo delay "
+            f"tau0_s + 2*R/c falls below 0 by frame {frame} (t = {t_end:g} s, R = {r_min:g} m): the target "
+            f"has reached the sensor")
 
 
 _PLAIN_KEY = re.compile(r"[A-Za-z0-9_-]+")

@@ -324,3 +324,33 @@ def test_bad_optical_noise_names_the_field():
                                             "filter_bandwidth_m": float("nan")}})
     with pytest.raises(SceneError, match=r"optical_noise\.amplifier\.optical_bandwidth_hz"):
         make_scene(optical_noise={"amplifier": {"gain_db": 3.0}})
+
+
+def test_a_stream_ends_with_the_scene_error_where_a_target_reaches_the_sensor():
+    """2 m at -15 m/s, 10 frames/s, 100 kHz laser: the scene's own 2 frames are fine; the stream's
+    frame 2 (t = 0.2 s) would put the target behind the sensor. It raised numpy's broadcast error
+    in the laser's delayed phase; now a SceneError naming the target and the frame."""
+    sc = make_scene(targets=[{"range_m": 2.0, "velocity_mps": -15.0}], laser={"linewidth_hz": 1e5},
+                    frames={"count": 2, "rate_hz": 10.0})
+    sim = Simulator(sc, seed=1)
+    assert len(list(sim.frames())) == 2
+    with pytest.raises(SceneError, match=r"targets\.0\.range_m: .* by frame 2 .*reached the sensor"):
+        sim.next_frame()
+
+
+def test_the_sim_source_ends_its_run_where_the_scene_ends(tmp_path, caplog):
+    """The acquisition node's ``sim`` source streams beyond the scene's frames; where the target
+    reaches the sensor it logs why and ends the run (the node then sends its end-of-run notice)."""
+    from services.sources.simulator import SimulatorSource
+
+    path = tmp_path / "approach.toml"
+    path.write_text('[modulator]\ntones = [{ frequency_hz = 500e6 }, { frequency_hz = 700e6 }]\n'
+                    '[[targets]]\nrange_m = 2.0\nvelocity_mps = -15.0\n[digitizer]\nsamples = 1024\n'
+                    '[frames]\ncount = 1\nrate_hz = 10\n')
+
+    class Settings:
+        scene, seed = str(path), 3
+
+    with caplog.at_level("ERROR", logger="mtcw.acquisition"):
+        frames = list(SimulatorSource(Settings()).frames())
+    assert len(frames) == 2 and "targets.0.range_m" in caplog.text

@@ -19,7 +19,7 @@ from scipy import signal
 
 from ..frame import Frame, PulseInfo, TruthTarget
 from ..phase import C, tone_cycles
-from ..scene import Scene
+from ..scene import Scene, SceneError, target_delay_problem
 from ..snr import K_B, Q_E, BroadbandLight, ase_light, solar_light
 from .optics import beyond_band, broadband_field, carrier_cycles, delayed_phase, gate, mzm_transmission, wiener_phase
 
@@ -99,6 +99,10 @@ class Simulator:
         if sc.noise.rf_phase_drift_rad > 0:
             self._drift += rng.normal(0.0, sc.noise.rf_phase_drift_rad, self._drift.size)
 
+        for k in range(len(sc.targets)):  # the scene checked its own frames; a stream goes on beyond them
+            late = target_delay_problem(sc, k, index)
+            if late:
+                raise SceneError(late)
         copies = [
             _Copy(10 ** (-t.loss_db / 20), sc.paths.tau0_s, t.range_m + t.velocity_mps * t_start, t.velocity_mps)
             for t in sc.targets
