@@ -295,8 +295,9 @@ def write_honesty_report(result: dict, out: Path) -> Path:
          f"|z| and for confident-wrong, not for the speed mean/std.",
          f"- **confident wrong** (issue 12): status ok, no flag (`near_edge`, `cycle_ambiguous`, `blended`), "
          f"|z| > {Z_WRONG:g} on range, speed or (tracked cells) range rate. **confident false**: an unflagged point that answers no truth (a "
-         f"ghost). Points and truths are paired one to one, nearest in speed first. **flagged wrong**: a wrong "
-         f"number beside a flag (counted, not excused: issue 12 case 3).",
+         f"ghost). Points and truths are paired one to one: those agreeing on both range and speed first, then "
+         f"nearest in speed. **flagged wrong**: a wrong number beside a flag (counted, not excused: issue 12 "
+         f"case 3).",
          f"- **above threshold**: the bound's median line SNR of the first target (from the truth, white noise "
          f"only) ≥ {MUST_FIND_SNR_DB:g} dB, 3 dB above the chain's line threshold. The z and missed targets are "
          f"checked only there; the confident-wrong target everywhere.",

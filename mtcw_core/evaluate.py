@@ -330,9 +330,11 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
     A point *answers* a truth when it agrees with it on speed or on range (:func:`_answers`): a
     point with the right speed and a wrong cycle, or the right range and a speed reported 0 for a
     mover, answers it (and is wrong); a point wrong on both is a ghost. Points and truths that
-    answer each other are paired greedily by speed difference (targets are told apart by their
-    Doppler), ties by range error; a point left over is a false target, a truth left over is
-    missed. Only ``ok`` results have points; any other status misses every truth.
+    answer each other are paired greedily: first those that agree on both range and speed (a
+    mover reported ``static`` within its speed floor answers the mover at its range, not a static
+    target 7 m away), then by speed difference (targets are told apart by their Doppler), ties by
+    range error; a point left over is a false target, a truth left over is missed. Only ``ok``
+    results have points; any other status misses every truth.
 
     Parameters
     ----------
@@ -341,12 +343,12 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
     z_wrong : |z| above which a matched point is wrong
     """
     points = list(res.targets) if res.status == "ok" else []
-    pairs = sorted((abs(dv), abs(dr), i, j) for i, p in enumerate(points) for j, t in enumerate(truths)
+    pairs = sorted((-agree, abs(dv), abs(dr), i, j) for i, p in enumerate(points) for j, t in enumerate(truths)
                    for dv, dr in [(speed_error_mps(p, t), range_error_m(p, res, t))]
-                   if _answers(p, t, dv, dr))
+                   for agree in [_answers(p, t, dv, dr)] if agree)
     owner: dict[int, int] = {}
     taken: set[int] = set()
-    for _, _, i, j in pairs:
+    for _, _, _, i, j in pairs:
         if i not in owner and j not in taken:
             owner[i] = j
             taken.add(j)
@@ -369,12 +371,12 @@ def judge_frame(res: FrameResult, truths: tuple[TruthTarget, ...] | list[TruthTa
 SPEED_AGREE_MPS, RANGE_AGREE_M = 0.01, 0.01
 
 
-def _answers(p: TargetPoint, t: TruthTarget, dv: float, dr: float) -> bool:
-    """Whether point ``p`` can be the chain's answer for truth ``t`` (speed error ``dv``, m/s;
-    range error ``dr``, m): close in speed, or close in range."""
+def _answers(p: TargetPoint, t: TruthTarget, dv: float, dr: float) -> int:
+    """On how many of speed and range point ``p`` agrees with truth ``t`` (speed error ``dv``, m/s;
+    range error ``dr``, m): 0 (it cannot be the chain's answer for ``t``), 1 or 2."""
     close_v = abs(dv) <= max(Z_WRONG * p.velocity_sigma_mps, 0.25 * abs(t.velocity_mps), SPEED_AGREE_MPS)
     close_r = abs(dr) <= max(Z_WRONG * p.range_sigma_m, RANGE_AGREE_M)
-    return close_v or close_r
+    return int(close_v) + int(close_r)
 
 
 def _z(error: float, sigma: float) -> float:

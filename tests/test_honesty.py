@@ -361,6 +361,17 @@ class TestWhatAnswersATruth:
         v = judge_frame(res(pt(1.12, 0.0, v_sigma=0.016, direction="static")), [TruthTarget(1.12, 0.10)])
         assert v.points[0].truth_index == 0 and v.confident_wrong and v.missed == ()
 
+    def test_a_point_agreeing_on_both_answers_that_truth_before_one_agreeing_on_speed(self):
+        """A mover at 1.08 record bins reported ``static`` within its speed floor, at its own
+        range, beside a static target 7 m away 47 dB weaker (a random probe of the envelope, 6
+        tones at 1550 nm): it answers the mover (range z 0.5, speed z 1.1), not the static
+        target it agrees with on speed alone (range z -2442: a confident wrong the chain never
+        made); the static target is missed."""
+        p = pt(2.9916, 0.0, sigma=3e-3, v_sigma=0.0148, direction="static")
+        v = judge_frame(res(p), [TruthTarget(2.9901, 0.016), TruthTarget(10.3458, 0.0)])
+        assert v.points[0].truth_index == 0 and not v.confident_wrong and v.missed == (1,)
+        assert abs(v.points[0].range_z) < 1 and abs(v.points[0].speed_z) < 1.2
+
     def test_wrong_on_both_is_a_ghost_and_the_truth_is_missed(self):
         v = judge_frame(res(pt(1.7, 62.0)), [TruthTarget(0.81, 0.0)])
         assert v.points[0].truth_index is None and v.missed == (0,) and v.confident_false
