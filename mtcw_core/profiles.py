@@ -6,6 +6,7 @@ the trade). Sections follow the stage order of :data:`mtcw_core.chain.STAGES`.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -80,6 +81,10 @@ class ChainSettings(BaseModel):
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description=(
         "the digitizer's known rms trigger/timing jitter (s): it shifts every tone phase alike, as a range "
         "shift of c*dt/2 that one frame cannot see, so it enters the range sigma in quadrature"))
+    tone_phase_sigma_rad: float = Field(0.0, ge=0, le=math.pi, description=(
+        "the RF synthesizers' known rms phase error per tone (rad) against the tone phases in force (their "
+        "drift since calibration, independent per tone): one frame cannot see it, so what it does to the "
+        "range fit enters the range sigma in quadrature"))
     laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description=(
         "the laser's Lorentzian FWHM (Hz); with lo_path_difference_m it says at which ranges the LO x echo "
         "carrier beat is a line at all: where it is not, a mover shows no Doppler line and its speed is "

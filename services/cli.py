@@ -89,7 +89,8 @@ def _open(recording: Path):
 
 
 def _settings(profile: str, method: Optional[str], technique: str = "pb", timing_jitter_s: float = 0.0,
-              laser_linewidth_hz: float = 0.0, lo_path_difference_m: float = 0.0, sideband_direction: bool = False):
+              laser_linewidth_hz: float = 0.0, lo_path_difference_m: float = 0.0, sideband_direction: bool = False,
+              tone_phase_sigma_rad: float = 0.0):
     from mtcw_core.chain import get_profile
 
     over = {"method": method} if method else {}
@@ -97,6 +98,8 @@ def _settings(profile: str, method: Optional[str], technique: str = "pb", timing
         over["technique"] = technique
     if timing_jitter_s:
         over["timing_jitter_s"] = timing_jitter_s
+    if tone_phase_sigma_rad:
+        over["tone_phase_sigma_rad"] = tone_phase_sigma_rad
     if laser_linewidth_hz or lo_path_difference_m:
         over.update(laser_linewidth_hz=laser_linewidth_hz, lo_path_difference_m=lo_path_difference_m)
     if sideband_direction:
@@ -141,6 +144,8 @@ def _tracker(frames: int, max_speed_mps: Optional[float]):
         _fail(f"{name}: {e['msg']} (got {max_speed_mps if name != '--track' else frames})")
 
 
+TONE_PHASE_HELP = ("the RF synthesizers' known rms phase drift per tone since calibration (rad); enters every "
+                   "range sigma and the line phases' consistency")
 TRACK_HELP = ("range rate over frames: each target's ranges over its last K frames (3-64; 0: off), "
               "a speed where the laser is incoherent and the direction on one photodiode (range_rate_mps)")
 TRACK_SPEED_HELP = ("with --track: the fastest range rate a target may have (m/s; default: each point's own "
@@ -177,6 +182,7 @@ def process(
     technique: str = typer.Option("pb", help="pb (phase-based MTCW) | ab | pe | ptof"),
     timing_jitter_s: float = typer.Option(0.0, "--timing-jitter-s", help="the digitizer's known rms timing jitter "
                                                                          "(s); enters every range sigma"),
+    tone_phase_sigma_rad: float = typer.Option(0.0, "--tone-phase-sigma-rad", help=TONE_PHASE_HELP),
     laser_linewidth_hz: float = typer.Option(0.0, "--laser-linewidth-hz", help="the bench's laser (Lorentzian FWHM, "
                                              "Hz): where it is incoherent at the echo's delay a speed is unknown, "
                                              "not 0, and the square stage ranges from the squared record "
@@ -203,7 +209,7 @@ def process(
 
     rec = _open(recording)
     settings = _settings(profile, method, technique, timing_jitter_s, laser_linewidth_hz, lo_path_difference_m,
-                         sideband_direction)
+                         sideband_direction, tone_phase_sigma_rad)
     acc = _accumulator(accumulate, settings, calibration)
     tracker = _tracker(track, track_max_speed)
     cal = _calibration(calibration)
@@ -744,6 +750,8 @@ def worker(
                                                        "default pb]"),
     timing_jitter_s: Optional[float] = typer.Option(None, "--timing-jitter-s", help="the digitizer's known rms "
                                                     "timing jitter (s) [MTCW_TIMING_JITTER_S; default 0]"),
+    tone_phase_sigma_rad: Optional[float] = typer.Option(None, "--tone-phase-sigma-rad", help=TONE_PHASE_HELP +
+                                                         " [MTCW_TONE_PHASE_SIGMA_RAD; default 0]"),
     laser_linewidth_hz: Optional[float] = typer.Option(None, "--laser-linewidth-hz", help="the bench's laser FWHM "
                                                        "(Hz) [MTCW_LASER_LINEWIDTH_HZ; default 0: coherent]"),
     lo_path_difference_m: Optional[float] = typer.Option(None, "--lo-path-difference-m", help="LO minus echo "
@@ -768,7 +776,8 @@ def worker(
 
     _logging()
     st = _service_settings(WorkerSettings, profile=profile, calibration=calibration, name=name, technique=technique,
-                           timing_jitter_s=timing_jitter_s, laser_linewidth_hz=laser_linewidth_hz,
+                           timing_jitter_s=timing_jitter_s, tone_phase_sigma_rad=tone_phase_sigma_rad,
+                           laser_linewidth_hz=laser_linewidth_hz,
                            lo_path_difference_m=lo_path_difference_m, accumulate=accumulate,
                            sideband_direction=sideband_direction, fft_backend=fft_backend, track=track,
                            track_max_speed_mps=track_max_speed)

@@ -57,6 +57,7 @@ class Worker:
         self.settings = settings
         self.chain = get_profile(settings.profile, technique=settings.technique,
                                  timing_jitter_s=settings.timing_jitter_s,
+                                 tone_phase_sigma_rad=settings.tone_phase_sigma_rad,
                                  laser_linewidth_hz=settings.laser_linewidth_hz,
                                  lo_path_difference_m=settings.lo_path_difference_m,
                                  sideband_direction=settings.sideband_direction)

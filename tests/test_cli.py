@@ -201,3 +201,28 @@ def test_help_shows_the_fftw_extras_install_line(command):
     r = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "200"})
     assert r.exit_code == 0
     assert "mtcw[fftw]" in r.stdout
+
+
+def test_process_tone_phase_sigma_enters_the_range_sigma(tmp_path):
+    """``mtcw process --tone-phase-sigma-rad``: the synthesizers' known drift since calibration widens
+    every range sigma (the 6-tone plan, 0.03 rad per tone); a value out of bounds names the flag."""
+    import csv
+
+    from mtcw_bench.honesty import SIX_TONES
+    from mtcw_core.scene import load_scene, scene_variant
+
+    sc = scene_variant(load_scene("cw-bench"), digitizer={"samples": 2**14},
+                       modulator={"tones": [{"frequency_hz": f} for f in SIX_TONES]})
+    scene = tmp_path / "six.json"
+    scene.write_text(sc.model_dump_json())
+    rec = tmp_path / "six"
+    assert CliRunner().invoke(app, ["simulate", str(scene), "-o", str(rec), "-n", "2"]).exit_code == 0
+    sig = {}
+    for flag in ("0", "0.03"):
+        out = tmp_path / f"p{flag}.csv"
+        r = CliRunner().invoke(app, ["process", str(rec), "--tone-phase-sigma-rad", flag, "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        sig[flag] = [float(row["range_sigma_m"]) for row in csv.DictReader(open(out))]
+    assert all(b > 3 * a for a, b in zip(sig["0"], sig["0.03"])), sig
+    bad = CliRunner().invoke(app, ["process", str(rec), "--tone-phase-sigma-rad", "9"])
+    assert bad.exit_code != 0 and "tone_phase_sigma_rad" in bad.output and "Traceback" not in bad.output

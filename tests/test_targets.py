@@ -210,6 +210,22 @@ class TestResolveTargets:
         assert pts[1][1].doppler_hz == fd
         assert lu == pytest.approx(C / (2 * 10e6))
 
+    def test_a_point_whose_lines_repeat_sooner_than_the_frames_is_cycle_ambiguous(self):
+        """A weak mover whose 100 MHz line fell under the threshold (a random probe of the
+        envelope: a stronger mover's phase-noise pedestal over it) ranges from 170/260 MHz alone,
+        which repeat every c/(2*90 MHz) = 1.67 m; the frame's unambiguous range, from the static
+        target's three lines, is 15 m. Its range is right modulo 1.67 m only: which of the frame's
+        nine cycles holds it, it cannot say."""
+        fd = 7.5e6
+        fams = [fam(range_m=3.7), fam("U", 1, range_m=9.1, fd=fd, var=(1.0, 2e-4, 4e-4)),
+                fam("L", 1, range_m=9.1, fd=-fd, var=(1.0, 2e-4, 4e-4))]
+        pts, lu = resolve_targets(fams, mix(fams, PHI, 10.0), [dop(fd)], frame(), ChainSettings(),
+                                  Reference(PHI, 0.0), None)
+        (_, static), (_, mover) = pts
+        assert lu == pytest.approx(C / (2 * 10e6)) and not static.cycle_ambiguous
+        assert mover.cycle_ambiguous
+        assert mover.range_m == pytest.approx((9.1 + 0.05) % (C / (2 * 90e6)) - 0.05, abs=1e-6)
+
 
     def test_static_beside_a_sub_guard_mover_claims_no_less_than_its_doppler(self):
         """A mover found below the guard (``fit``, 2.5 bins; the search's floor 4 bins stated as 1):

@@ -10,7 +10,7 @@ import pytest
 
 from mtcw_core.phase import C, wrap_pi
 from mtcw_core.ranging.triangulation import (Observations, _newton_polish, cost, fisher_sigma, grid_cost, resolve_ml,
-                                             resolve_seed, unambiguous_range)
+                                             resolve_seed, tone_phase_sigma, unambiguous_range)
 
 TONES = np.array([100e6, 170e6, 260e6])
 PAIRS = [(i, j) for i, j in itertools.combinations(range(3), 2)]
@@ -137,6 +137,42 @@ class TestFisherSigma:
         """The common phase per family absorbs a common frequency shift (a Doppler family)."""
         f, v = TONES, np.array([1e-4, 3e-4, 2e-4])
         assert fisher_sigma([f + 5e6], [v]) == pytest.approx(fisher_sigma([f], [v]), rel=1e-9)
+
+
+class TestTonePhaseSigma:
+    """An rms error of each tone's phase in force (synthesizer drift since calibration)."""
+
+    def test_one_family_of_equal_lines_is_the_bound_at_that_variance(self):
+        """Lines of equal noise: the fit is unweighted, and a per-tone error sigma moves it as much
+        as line noise of that variance would -- the Fisher sigma at variance sigma^2."""
+        f, sig = np.array([20e6, 500e6, 700e6, 950e6]), 0.01
+        want = fisher_sigma([f], [np.full(4, sig**2)])
+        assert tone_phase_sigma([f], [np.full(4, 3e-5)], sig) == pytest.approx(want, rel=1e-12)
+
+    def test_a_tones_error_enters_every_family_alike(self):
+        """Two families (a mover's U and L) of the same tones: line noise averages over them
+        (1/sqrt(2)), a tone's own error does not -- it moves both families' lines alike."""
+        f, v = np.array([100e6, 270e6, 500e6]), np.array([1e-4, 2e-4, 1e-4])
+        one = tone_phase_sigma([f], [v], 0.02)
+        assert tone_phase_sigma([f, f], [v, v], 0.02) == pytest.approx(one, rel=1e-12)
+        assert tone_phase_sigma([f], [v], 0.0) == 0.0
+
+    def test_against_the_weighted_fit_itself(self):
+        """Monte Carlo: per-tone errors through the weighted least-squares fit of the lines' phases
+        (one range, one phase per family: ``phi = k*L + c_F``, solved by ``lstsq``) of two families
+        with unequal noise; the range's spread is the formula's."""
+        rng = np.random.default_rng(3)
+        tones = np.array([20e6, 500e6, 700e6, 950e6])
+        f = [tones, tones[1:]]
+        v = [np.array([4e-4, 1e-4, 2e-4, 1e-4]), np.array([3e-4, 1e-4, 5e-5])]
+        rows = [(4 * np.pi * t / C, fam, np.searchsorted(tones, t), 1 / math.sqrt(var))
+                for fam, (ff, vv) in enumerate(zip(f, v)) for t, var in zip(ff, vv)]
+        design = np.array([[k * s, s * (fam == 0), s * (fam == 1)] for k, fam, _, s in rows])
+        sig, draws = 0.01, 20000
+        errs = rng.normal(0.0, sig, (len(tones), draws))  # one error per tone, shared by the families
+        phases = np.array([errs[i] * s for _, _, i, s in rows])  # weighted, (lines, draws)
+        fit_l = np.linalg.lstsq(design, phases, rcond=None)[0][0]
+        assert np.std(fit_l) == pytest.approx(tone_phase_sigma(f, v, sig), rel=0.02)
 
 
 @pytest.mark.parametrize("seed", range(5))

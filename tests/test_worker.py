@@ -250,3 +250,14 @@ def test_a_worker_with_sideband_direction_says_which_way_one_photodiode_moves(ct
         finally:
             w.pull.close(linger=0)
             w.push.close(linger=0)
+
+
+def test_the_workers_declared_tone_drift_reaches_the_chain(ctx, monkeypatch):
+    """``MTCW_TONE_PHASE_SIGMA_RAD`` (or ``--tone-phase-sigma-rad``) is the chain's setting."""
+    monkeypatch.setenv("MTCW_TONE_PHASE_SIGMA_RAD", "0.02")
+    w = Worker(WorkerSettings(frames_endpoint="tcp://127.0.0.1:9", points_endpoint="tcp://127.0.0.1:9"), ctx)
+    try:
+        assert w.chain.tone_phase_sigma_rad == 0.02
+    finally:
+        w.pull.close(linger=0)
+        w.push.close(linger=0)

@@ -27,7 +27,8 @@ from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
 from .mixing import consistency
-from .triangulation import Observations, RangeSolution, fisher_sigma, resolve_ml, resolve_seed, unambiguous_range
+from .triangulation import (Observations, RangeSolution, fisher_sigma, resolve_ml, resolve_seed, tone_phase_sigma,
+                            unambiguous_range)
 
 
 @dataclass(frozen=True)
@@ -204,16 +205,22 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         sol = resolve_ml(obs, ref.tau0_s, (lo, hi), settings.points_per_cycle)
     ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
     used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
-    sigma = fisher_sigma([f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used])
-    # do the line phases agree with one range within their noise? (Birge ratio)
-    chi2, dof = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
+    freqs, variances = [f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used]
+    sigma = fisher_sigma(freqs, variances)
+    # do the line phases agree with one range within their noise, and the tones' declared drift?
+    # (Birge ratio)
+    tone_var = settings.tone_phase_sigma_rad ** 2
+    cfams = [replace(f, phase_var=f.phase_var + tone_var) for f in fams] if tone_var else fams
+    chi2, dof = consistency(cfams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
     ratio = chi2 / dof if dof > 0 else 1.0
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
     if dof > 0 and chdtrc(dof, chi2) < 1e-3:
         sigma *= math.sqrt(ratio)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
-    p_slip = cycle_slip_probability(fams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
+    # known drift of the tone phases since calibration: independent per tone, invisible in one frame
+    sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, settings.tone_phase_sigma_rad))
+    p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
@@ -307,7 +314,9 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
                     ) -> tuple[list[tuple[int, TargetPoint]], float | None]:
     """The stage: a point per candidate that has observations, and the largest unambiguous range (m).
 
-    Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line. A Doppler
+    Candidate 0 is static; candidate k >= 1 belongs to the k-th detected Doppler line. The frame's
+    unambiguous range is the largest of its points'; a CW point whose own lines repeat sooner is
+    ``cycle_ambiguous``. A Doppler
     candidate whose lines are a scaled copy of a stronger mover's (:func:`is_scaled_copy`: that
     mover's phase-noise pedestal) gets no point; nor does one found inside a mover's search lobe
     (``DopplerEstimate.beside``) at that mover's range (the bumps of its pedestal there).
@@ -326,6 +335,7 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
                              lines_chi2=max([d.lines_chi2 for d in moving if single], default=0.0),
                              beat_ambiguous=single and any(d.beat_ambiguous for d in moving))
     points: list[tuple[int, TargetPoint]] = []
+    periods: list[float] = []
     l_unamb = None
     for k, obs in sorted(observations.items()):
         fam_k = [f for f in families if f.target == k]
@@ -336,7 +346,14 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
         if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
             continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)
         points.append((k, point))
+        periods.append(lu)
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+    if coarse is None and l_unamb is not None:
+        # a point whose own lines repeat sooner than the frame's (a weak target that lost a line:
+        # 510/710/950 MHz repeat every 3.75 m, with 130 MHz every 7.49 m) is known only modulo its
+        # own period: which of the frame's l_unamb/lu cycles it is in, is in doubt
+        points = [(k, replace(p, cycle_ambiguous=True)) if lu < l_unamb * (1 - 1e-9) else (k, p)
+                  for (k, p), lu in zip(points, periods)]
     # a Doppler line that hid a second mover (one found beside it, closer than the refinement
     # resolves: its refinement saw both) is a blend, and so is that neighbour -- unless the
     # neighbour gave no point of its own (its pedestal, a copy, lines it could not have alone)

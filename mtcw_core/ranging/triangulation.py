@@ -245,6 +245,38 @@ def resolve_seed(obs: Observations, tau0_s: float, max_range_m: float, min_range
     return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), float(sigma_k[k]), alts)
 
 
+def tone_phase_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray], sigma_rad: float) -> float:
+    """Range sigma (m) that an rms error ``sigma_rad`` of each tone's phase in force (the RF
+    synthesizers' drift since calibration, independent per tone) gives the range of
+    :func:`fisher_sigma`'s weighted fit.
+
+    The fit is ``L = sum_F sum_i a_Fi * phi_Fi`` with ``a_Fi = w_i*(k_i - kbar_F)/I`` (``w = 1/v``,
+    ``kbar_F`` the family's weighted mean ``k``, ``I`` the information); a tone's error enters
+    every family that holds its line alike (each line carries ``+phi_i``), so the variance is
+    ``sigma_rad^2 * sum_t (sum_F a_Ft)^2`` over the tones ``t``. 0 when ``sigma_rad`` is 0.
+
+    Parameters
+    ----------
+    freqs_by_family, var_by_family : per family, its used lines' tones (Hz) and phase variances (rad^2)
+    sigma_rad : float, rad
+    """
+    if sigma_rad <= 0:
+        return 0.0
+    gains: dict[float, float] = {}
+    info = 0.0
+    for f, v in zip(freqs_by_family, var_by_family):
+        if f.size < 2:
+            continue
+        k, w = 4 * np.pi * f / C, 1 / v
+        dk = k - np.sum(w * k) / np.sum(w)
+        info += float(np.sum(w * dk**2))
+        for tone, g in zip(f.tolist(), (w * dk).tolist()):
+            gains[tone] = gains.get(tone, 0.0) + g
+    if info <= 0:
+        return math.inf
+    return sigma_rad * math.sqrt(sum(g * g for g in gains.values())) / info
+
+
 def fisher_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray]) -> float:
     """Range sigma (m) from per-line phase variances, a common unknown phase per family.
 
