@@ -83,6 +83,14 @@ class Paths(_Model):
         0.0, description="optical path of the LO minus the echo's internal path (tau_lo = tau0 + d/c)"
     )
 
+    @model_validator(mode="after")
+    def _lo_after_emission(self) -> "Paths":
+        """No light arrives before it left: the LO's delay ``tau0_s + d/c`` is at least 0."""
+        tau_lo = self.tau0_s + self.lo_path_difference_m / C
+        if tau_lo < 0:
+            raise ValueError(f"lo_path_difference_m: the LO's delay tau0_s + d/c = {tau_lo:g} s is negative")
+        return self
+
 
 class Receiver(_Model):
     kind: Literal["single", "balanced", "iq"] = "single"
@@ -210,19 +218,6 @@ class Scene(_Model):
                 )
         return self
 
-    @model_validator(mode="after")
-    def _check_delays(self) -> "Scene":
-        """No light arrives before it left: the LO's delay and every echo's, over the scene's own
-        frames (an approaching target must not reach the sensor), are at least 0."""
-        tau_lo = self.paths.tau0_s + self.paths.lo_path_difference_m / C
-        if tau_lo < 0:
-            raise ValueError(f"paths.lo_path_difference_m: the LO's delay tau0_s + d/c = {tau_lo:g} s is negative")
-        for i, t in enumerate(self.targets):
-            late = target_delay_problem(self, i, self.frames.count - 1)
-            if late:
-                raise ValueError(late)
-        return self
-
     @property
     def tones_hz(self) -> list[float]:
         return self.modulator.tones_hz
@@ -230,7 +225,9 @@ class Scene(_Model):
 
 def target_delay_problem(scene: Scene, index: int, frame: int) -> str | None:
     """Why target ``index`` cannot be simulated up to the end of frame ``frame`` (its echo delay
-    ``tau0_s + 2*R(t)/c`` below 0: an approaching target has reached the sensor), or None."""
+    ``tau0_s + 2*R(t)/c`` below 0: no light arrives before it left -- an approaching target has
+    reached the sensor, or a range lies behind the calibration's zero by more than ``tau0_s``), or
+    None. Checked per frame by the simulator (a stream goes on beyond the scene's frames)."""
     t = scene.targets[index]
     t_end = frame / scene.frames.rate_hz + scene.digitizer.samples / scene.digitizer.sample_rate_hz
     r_min = min(t.range_m, t.range_m + t.velocity_mps * t_end)

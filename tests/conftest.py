@@ -67,9 +67,11 @@ def make_scene(**over) -> Scene:
 
 def fast_mover_scene(v: float = 47.9, kind: str = "single") -> Scene:
     """A mover at ``v`` m/s (47.9: 0.45x the 200 MHz spacing) at 1.234 m, 40 dB, 2^18 samples, shot
-    and thermal noise: its sidebands' own Doppler shift (160-300 Hz) far above its lines' errors."""
+    and thermal noise: its sidebands' own Doppler shift (160-300 Hz) far above its lines' errors.
+    Frames at 10 kHz: an approach at 47.9 m/s moves 4.8 mm a frame (at 10/s it had passed the
+    sensor by the second frame)."""
     return make_scene(receiver={"kind": kind}, digitizer={"samples": 2**18}, noise={"shot": True, "thermal": True},
-                      targets=[{"range_m": 1.234, "velocity_mps": v, "loss_db": 40.0}])
+                      targets=[{"range_m": 1.234, "velocity_mps": v, "loss_db": 40.0}], frames={"rate_hz": 1e4})
 
 
 def tones(*f, m=0.07):
