@@ -190,6 +190,22 @@ class TestValidate:
         assert rail_fraction(x, 0.5) > 1e-3
         assert reason(make(x)) == "clipped"
 
+    def test_an_under_resolved_record_is_not_clipped(self):
+        """A weak echo on a large DC through an 8-bit digitizer auto-ranged to 1.05x the peak: the
+        codes dwell on 121-122 (a random probe of the envelope saw 10-79 % "at the rails" and the
+        frame refused). 8-bit rails are -128 and 127; wider codes spanning under 16 steps cannot show
+        a rail. Codes pinned at 127 are still clipped."""
+        rng = np.random.default_rng(2)
+        dc = 121.4 + 0.3 * signal() / np.max(np.abs(signal())) + 0.2 * rng.standard_normal(signal().size)
+        codes = np.rint(dc).astype(np.int8)
+        assert rail_fraction(codes, codes.max()) > 0.05  # the old test's premise: the top code dwells
+        for c in (codes, codes.astype(np.int16)):
+            _, clip = validate(make(c, scale=1e-3), ChainSettings(), None)
+            assert clip == 0.0
+        pinned = codes.copy()
+        pinned[100:160] = 127
+        assert reason(make(pinned, scale=1e-3)) == "clipped"
+
     def test_clipped_limit_is_a_setting(self):
         x = signal()
         x[100:120] = x.max()

@@ -42,6 +42,27 @@ def rail_fraction(r: np.ndarray, rail) -> float:
     return float(np.count_nonzero(stuck)) / r.size
 
 
+#: integer codes spanning fewer steps than this are under-resolved, not clipped: a weak signal on a
+#: large DC (an 8-bit digitizer behind one photodiode) dwells on its top code as a clipped one does
+MIN_RAIL_SPAN_CODES = 16
+
+
+def rails(r: np.ndarray, hi, lo) -> list:
+    """The values of ``r`` (extremes ``hi``, ``lo``) that may be a digitizer's rails.
+
+    8-bit codes have their rails at -128 and 127: only those are (a record whose top code is 121
+    was never clipped, however long it dwells there). Wider integer codes (an ADC of 9-16 bits,
+    its range unknown) and volts take the record's own extremes -- unless integer codes span fewer
+    than :data:`MIN_RAIL_SPAN_CODES` steps: a signal that small is under-resolved, and a rail
+    cannot be told from its top code.
+    """
+    if r.dtype == np.int8:
+        return [v for v, rail in ((hi, 127), (lo, -128)) if v == rail]
+    if r.dtype.kind in "iu" and int(hi) - int(lo) < MIN_RAIL_SPAN_CODES:
+        return []
+    return [hi, lo]
+
+
 def plan_unambiguous_range(tones_hz) -> float:
     """The unambiguous range (m) of a tone plan: ``c/(2*gcd)`` of its tone spacings."""
     t = sorted(float(f) for f in tones_hz)
@@ -202,7 +223,7 @@ def validate(frame: Frame, settings: ChainSettings, calibration: Calibration | N
         if hi == lo:
             raise Rejected("flat", "all samples equal (no signal)")
         _check_volts(frame, float(hi), float(lo))
-        clip = max(clip, rail_fraction(r, hi), rail_fraction(r, lo))
+        clip = max([clip] + [rail_fraction(r, rail) for rail in rails(r, hi, lo)])
     if clip > settings.max_clip_fraction:
         raise Rejected("clipped", f"{clip:.2%} of samples at the rails (max {settings.max_clip_fraction:.2%})")
     return frame.signal(), clip
