@@ -205,6 +205,20 @@ class TestValidate:
         pinned = codes.copy()
         pinned[100:160] = 127
         assert reason(make(pinned, scale=1e-3)) == "clipped"
+        # 8-bit codes sent as 16-bit words (x256, as a scope's DATa:WIDth 2): 1-2 steps of 256
+        wide = codes.astype(np.int16) * 256
+        assert validate(make(wide, scale=1e-5), ChainSettings(), None)[1] == 0.0
+        # a 16-bit record pinned at its dtype's limit with small dips is still clipped
+        stuck = np.full(signal().size, 32767, np.int16)
+        stuck[::7] = 32760
+        assert reason(make(stuck, scale=1e-6)) == "clipped"
+
+    def test_a_clipped_6_bit_record_is_clipped(self):
+        """4-8-bit ADCs travel as int8: a 6-bit record's rails are -32 and 31, the record's own
+        extremes, not int8's; it spans 63 steps, so they count."""
+        codes = np.clip(np.rint(96 * signal() / np.max(np.abs(signal()))), -32, 31).astype(np.int8)
+        assert rail_fraction(codes, 31) > 1e-3
+        assert reason(make(codes, scale=1e-2)) == "clipped"
 
     def test_clipped_limit_is_a_setting(self):
         x = signal()

@@ -42,25 +42,31 @@ def rail_fraction(r: np.ndarray, rail) -> float:
     return float(np.count_nonzero(stuck)) / r.size
 
 
-#: integer codes spanning fewer steps than this are under-resolved, not clipped: a weak signal on a
-#: large DC (an 8-bit digitizer behind one photodiode) dwells on its top code as a clipped one does
-MIN_RAIL_SPAN_CODES = 16
+#: integer codes spanning fewer ADC steps than this are under-resolved: a weak signal on a large DC
+#: (an 8-bit digitizer behind one photodiode) dwells on its top code as a clipped one does
+MIN_RAIL_SPAN_STEPS = 16
 
 
-def rails(r: np.ndarray, hi, lo) -> list:
-    """The values of ``r`` (extremes ``hi``, ``lo``) that may be a digitizer's rails.
+def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:
+    """The fraction of ``r`` (extremes ``hi``, ``lo``) stuck at a digitizer's rails.
 
-    8-bit codes have their rails at -128 and 127: only those are (a record whose top code is 121
-    was never clipped, however long it dwells there). Wider integer codes (an ADC of 9-16 bits,
-    its range unknown) and volts take the record's own extremes -- unless integer codes span fewer
-    than :data:`MIN_RAIL_SPAN_CODES` steps: a signal that small is under-resolved, and a rail
-    cannot be told from its top code.
+    The record's own extremes are taken for the rails (:func:`rail_fraction`): the ADC's range is
+    not on the frame. Where that finds more than ``limit`` in integer codes, the codes are looked
+    at once more: spanning fewer than :data:`MIN_RAIL_SPAN_STEPS` ADC steps (the gcd of the gaps
+    between the codes present: 8-bit codes sent as 16-bit words step by 256) the record is
+    under-resolved and its extremes are no rails, unless they are the dtype's own limits (int8's
+    -128 and 127, int16's): a record whose top code is 121 of 127 was never clipped, however long
+    it dwells there.
     """
-    if r.dtype == np.int8:
-        return [v for v, rail in ((hi, 127), (lo, -128)) if v == rail]
-    if r.dtype.kind in "iu" and int(hi) - int(lo) < MIN_RAIL_SPAN_CODES:
-        return []
-    return [hi, lo]
+    frac = max(rail_fraction(r, hi), rail_fraction(r, lo))
+    if frac <= limit or r.dtype.kind not in "iu":
+        return frac
+    present = np.flatnonzero(np.bincount((r.astype(np.int64) - int(lo)).ravel()))
+    step = int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1
+    if (int(hi) - int(lo)) // max(step, 1) >= MIN_RAIL_SPAN_STEPS:
+        return frac
+    lim = np.iinfo(r.dtype)
+    return max([0.0] + [rail_fraction(r, v) for v in (hi, lo) if v in (lim.max, lim.min)])
 
 
 def plan_unambiguous_range(tones_hz) -> float:
@@ -223,7 +229,7 @@ def validate(frame: Frame, settings: ChainSettings, calibration: Calibration | N
         if hi == lo:
             raise Rejected("flat", "all samples equal (no signal)")
         _check_volts(frame, float(hi), float(lo))
-        clip = max([clip] + [rail_fraction(r, rail) for rail in rails(r, hi, lo)])
+        clip = max(clip, clip_fraction(r, hi, lo, settings.max_clip_fraction))
     if clip > settings.max_clip_fraction:
         raise Rejected("clipped", f"{clip:.2%} of samples at the rails (max {settings.max_clip_fraction:.2%})")
     return frame.signal(), clip
