@@ -683,7 +683,10 @@ def _first_target_efficiency(verdicts: list[FrameVerdict], lam_min: float) -> fl
 def declared(scene: Scene) -> dict:
     """What the bench tells the chain of itself (``ChainSettings`` fields): its digitizer's timing
     jitter (issue 12 case 7: it enters the range sigma) and its laser (the LO x echo carrier beat is
-    no line beyond coherence: case 4, speed unknown, not 0; the square stage ranges there)."""
+    no line beyond coherence: case 4, speed unknown, not 0; the square stage ranges there). Not
+    its synthesizers' drift (``tone_phase_sigma_rad``): the map's scenes have none, and a
+    simulated drift is a random walk whose rms grows with the frame index (a bench declares its
+    drift since calibration)."""
     return {"timing_jitter_s": scene.noise.trigger_jitter_s, "laser_linewidth_hz": scene.laser.linewidth_hz,
             "lo_path_difference_m": scene.paths.lo_path_difference_m}
 

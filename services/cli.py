@@ -53,7 +53,7 @@ def simulate(
         with RecordingWriter(output, description=f"mtcw simulation of scene {sc.name}: {sc.description}") as w:
             for fr in tqdm(sim.frames(count), total=count, unit="frame", desc=f"simulate {sc.name}", file=sys.stderr):
                 w.write(fr)
-    except RecordingError as err:
+    except (RecordingError, SceneError) as err:  # a target reaching the sensor ends the scene
         _fail(str(err))
     dt = time.perf_counter() - t0
     typer.echo(f"wrote {count} frames of {sc.digitizer.samples} samples to {w.meta_path} "

@@ -275,7 +275,7 @@ class WorkerSettings(TransportSettings):
     technique: Literal["pb", "ab", "pe", "ptof"] = Field("pb", description="ranging technique (ChainSettings.technique)")
     timing_jitter_s: float = Field(0.0, ge=0, le=1e-6, description="the digitizer's known rms timing jitter (s); "
                                                                    "enters every range sigma")
-    tone_phase_sigma_rad: float = Field(0.0, ge=0, le=3.14159, description="the RF synthesizers' known rms phase "
+    tone_phase_sigma_rad: float = Field(0.0, ge=0, le=math.pi, description="the RF synthesizers' known rms phase "
                                         "drift per tone since calibration (rad); enters every range sigma")
     laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description="the bench's laser (Lorentzian FWHM, Hz): "
                                       "where it is incoherent at the echo's delay a speed is unknown, not 0, and "

@@ -226,3 +226,14 @@ def test_process_tone_phase_sigma_enters_the_range_sigma(tmp_path):
     assert all(b > 3 * a for a, b in zip(sig["0"], sig["0.03"])), sig
     bad = CliRunner().invoke(app, ["process", str(rec), "--tone-phase-sigma-rad", "9"])
     assert bad.exit_code != 0 and "tone_phase_sigma_rad" in bad.output and "Traceback" not in bad.output
+
+
+def test_simulate_stops_cleanly_where_a_target_reaches_the_sensor(tmp_path):
+    """2 m at -15 m/s, 10 frames/s, asked for 5 frames: the third would put the target behind the
+    sensor; ``mtcw simulate`` names the target and the frame, no traceback."""
+    scene = tmp_path / "approach.toml"
+    scene.write_text('[modulator]\ntones = [{ frequency_hz = 500e6 }, { frequency_hz = 700e6 }]\n'
+                     '[[targets]]\nrange_m = 2.0\nvelocity_mps = -15.0\n[digitizer]\nsamples = 1024\n')
+    r = CliRunner().invoke(app, ["simulate", str(scene), "-o", str(tmp_path / "rec"), "-n", "5"])
+    assert r.exit_code != 0 and "targets.0.range_m" in r.output and "frame 2" in r.output, r.output
+    assert "Traceback" not in r.output

@@ -225,6 +225,10 @@ class TestResolveTargets:
         assert lu == pytest.approx(C / (2 * 10e6)) and not static.cycle_ambiguous
         assert mover.cycle_ambiguous
         assert mover.range_m == pytest.approx((9.1 + 0.05) % (C / (2 * 90e6)) - 0.05, abs=1e-6)
+        # a declared range interval shorter than the point's own period: one cycle, no doubt
+        pts, _ = resolve_targets(fams, mix(fams, PHI, 10.0), [dop(fd)], frame(), ChainSettings(range_max_m=1.5),
+                                 Reference(PHI, 0.0), None)
+        assert not pts[1][1].cycle_ambiguous
 
 
     def test_static_beside_a_sub_guard_mover_claims_no_less_than_its_doppler(self):
@@ -270,7 +274,7 @@ class TestSelectTargets:
         mover = point(9.0, [45.0, 45.0, 45.0])
         assert select_targets([(0, static), (1, mover)], self.ST) == [mover]
 
-    def test_weak_mover_at_the_static_range_dropped(self):
+    def test_a_weak_twin_at_the_static_range_leaves_its_speed_unmeasured(self):
         """No laser declared: the weak twin may be the static target's wings or a mover whose
         self-beat the static lines are; the static point stays, its speed not measured (0,
         ``unknown``, a sigma covering the twin's 0.25 m/s by 5 of its sigmas)."""
@@ -302,6 +306,10 @@ class TestSelectTargets:
         assert wings_level_db(wide, static, 5e3) == pytest.approx(-38.8, abs=0.1)
         faint = replace(mover, tone_snr_db={k: 25.0 for k in mover.tone_snr_db})
         assert select_targets([(0, static), (1, faint)], wide, 5e3) == [static]
+        # balanced and IQ receivers cancel the self-beat: the static lines are a static target's
+        for rx in ("balanced", "iq"):
+            assert select_targets([(0, static), (1, mover)], dfb, 5e3, rx) == [static]
+            assert select_targets([(0, static), (1, mover)], self.ST, None, rx) == [static]
         assert select_targets([(0, static), (1, mover)], wide, 5e3) == [mover]
 
     def test_same_range_uses_the_sigmas(self):

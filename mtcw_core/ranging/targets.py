@@ -351,8 +351,10 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     if coarse is None and l_unamb is not None:
         # a point whose own lines repeat sooner than the frame's (a weak target that lost a line:
         # 510/710/950 MHz repeat every 3.75 m, with 130 MHz every 7.49 m) is known only modulo its
-        # own period: which of the frame's l_unamb/lu cycles it is in, is in doubt
-        points = [(k, replace(p, cycle_ambiguous=True)) if lu < l_unamb * (1 - 1e-9) else (k, p)
+        # own period: which of the frame's l_unamb/lu cycles (or of a declared range interval) it
+        # is in, is in doubt
+        span = l_unamb if settings.range_max_m is None else min(l_unamb, settings.range_max_m - settings.range_min_m)
+        points = [(k, replace(p, cycle_ambiguous=True)) if lu < span * (1 - 1e-9) else (k, p)
                   for (k, p), lu in zip(points, periods)]
     # a Doppler line that hid a second mover (one found beside it, closer than the refinement
     # resolves: its refinement saw both) is a blend, and so is that neighbour -- unless the
@@ -398,7 +400,7 @@ def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float |
 
 
 def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings,
-                   bin_hz: float | None = None) -> list[TargetPoint]:
+                   bin_hz: float | None = None, receiver: str = "single") -> list[TargetPoint]:
     """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
 
     - A candidate without a finite range, speed and sigmas is no measurement: never reported.
@@ -421,7 +423,8 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       is then a Doppler line and the static lines its self-beat (an echo stronger than the LO on
       one photodiode: the self-beat ``sqrt(P_echo/P_lo)`` above the LO beats), not a target. With
       no laser declared the static point stays, its speed not measured (``unknown``, a sigma that
-      covers the twin's speed): its lines are either's, at one range.
+      covers the twin's speed): its lines are either's, at one range. Only on one photodiode
+      (``receiver``): balanced and IQ receivers cancel the self-beat.
     """
     points = [(k, p) for k, p in points if is_finite(p)]
     # no Doppler line where the carrier beat is no line: a "mover" there is the wings of the
@@ -437,7 +440,8 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     if static is not None and movers:
         loudest = max(median_snr(m) for m in movers)
         twins = [m for m in movers if _same_range(static, m)]
-        lines = [m for m in twins if wings is None or _above_wings(m, static, wings)]
+        # only one photodiode keeps an echo's self-beat (balanced and IQ receivers cancel it)
+        lines = [m for m in twins if receiver == "single" and (wings is None or _above_wings(m, static, wings))]
         if median_snr(static) < loudest - settings.self_beat_margin_db or any(
                 median_snr(m) >= median_snr(static) for m in twins) or any(
                 wings is not None and not m.flagged for m in lines):
@@ -463,5 +467,5 @@ def _speed_unknown(static: TargetPoint, twins: list[TargetPoint]) -> TargetPoint
     every twin's speed (5 of its sigmas beyond it) -- the static lines may be a twin's self-beat --
     and as its smallest measurable speed (the frame could not tell 0 from the twin's)."""
     cover = max([abs(m.velocity_mps) + 5 * m.velocity_sigma_mps for m in twins]
-                + [static.velocity_sigma_mps, static.speed_min_mps])
+                + [static.velocity_sigma_mps, static.speed_min_mps, 1e-12])  # > 0: not measured
     return replace(static, velocity_mps=0.0, direction="unknown", velocity_sigma_mps=cover, speed_min_mps=cover)
