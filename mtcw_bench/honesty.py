@@ -19,8 +19,8 @@ slice      rows                                                             rung
 ========== ================================================================ =========
 length     record 2^16, 2^18, 2^20 x speed (5)                              9
 receiver   balanced, iq x speed (5)                                         7
-laser      ideal, 5.3 GHz at 500x L_coh x speed (5); 5.3 GHz static at      7
-           2^18, 2^20; 5.3 GHz static at 2^16-2^20 at 30-70 dB loss        (5)
+laser      ideal, 5.3 GHz at 500x L_coh, 100 kHz at 15 m x speed (5);       7
+           5.3 GHz static at 2^18, 2^20; at 2^16-2^20 at 30-70 dB loss      (5)
 targets    static + mover, two movers, three movers x (single 2^16, iq       7
            2^16, single 2^18)
 six-tone   the 6-tone plan at 2^16, 2^18, 2^20 x speed (0, 40 bins,          9
@@ -233,6 +233,12 @@ def grid(quick: bool = False, slices: list[str] | None = None) -> list[Config]:
         for lab, v in _speeds(b16, quick):
             sc = with_targets(mk(b16), [_target(1.234, v, 5.0 if sb else 20.0)])
             out.append(Config("laser", f"{name} {lab}", sc, self_beat=sb, rungs_db=rungs))
+        if name == "ideal" and not quick:
+            # the base's 100 kHz laser at 15 m (echo delay 100 ns, not 8): the phase difference
+            # over the delay moves a mover's Doppler ~12x more (found by the envelope probe)
+            for lab, v in _speeds(b16, quick):
+                out.append(Config("laser", f"100 kHz 15 m {lab}", with_targets(b16, [_target(15.0, v, 20.0)]),
+                                  rungs_db=rungs))
         if name == "5.3 GHz" and not quick:
             cal = with_targets(mk(b16), [_target(1.234, 0.0, 5.0)])
             for n in (2**18, 2**20):
