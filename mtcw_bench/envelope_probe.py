@@ -36,7 +36,7 @@ from mtcw_core.profiles import get_profile
 from mtcw_core.scene import Scene, SceneError, load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
-from .honesty import SIX_TONES, declared
+from .honesty import SIX_TONES, declared, tally
 
 TONE_PLANS = ((500e6, 700e6, 950e6), (130e6, 510e6, 710e6, 950e6), SIX_TONES)
 PROFILES = ("fast", "balanced", "accurate")
@@ -86,12 +86,8 @@ def judge_scene(i: int, frames: int, base: Scene | None = None) -> tuple[collect
             st = get_profile(prof, tone_phase_sigma_rad=sc.noise.rf_phase_drift_rad * (j + 1) ** 0.5, **declared(sc))
             res = process_frame(fr, st)
             v = judge_frame(res, fr.truth, Z_WRONG)
-            counts["frames"] += 1
             counts[res.status] += 1
-            counts["missed"] += len(v.missed)
-            counts["cw"] += int(v.confident_wrong)
-            counts["cf"] += int(v.confident_false)
-            if v.confident_wrong or v.confident_false:
+            if tally(counts, v):
                 lines.append(f"scene {i} {prof} frame {j}: " + "; ".join(
                     f"{q.range_m:.4f} m {q.velocity_mps:+.4f} m/s range z {p.range_z} speed z {p.speed_z} flags "
                     f"{p.flags}" for p, q in zip(v.points, res.targets)) + " " + json.dumps(changes))

@@ -29,7 +29,7 @@ from mtcw_core.profiles import get_profile
 from mtcw_core.scene import Scene, load_scene, scene_variant
 from mtcw_core.simulate import Simulator
 
-from .honesty import declared
+from .honesty import declared, tally
 
 RECEIVERS = ("single", "balanced", "iq")
 LOSSES_DB = (0.0, 3.0, 6.0, 10.0)
@@ -57,11 +57,7 @@ def judge_scene(label: str, sc: Scene, frames: int, seed: int = 5) -> tuple[coll
         tag = f"{prof}/{'declared' if dec else 'undeclared'}"
         for i, fr in enumerate(sims):
             v = judge_frame(process_frame(fr, st), fr.truth, Z_WRONG)
-            counts[(tag, "frames")] += 1
-            counts[(tag, "cw")] += int(v.confident_wrong)
-            counts[(tag, "cf")] += int(v.confident_false)
-            counts[(tag, "missed")] += len(v.missed)
-            if v.confident_wrong or v.confident_false:
+            if tally(counts, v, tag):
                 lines.append(f"{label} {tag} frame {i}: " + "; ".join(
                     f"range z {p.range_z:+.1f} speed z {p.speed_z:+.1f} flags {p.flags}" for p in v.points))
     return counts, lines

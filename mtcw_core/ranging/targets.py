@@ -458,7 +458,8 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
 def _above_wings(mover: TargetPoint, static: TargetPoint, wings: float) -> bool:
     """A candidate at the static target's range whose lines stand :data:`WINGS_MARGIN_DB` above
     the declared laser's wings there (``wings``, dB relative to the static lines) is a Doppler
-    line, not the wings: the static lines are then its self-beat if its own point is unflagged."""
+    line, not the wings (whether the static lines are then its self-beat, its flags decide:
+    :func:`select_targets`)."""
     return median_snr(mover) - median_snr(static) >= wings + WINGS_MARGIN_DB
 
 
