@@ -16,7 +16,7 @@ from mtcw_core.profiles import ChainSettings, get_profile
 from mtcw_core.ranging.mixing import mix
 from mtcw_core.chain import process_frame
 from mtcw_core.ranging.targets import (SPEED_FLOOR_BINS, Reference, median_snr, resolve_targets, select_targets,
-                                       shared_phase_psd, solve_target, velocity, wings_level_db)
+                                       phase_psd, shared_phase_psd, solve_target, velocity, wings_level_db)
 from mtcw_core.ranging.triangulation import fisher_sigma, unambiguous_range
 from mtcw_core.results import TargetPoint
 from mtcw_core.simulate import Simulator
@@ -113,6 +113,19 @@ class TestVelocity:
         s = velocity(d, frame(), [fam("U", 1, var=var)], False, phase_psd=psd)[1]
         assert s == pytest.approx(math.sqrt(30.0**2 + 2e10 * psd + 40.0**2) * LAM / 2, rel=1e-12)
         assert shared_phase_psd(ChainSettings(), 3.0) == 0.0  # a laser declared coherent
+
+    def test_the_pedestal_stands_for_a_delay_the_range_cannot_tell(self):
+        """A range known modulo the unambiguous range gives the declared laser's phase noise at the
+        folded range only; the pedestal the lines show (``pedestal_psd``, a real record's low line
+        counting its image's too: over the gain's 1.5) stands for it where it is more. A laser
+        declared coherent has no pedestal to show: none is taken."""
+        st = ChainSettings(laser_linewidth_hz=1e5)
+        folded = shared_phase_psd(st, 1.855)
+        d = replace(dop(7.5e6, method="reassigned", gain=2e10), pedestal_psd=60 * folded)
+        assert phase_psd(st, 1.855, d, iq=False) == pytest.approx(40 * folded, rel=1e-12)
+        assert phase_psd(st, 1.855, d, iq=True) == pytest.approx(60 * folded, rel=1e-12)
+        assert phase_psd(st, 1.855, replace(d, pedestal_psd=0.5 * folded), iq=True) == folded
+        assert phase_psd(ChainSettings(), 1.855, d, iq=True) == 0.0
 
     def test_a_sub_guard_fit_adds_the_shared_phase_like_a_reassigned_one(self):
         """The sub-guard fit (method ``fit``) is one record-long window too: the declared laser's

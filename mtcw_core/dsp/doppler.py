@@ -85,6 +85,12 @@ class DopplerEstimate:
     #: Doppler decides (:func:`_combine_lines`: +1, ``f_d > 0``, approaching; -1 receding), 0 when
     #: undecided; IQ: 0 (``fd_hz`` carries its sign)
     motion_sign: int = 0
+    #: the shared phase's low-frequency two-sided PSD (rad^2/Hz) as the pedestal about the target's
+    #: strongest line shows it (:func:`pedestal_phase_psd`; a real record's low line counts its
+    #: image's pedestal too: up to twice the phase's own); with ``shared_phase_gain`` it gives the
+    #: error the declared laser cannot where the echo's delay is not known (a range known modulo the
+    #: unambiguous range); 0 where not measured or no pedestal stands above the white floor
+    pedestal_psd: float = 0.0
 
     @property
     def refined(self) -> bool:
@@ -746,7 +752,8 @@ MAX_FIRST_PARTS = 32
 
 
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                    spec: Spectrum, max_lines: int | None = None, segments: int = 4) -> DopplerEstimate:
+                    spec: Spectrum, max_lines: int | None = None, segments: int = 4,
+                    pedestal: bool = False) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts
     (:func:`phase_advance`), starting close enough for the advance not to wrap.
 
@@ -759,6 +766,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     the advance would be a confident error of ``fs/L``); when the quarters then move the first
     step's answer by more than :data:`WRAP_SIGMAS` of its error, the first step may have slipped
     (its start further off than the parabola said), and the error is one cycle of its advance.
+    ``pedestal``: the pedestal about the lines witnesses the phase they share
+    (:func:`phase_advance`; a laser declared partly coherent), not in the first step.
     """
     fs, n = frame.fs_hz, x.size
     start_err = est.refine_error_hz + est.wander_hz
@@ -769,8 +778,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # common phase's), as long as the lines stay near those it read
     parts_dft = PartDFTs(x, fs, PHASE_WINDOW_BETA, max(parts, COMMON_MODE_MAX_PARTS))
     if parts == segments:
-        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft)
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft)
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft, pedestal)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft, pedestal=False)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -778,7 +787,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # the other targets' lines, not this one's own at its former estimate (which would sit a
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
-    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, parts_dft)
+    out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, parts_dft, pedestal)
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
@@ -789,7 +798,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
                   spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                  parts_dft: PartDFTs | None = None) -> DopplerEstimate:
+                  parts_dft: PartDFTs | None = None, pedestal: bool = False) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -811,6 +820,11 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     x : ndarray, shape (N,), float64 or complex128, V
     others : the Doppler lines of the other targets (Hz)
     parts_dft : the record's :class:`PartDFTs` (one for every refinement of one target)
+    pedestal : the pedestal about the strongest line witnesses the shared phase too
+        (:func:`_with_shared_phase`): for a laser declared partly coherent (a coherent one puts no
+        pedestal there, and at ~90 dB the window's own skirt would pass for one); not in a first
+        step from a start that may be bins off, whose ring about the line's frequency would hold
+        the line itself (and whose error decides whether the quarters' answer slipped a cycle)
     """
     fs = frame.fs_hz
     if parts_dft is None:
@@ -851,21 +865,53 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if segments > 1:
         amp_chi2 = float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(s2 * wp / 2, 1e-300)))
         lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
-    # what every line shares -- the laser's phase noise over the echo delay moves the carrier
-    # phase of all of them alike, so their agreement cannot show it: the common phase's wander
-    # across the record does (common_mode_error)
     if segments >= 3:
         all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
-        fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
-        if fine is not None:
-            spread = math.hypot(spread, fine)
-        else:
-            # the parts themselves: segments - 2 degrees of freedom (2 for quarters), so few that
-            # a low draw would make a confident answer, hence COMMON_MODE_MARGIN on the whole scatter
-            res = _common_residual(np.angle(prod), slope, wt)
-            var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
-            spread = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / (2 * np.pi * length / fs))
+        spread = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2, segments,
+                                    all_freqs, near, iq, delta if pedestal else None)
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign)
+
+
+def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
+                       var_phi: np.ndarray, amp2: np.ndarray, segments: int, all_freqs: np.ndarray,
+                       near: np.ndarray, iq: bool, delta: float | None) -> float:
+    """:func:`phase_advance`'s error ``spread`` (Hz, its lines' white noise and scatter) with what
+    every line shares: the laser's phase noise over the echo delay moves the carrier phase of all
+    of them alike, and their agreement cannot show it.
+
+    The common phase's wander across the record shows it (:func:`common_mode_error`). Where no
+    part count leaves a line separable, the refinement's own parts must: ``segments - 2`` degrees
+    of freedom, so few that a low draw would make a confident answer -- :data:`COMMON_MODE_MARGIN`
+    on their whole scatter, and at least what the pedestal about the strongest line shows
+    (:func:`pedestal_phase_psd`, tens of bins: a mover's 100 kHz laser at 13 m, 1.6 MHz of Doppler,
+    whose quarters' scatter drew low, had its speed 7.7 sigmas off) through the estimate's gain
+    for a shared white phase, ``var(fd) = 2*fs*sum(w^2)/sum(w)^2 / ((S - 1)*2*pi*L/fs)^2`` per unit
+    PSD (the end parts' windowed mean phases, ``S`` parts of ``L`` samples).
+
+    ``lines``: the refinement's lines (Hz), how each moves with ``f_d`` and its weight, each shape
+    (K,); ``var_phi``: their white-noise phase variance per part (rad^2); ``amp2``: their mean part
+    power; ``prod``: their part-to-part steps, shape (S - 1, K); ``delta``: the refinement's
+    Doppler correction (Hz: the pedestal is read about the line where it now is), None for no
+    pedestal witness.
+    """
+    freqs, slope, wt = lines
+    fs, length = parts_dft.fs, parts_dft.x.size // segments
+    fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
+    if fine is not None:
+        return math.hypot(spread, fine)
+    cycle = 2 * np.pi * length / fs
+    res = _common_residual(np.angle(prod), slope, wt)
+    var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
+    out = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / cycle)
+    if delta is None:
+        return out
+    wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
+    sw = window_sum(("kaiser", PHASE_WINDOW_BETA), length)
+    top = int(np.argmax(wt))
+    ped = pedestal_phase_psd(spec, float(freqs[top] + slope[top] * delta), float(amp2[top]) / sw**2,
+                             np.concatenate([all_freqs, near]))
+    gain = 2 * fs * wp / sw**2 / ((segments - 1) * cycle) ** 2
+    return max(out, math.hypot(spread, math.sqrt(gain * ped)))
 
 
 def step_sum_phase_variance(var_phi: np.ndarray, segments: int) -> np.ndarray:
@@ -1021,16 +1067,16 @@ def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray,
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                 spec: Spectrum) -> DopplerEstimate:
+                 spec: Spectrum, pedestal: bool = False) -> DopplerEstimate:
     """The Doppler that maximises the exact windowed power of the target's lines.
 
     Starts from :func:`refine_by_phase` (whose error it keeps as its stated error, an upper bound:
     the full-record maximum uses the same lines without splitting the record) and maximises the
     summed power of the lines that refinement used -- mean removed, Kaiser-windowed
     (:data:`PHASE_WINDOW_BETA`) so that the DC and the lines' images do not pull the maximum --
-    within three of its sigmas.
+    within three of its sigmas. ``pedestal``: as :func:`refine_by_phase`'s.
     """
-    first = refine_by_phase(x, frame, est, iq, others, spec)
+    first = refine_by_phase(x, frame, est, iq, others, spec, pedestal=pedestal)
     if first is est:
         return est
     fd0, sig = first.fd_hz, first.refine_error_hz
@@ -1271,10 +1317,14 @@ def _refine_found(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], iq: 
     """The search's movers refined (:func:`refine_by_phase` or :func:`refine_exact`, by the profile;
     where no line is separable there, :func:`refine_reassigned`), ``others`` (Hz) the Doppler lines
     of every mover the search found, whose lines each refinement keeps out."""
+    # a laser declared partly coherent: where the refinement's own parts must measure the phase its
+    # lines share, the pedestal about them witnesses it too (a coherent one puts none there)
+    ped = settings.laser_linewidth_hz > 0
     if settings.doppler_refine == "phase":
-        out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines) for est in ests]
+        out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines, pedestal=ped)
+               for est in ests]
     else:
-        out = [refine_exact(x, frame, est, iq, others, spec) for est in ests]
+        out = [refine_exact(x, frame, est, iq, others, spec, pedestal=ped) for est in ests]
     return [replace(new, method="phase") if new is not old else
             (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
             for new, old in zip(out, ests)]
@@ -1333,7 +1383,8 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
     again = dict(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq, [e.fd_hz for e in ests],
                                           spec, settings)))
     return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
-                    shared_phase_gain=again[i].shared_phase_gain, lines_chi2=again[i].lines_chi2,
+                    shared_phase_gain=again[i].shared_phase_gain, pedestal_psd=again[i].pedestal_psd,
+                    lines_chi2=again[i].lines_chi2,
                     motion_sign=again[i].motion_sign) if i in again else m for i, m in enumerate(refined)]
 
 
@@ -1462,8 +1513,79 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     # a real record's line has its image at -f, carrying the same phase with the opposite sign:
     # the difference phase's flat PSD reaches across 2f and adds half as much again
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * sw**2)
+    # the shared phase's PSD as its pedestal shows it, for an echo delay the range cannot tell
+    top = int(np.argmax(wt))
+    ped = pedestal_phase_psd(spec, float(freqs[use][top]), float(wt[top]) / sw**2,
+                             np.concatenate([freqs, near]))
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
-                   lines_chi2=lines_chi2, motion_sign=sign)
+                   pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign)
+
+
+#: the pedestal about a line counts where its near floor exceeds the white floor by this many
+#: standard errors of their difference under no pedestal (a median of M independent exponential
+#: bins is ~1.44/sqrt(M) of itself; a Kaiser(14) periodogram's bins are independent about every
+#: :data:`PEDESTAL_RING_ENBW`): a pedestal below it goes uncounted, and the stated error -- whose
+#: per-line floor holds it -- is then at most ~1.3x short
+PEDESTAL_SIGNIFICANCE = 3.0
+PEDESTAL_RING_ENBW = 2.2
+#: the white floor: the lowest of the near-ring floors at the middle of this many of the widest gaps
+#: between the frame's lines (a pedestal reaching into one of them -- a frame of few lines -- raises
+#: that one only)
+WHITE_FLOOR_GAPS = 3
+
+
+def _median_error(count) -> np.ndarray:
+    """The relative standard error of a median of ``count`` periodogram bins (Kaiser(14))."""
+    return 1.44 / np.sqrt(np.maximum(np.asarray(count, dtype=float), 1.0) / PEDESTAL_RING_ENBW)
+
+
+def white_floor(spec: Spectrum, lines_hz: np.ndarray) -> tuple[float, float]:
+    """The spectrum's white noise floor (V^2 per sample, :meth:`~.spectrum.Spectrum.noise_variances`'
+    unit) where no line's pedestal reaches, and its relative standard error: the lowest of the
+    near-ring floors (:data:`SMALL_NEAR_HALF_WIDTH`) at the middle of the :data:`WHITE_FLOOR_GAPS`
+    widest gaps between ``lines_hz`` (every line the frame may have, Hz), over the spectrum's span
+    (``[0, fs/2]`` for a real record, ``[-fs/2, fs/2]`` for IQ); the error is one ring's (the lowest
+    of three lies ~0.85 of it low: a pedestal's test errs toward counting one)."""
+    half = spec.fs_hz / 2
+    f = np.asarray(lines_hz, dtype=float)
+    f = f if spec.complex_input else np.abs(f)
+    edges = np.unique(np.concatenate([f[np.abs(f) < half], [-half if spec.complex_input else 0.0, half]]))
+    gaps = np.diff(edges)
+    wide = np.argsort(gaps)[::-1][:WHITE_FLOOR_GAPS]
+    floors, count = spec.noise_variances(edges[wide] + gaps[wide] / 2, edges, half_width=SMALL_NEAR_HALF_WIDTH,
+                                         guard=SMALL_NEAR_GUARD, counts=True)
+    low = int(np.argmin(floors))
+    return float(floors[low]), float(_median_error(count[low]))
+
+
+def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, lines_hz: np.ndarray) -> float:
+    """The low-frequency two-sided PSD (rad^2/Hz) of a line's phase, from the pedestal about it.
+
+    A laser partly coherent over the echo's delay puts the delayed self-heterodyne phase's spectrum
+    about each of the target's lines, flat at ``2*pi*linewidth*dtau^2`` well inside ``1/dtau``, at
+    the line's power times it (a real record's line near 0 Hz carries its image's pedestal too, up
+    to twice that). The near floor about the line (``+-``:data:`SMALL_NEAR_HALF_WIDTH` bins, less
+    :data:`SMALL_NEAR_GUARD` about every line) less the white floor (:func:`white_floor`), over the
+    line's density, is that PSD -- counted only where it stands :data:`PEDESTAL_SIGNIFICANCE`
+    standard errors above the white floor, else 0.
+
+    Parameters
+    ----------
+    spec : the search spectrum
+    line_hz : the line's frequency (Hz)
+    line_density : its amplitude squared per side (V^2: ``|X_w|^2/sum(w)^2`` of a window ``w``)
+    lines_hz : every line the frame may have (Hz), kept out of both floors
+    """
+    near, count = spec.noise_variances([line_hz], lines_hz, half_width=SMALL_NEAR_HALF_WIDTH,
+                                       guard=SMALL_NEAR_GUARD, counts=True)
+    near = float(near[0])
+    white, white_err = white_floor(spec, lines_hz)
+    if not (math.isfinite(near) and math.isfinite(white)) or line_density <= 0:
+        return 0.0
+    # under no pedestal the near floor is the white one, with its own median's error
+    if near - white <= PEDESTAL_SIGNIFICANCE * white * math.hypot(float(_median_error(count[0])), white_err):
+        return 0.0
+    return (near - white) / spec.fs_hz / line_density
 
 
 # ---------------------------------------------------------------------------------------------

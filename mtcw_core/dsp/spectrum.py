@@ -175,12 +175,14 @@ class Spectrum:
         scale = self.n / self.record_n if self.record_n else 1.0
         return max(int(round(FLOOR_HALF_WIDTH_RECORD_BINS * scale)), 2 * guard + 8)
 
-    def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int = 12) -> np.ndarray:
+    def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int = 12,
+                        counts: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """:meth:`noise_variance` at every frequency of ``f_hz`` (shape (L,)) at once, V^2.
 
         The same statistic, row by row: each line's ``+-half_width`` bins (default
         :meth:`floor_half_width`) less those within ``guard`` of an excluded frequency (all of
-        them kept when that leaves none), median of the rest.
+        them kept when that leaves none), median of the rest. ``counts``: also how many bins each
+        median is of, shape (L,).
         """
         if half_width is None:
             half_width = self.floor_half_width(guard)
@@ -207,7 +209,8 @@ class Spectrum:
         rows = np.arange(f.size)
         lo, hi = vals[rows, np.maximum((count - 1) // 2, 0)], vals[rows, np.maximum(count // 2, 0)]
         med = ((lo + hi) / 2).astype(np.float64)  # as np.median does it, in the spectrum's precision
-        return np.where(count > 0, med, np.nan) / LN2 / self.window_power
+        out = np.where(count > 0, med, np.nan) / LN2 / self.window_power
+        return (out, count) if counts else out
 
     def noise_variance(self, f_hz: float, exclude_hz: list[float], half_width: int | None = None,
                        guard: int = 12) -> float:

@@ -75,6 +75,20 @@ def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
     return 2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, range_m) ** 2
 
 
+def phase_psd(settings: ChainSettings, range_m: float, dop: DopplerEstimate, iq: bool) -> float:
+    """The low-frequency PSD (rad^2/Hz) of the phase a target's lines share, for the speed sigma:
+    the declared laser's at the point's range (:func:`shared_phase_psd`), or what the pedestal
+    about its lines shows (``dop.pedestal_psd``) where that is more -- a range known modulo the
+    unambiguous range leaves the echo's delay, and so the declared laser's phase noise, unknown:
+    a mover at 10.85 m ranged 1.855 m in a 3.0 m frame was given 34x too little, its speed z std
+    3.5. The pedestal about a real record's low line carries its image's too, which the gain's 1.5
+    already counts. 0 for a laser declared coherent (its lines have no pedestal; at ~90 dB the
+    window's own skirt would pass for one)."""
+    if settings.laser_linewidth_hz <= 0:
+        return 0.0
+    return max(shared_phase_psd(settings, range_m), dop.pedestal_psd / (1.0 if iq else 1.5))
+
+
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
              fd_max_hz: float | None = None, phase_psd: float = 0.0, sideband_direction: bool = False
              ) -> tuple[float, float, str, float]:
@@ -86,7 +100,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     :data:`SPEED_FLOOR_BINS`. A Doppler refined by phase advance carries its whole error itself,
     the shared carrier phase's wander measured by the refinement; one reassigned over the whole
     record -- or fitted on it below the search's guard (``fit``) -- adds what the shared phase's
-    PSD ``phase_psd`` (:func:`shared_phase_psd`) does to it, and the wander.
+    PSD ``phase_psd`` (:func:`phase_psd`) does to it, and the wander.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
@@ -224,7 +238,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
-                                       shared_phase_psd(settings, sol.range_m), settings.sideband_direction)
+                                       phase_psd(settings, sol.range_m, dop, frame.receiver == "iq"),
+                                       settings.sideband_direction)
     return TargetPoint(
         range_m=sol.range_m, range_sigma_m=sigma, velocity_mps=v, velocity_sigma_mps=vs, direction=direction,
         snr_db=max(float(np.max(f.snr_db)) for f in fams), margin=sol.margin,
