@@ -867,14 +867,15 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
     if segments >= 3:
         all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
+        moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
         spread = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2, segments,
-                                    all_freqs, near, iq, delta if pedestal else None)
+                                    all_freqs, near, iq, delta, moved)
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign)
 
 
 def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
                        var_phi: np.ndarray, amp2: np.ndarray, segments: int, all_freqs: np.ndarray,
-                       near: np.ndarray, iq: bool, delta: float | None) -> float:
+                       near: np.ndarray, iq: bool, delta: float, moved: np.ndarray | None) -> float:
     """:func:`phase_advance`'s error ``spread`` (Hz, its lines' white noise and scatter) with what
     every line shares: the laser's phase noise over the echo delay moves the carrier phase of all
     of them alike, and their agreement cannot show it.
@@ -891,8 +892,11 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
     ``lines``: the refinement's lines (Hz), how each moves with ``f_d`` and its weight, each shape
     (K,); ``var_phi``: their white-noise phase variance per part (rad^2); ``amp2``: their mean part
     power; ``prod``: their part-to-part steps, shape (S - 1, K); ``delta``: the refinement's
-    Doppler correction (Hz: the pedestal is read about the line where it now is), None for no
-    pedestal witness.
+    Doppler correction (Hz: the pedestal is read about the line where it now is); ``moved``: every
+    line of the target there (Hz, kept out of the ring with the lines where they were), None for
+    no pedestal witness. On a real record's line near 0 Hz the pedestal holds its image's too: the
+    variance is then up to 4/3 of the phase's own (conservative; the target stage's
+    :func:`~mtcw_core.ranging.targets.phase_psd` divides by the reassignment gain's 1.5 instead).
     """
     freqs, slope, wt = lines
     fs, length = parts_dft.fs, parts_dft.x.size // segments
@@ -903,13 +907,13 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
     res = _common_residual(np.angle(prod), slope, wt)
     var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
     out = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / cycle)
-    if delta is None:
+    if moved is None:
         return out
     wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     sw = window_sum(("kaiser", PHASE_WINDOW_BETA), length)
     top = int(np.argmax(wt))
     ped = pedestal_phase_psd(spec, float(freqs[top] + slope[top] * delta), float(amp2[top]) / sw**2,
-                             np.concatenate([all_freqs, near]))
+                             np.concatenate([all_freqs, moved, near]))
     gain = 2 * fs * wp / sw**2 / ((segments - 1) * cycle) ** 2
     return max(out, math.hypot(spread, math.sqrt(gain * ped)))
 
@@ -1534,7 +1538,7 @@ PEDESTAL_RING_ENBW = 2.2
 WHITE_FLOOR_GAPS = 3
 
 
-def _median_error(count) -> np.ndarray:
+def _median_error(count: np.ndarray | int) -> np.ndarray:
     """The relative standard error of a median of ``count`` periodogram bins (Kaiser(14))."""
     return 1.44 / np.sqrt(np.maximum(np.asarray(count, dtype=float), 1.0) / PEDESTAL_RING_ENBW)
 
@@ -1543,7 +1547,7 @@ def white_floor(spec: Spectrum, lines_hz: np.ndarray) -> tuple[float, float]:
     """The spectrum's white noise floor (V^2 per sample, :meth:`~.spectrum.Spectrum.noise_variances`'
     unit) where no line's pedestal reaches, and its relative standard error: the lowest of the
     near-ring floors (:data:`SMALL_NEAR_HALF_WIDTH`) at the middle of the :data:`WHITE_FLOOR_GAPS`
-    widest gaps between ``lines_hz`` (every line the frame may have, Hz), over the spectrum's span
+    widest gaps between ``lines_hz`` (every line the frame may have, Hz, shape (M,)), over the spectrum's span
     (``[0, fs/2]`` for a real record, ``[-fs/2, fs/2]`` for IQ); the error is one ring's (the lowest
     of three lies ~0.85 of it low: a pedestal's test errs toward counting one)."""
     half = spec.fs_hz / 2
@@ -1574,7 +1578,7 @@ def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, line
     spec : the search spectrum
     line_hz : the line's frequency (Hz)
     line_density : its amplitude squared per side (V^2: ``|X_w|^2/sum(w)^2`` of a window ``w``)
-    lines_hz : every line the frame may have (Hz), kept out of both floors
+    lines_hz : ndarray, shape (M,), every line the frame may have (Hz), kept out of both floors
     """
     near, count = spec.noise_variances([line_hz], lines_hz, half_width=SMALL_NEAR_HALF_WIDTH,
                                        guard=SMALL_NEAR_GUARD, counts=True)

@@ -386,8 +386,9 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
         return None
     if np.sum(a) < 0:
         a = -a
-    dc = seg_sums / length if seg_sums is not None else x[:segs * length].reshape(segs, length).mean(axis=1)
-    z = z - ramp_leak(dc, z, turn, length, uniq, s_idx, fs) * turn
+    if segs >= 3:  # the ramps from second-order differences across the segments
+        dc = seg_sums / length if seg_sums is not None else x[:segs * length].reshape(segs, length).mean(axis=1)
+        z = z - ramp_leak(dc, z, turn, length, uniq, s_idx, fs) * turn
     return (a @ z) / segs
 
 
@@ -396,13 +397,16 @@ def ramp_leak(dc: np.ndarray, z: np.ndarray, turn: np.ndarray, length: int, uniq
     """What the fading's change within each segment puts into the static lines' segment fits (V,
     about each segment's centre), shape (S, T).
 
-    Each segment's fit holds a line's mean amplitude, not its slope. A ramp of amplitude projects
+    Each segment's fit holds a line's mean amplitude, not its slope (three segments at least: the
+    slopes are second-order differences). A ramp of amplitude projects
     on a line ``k`` segment bins away by ~``1/(pi*k)`` of its change across the segment, and a real
     line's ramp on itself through its image at ``-f`` by ~``1/(4*pi*k)``. The baseband carrier
     beat of a mover below the guard is the envelope itself at 0 Hz, tens of dB above the
     sidebands: on the 6-tone plan's 20 MHz line (16 segment bins) its ramp turned the phase by 3e-4
     rad, 6 of its sigmas at 1.6 dB of echo loss (the envelope probe's scene 574: a 1.5 mm/s mover
-    ranged 5.8 sigmas off on average); a faster fade bends it within the segment too. The slopes
+    ranged 5.8 sigmas off on average); a faster fade bends it within the segment too (slope and
+    bend are modelled, not the higher orders: a fade of 1.5 record bins under a carrier 40 dB above
+    the lines keeps ~1/30 of the leak). The slopes
     are the segments' gradients over their length -- the means' for the carrier (the LO's DC is
     constant; its bend their second difference), the static lines' own complex amplitudes
     for theirs, across the segments about the record's centre (about their own, a line's phase
@@ -441,6 +445,8 @@ def _ramp_responses(length: int, fs: float, uniq_bytes: bytes, s_bytes: bytes
     w = 2 * np.pi * np.mod(np.outer(uniq[s_idx], u) / fs, 1.0)  # (T, L), cycles reduced in float64
     rc = np.array([fit_lines(u * np.cos(row), uniq, fs)[s_idx] for row in w])
     rs = np.array([fit_lines(-u * np.sin(row), uniq, fs)[s_idx] for row in w])
+    for arr in (r0, r2, rc, rs):
+        arr.setflags(write=False)  # shared by every caller through the cache
     return r0, r2, rc, rs
 
 

@@ -188,7 +188,7 @@ class Spectrum:
             half_width = self.floor_half_width(guard)
         f = np.atleast_1d(np.asarray(f_hz, dtype=float))
         if f.size == 0:
-            return np.empty(0)
+            return (np.empty(0), np.empty(0, np.int64)) if counts else np.empty(0)
         nb = self.power.size
         b = self.bin_of(f)
         idx = b[:, None] + np.arange(-half_width, half_width + 1)[None, :]  # (L, W)
