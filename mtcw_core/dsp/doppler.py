@@ -2321,12 +2321,8 @@ def unmodelled_pull(spec: Spectrum, line_hz: float, modelled_hz: np.ndarray, dfr
     line = line_hz if spec.complex_input else abs(line_hz)
     f = f if spec.complex_input else np.abs(f)
     b0 = int(spec.bin_of(line))
-    nb = spec.power.size
-    idx = np.arange(max(b0 - SMALL_NEAR_HALF_WIDTH, 0), min(b0 + SMALL_NEAR_HALF_WIDTH + 1, nb))
-    taken = np.sort(spec.bin_of(np.concatenate([f, [line]])))
-    j = np.clip(np.searchsorted(taken, idx), 1, max(taken.size - 1, 1))
-    gap = np.minimum(np.abs(idx - taken[j - 1]), np.abs(idx - taken[np.minimum(j, taken.size - 1)]))
-    idx = idx[gap > SMALL_NEAR_GUARD]
+    idx, keep = spec.ring([line], np.concatenate([f, [line]]), SMALL_NEAR_HALF_WIDTH, SMALL_NEAR_GUARD)
+    idx = idx[keep]
     if idx.size < 8:
         return 0.0
     p = np.asarray(spec.power[idx], dtype=np.float64)

@@ -175,6 +175,23 @@ class Spectrum:
         scale = self.n / self.record_n if self.record_n else 1.0
         return max(int(round(FLOOR_HALF_WIDTH_RECORD_BINS * scale)), 2 * guard + 8)
 
+    def ring(self, f_hz, exclude_hz, half_width: int, guard: int) -> tuple[np.ndarray, np.ndarray]:
+        """The bins within ``half_width`` of each frequency of ``f_hz`` (shape (L,)) and which of
+        them lie in the spectrum and more than ``guard`` bins from every frequency of
+        ``exclude_hz`` (Hz): shapes (L, 2*half_width + 1), int and bool."""
+        f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+        idx = self.bin_of(f)[:, None] + np.arange(-half_width, half_width + 1)[None, :]  # (L, W)
+        keep = (idx >= 0) & (idx < self.power.size)
+        ex = np.sort(self.bin_of(np.asarray(exclude_hz, dtype=float))) if len(exclude_hz) else np.empty(0, np.int64)
+        if ex.size:
+            # distance of every bin to the nearest excluded bin, by sorted search
+            j = np.clip(np.searchsorted(ex, idx), 1, max(ex.size - 1, 1))
+            d = np.abs(idx - ex[j - 1]) if ex.size > 1 else np.abs(idx - ex[0])
+            if ex.size > 1:
+                d = np.minimum(d, np.abs(idx - ex[j]))
+            keep &= d > guard
+        return idx, keep
+
     def noise_variances(self, f_hz, exclude_hz, half_width: int | None = None, guard: int = 12,
                         counts: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """:meth:`noise_variance` at every frequency of ``f_hz`` (shape (L,)) at once, V^2.
@@ -190,18 +207,8 @@ class Spectrum:
         if f.size == 0:
             return (np.empty(0), np.empty(0, np.int64)) if counts else np.empty(0)
         nb = self.power.size
-        b = self.bin_of(f)
-        idx = b[:, None] + np.arange(-half_width, half_width + 1)[None, :]  # (L, W)
+        idx, keep = self.ring(f, exclude_hz, half_width, guard)
         valid = (idx >= 0) & (idx < nb)
-        ex = np.sort(self.bin_of(np.asarray(exclude_hz, dtype=float))) if len(exclude_hz) else np.empty(0, np.int64)
-        keep = valid.copy()
-        if ex.size:
-            # distance of every bin to the nearest excluded bin, by sorted search
-            j = np.clip(np.searchsorted(ex, idx), 1, max(ex.size - 1, 1))
-            d = np.abs(idx - ex[j - 1]) if ex.size > 1 else np.abs(idx - ex[0])
-            if ex.size > 1:
-                d = np.minimum(d, np.abs(idx - ex[j]))
-            keep &= d > guard
         keep = np.where(keep.any(axis=1)[:, None], keep, valid)  # nothing left: every bin in reach
         vals = np.where(keep, self.power[np.clip(idx, 0, nb - 1)], np.inf).astype(self.power.dtype)
         vals.sort(axis=1)
