@@ -567,7 +567,7 @@ class TestReassigned:
             noise = 1e-4 * rng.standard_normal(N)
             for dphi, out in ((phi[lag:] - phi[:-lag], seen), (0.0, coherent)):
                 x = np.cos(2 * np.pi * cyc(self.FD) + 0.3 + dphi) + noise
-                out.append(refine_reassigned(x, frame_of(x), e, False, [], power_spectrum(x, FS)).pedestal_psd)
+                out.append(refine_reassigned(x, frame_of(x), e, False, [], power_spectrum(x, FS), True).pedestal_psd)
         ratio = float(np.median(seen)) / psd  # 0 where no pedestal was read
         assert ratio > 1.4 and ratio < 2.8, np.array(seen) / psd
         assert np.sum(np.array(coherent) > 0) <= 1, coherent

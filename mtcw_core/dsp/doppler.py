@@ -1321,8 +1321,9 @@ def _refine_found(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], iq: 
     """The search's movers refined (:func:`refine_by_phase` or :func:`refine_exact`, by the profile;
     where no line is separable there, :func:`refine_reassigned`), ``others`` (Hz) the Doppler lines
     of every mover the search found, whose lines each refinement keeps out."""
-    # a laser declared partly coherent: where the refinement's own parts must measure the phase its
-    # lines share, the pedestal about them witnesses it too (a coherent one puts none there)
+    # a laser declared partly coherent: the pedestal about the lines witnesses the phase they share
+    # (where the refinement's own parts must measure it, or one window cannot); a coherent one puts
+    # none there, and the target stage would not read it
     ped = settings.laser_linewidth_hz > 0
     if settings.doppler_refine == "phase":
         out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines, pedestal=ped)
@@ -1330,7 +1331,7 @@ def _refine_found(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], iq: 
     else:
         out = [refine_exact(x, frame, est, iq, others, spec, pedestal=ped) for est in ests]
     return [replace(new, method="phase") if new is not old else
-            (refine_reassigned(x, frame, old, iq, others, spec) if old.detected else old)
+            (refine_reassigned(x, frame, old, iq, others, spec, ped) if old.detected else old)
             for new, old in zip(out, ests)]
 
 
@@ -1457,7 +1458,7 @@ def _above_threshold(snr: np.ndarray) -> np.ndarray:
 
 
 def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                      spec: Spectrum) -> DopplerEstimate:
+                      spec: Spectrum, pedestal: bool = False) -> DopplerEstimate:
     """The Doppler line's frequency by reassignment over the whole record, for lines too close to
     each other for :func:`phase_advance`'s parts (a mover a few bins from the static lines).
 
@@ -1473,7 +1474,9 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     moves them alike and one window cannot see it: ``shared_phase_gain`` =
     ``fs^3*sum(w'^2)/(4*pi^2*sum(w)^2)`` (x1.5 for a real record: the line's image carries the
     same phase, whose flat PSD reaches across ``2f``) turns its low-frequency PSD into var(fd) for
-    the target stage, which knows the delay. Returns ``est`` unchanged when no line is separable.
+    the target stage, which knows the delay. With ``pedestal`` (a laser declared partly coherent)
+    the pedestal about the strongest line is read too (``pedestal_psd``, :func:`pedestal_phase_psd`:
+    the delay the range cannot tell). Returns ``est`` unchanged when no line is separable.
 
     Parameters
     ----------
@@ -1520,7 +1523,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     # the shared phase's PSD as its pedestal shows it, for an echo delay the range cannot tell
     top = int(np.argmax(wt))
     ped = pedestal_phase_psd(spec, float(freqs[use][top]), float(wt[top]) / sw**2,
-                             np.concatenate([freqs, near]))
+                             np.concatenate([freqs, near])) if pedestal else 0.0
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
                    pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign)
 
