@@ -394,23 +394,41 @@ def is_finite(p: TargetPoint) -> bool:
 #: bin cannot be made of them: a periodogram's largest bin over 1e6 bins of a flat pedestal stands
 #: ~11 dB above its mean (exponential), the margin leaves 9 dB more
 WINGS_MARGIN_DB = 20.0
+#: ... and one this far above them may still be a bump of them (that largest bin's ~11 dB, 1 dB
+#: spare): between the two the static point keeps its range but not its speed (the envelope probe's
+#: scene 1807: a 1 MHz laser's mover 14 dB above the static lines' wings at its Doppler, the range
+#: folded, had been dropped as their bump and the static point reported ``static``, 250 sigmas off)
+WINGS_BUMP_DB = 12.0
 
 
-def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float | None) -> float | None:
-    """The static target's phase-noise wings in one record bin (``bin_hz``), dB relative to its
-    line there, at most 0 dB (an incoherent echo's line is all wings). None where nothing bounds
-    them: no laser declared (linewidth 0) or no bin width given.
+def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float | None,
+                   offset_hz: float = 0.0) -> float | None:
+    """The static target's phase-noise wings in one record bin (``bin_hz``) ``offset_hz`` from its
+    lines, dB relative to its line there, at most 0 dB (an incoherent echo's line is all wings).
+    None where nothing bounds them: no laser declared (linewidth 0) or no bin width given.
 
-    The LO x echo beat of a Lorentzian laser, delayed ``dtau`` (:func:`carrier_coherence`), keeps
-    ``exp(-a)`` of its power in the line (``a = 2*pi*linewidth*dtau``); the rest is a pedestal whose
-    density peaks beside the line at ``(1 - exp(-a)*(1 + a))/(pi*linewidth)`` of the beat's power per Hz
-    (the delayed self-heterodyne spectrum at f -> 0: ``2*pi*linewidth*dtau^2``, :func:`shared_phase_psd`,
-    for a coherent echo; a Lorentzian's ``1/(pi*linewidth)`` for an incoherent one)."""
-    if settings.laser_linewidth_hz <= 0 or not bin_hz:
+    The LO x echo beat of a Lorentzian laser (FWHM ``dnu``), delayed ``dtau``
+    (:func:`carrier_coherence`), keeps ``exp(-a)`` of its power in the line (``a = 2*pi*dnu*dtau``);
+    the rest is the delayed self-heterodyne pedestal, per Hz of the beat's power at an offset ``f``::
+
+        S(f) = dnu/pi / (f^2 + dnu^2) * (1 - exp(-a)*(cos(2*pi*f*dtau) + dnu/f*sin(2*pi*f*dtau)))
+
+    highest beside the line, ``(1 - exp(-a)*(1 + a))/(pi*dnu)`` (``2*pi*dnu*dtau^2`` for a coherent
+    echo, :func:`shared_phase_psd`; a Lorentzian's ``1/(pi*dnu)`` for an incoherent one). Taken as the
+    lesser of that peak and the envelope of ``S`` at ``offset_hz`` (its cosine and sine at their
+    worst, ``1 + exp(-a)*sqrt(1 + (dnu/f)^2)``): a mover 30 MHz off a 1 MHz laser's static line
+    meets wings ~14 dB below their peak (the envelope probe's scene 3338: a strong single-photodiode
+    echo whose self-beat stood 18 dB above its Doppler lines was reported ``static``)."""
+    dnu = settings.laser_linewidth_hz
+    if dnu <= 0 or not bin_hz:
         return None
-    a = 2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, static.range_m)
-    pedestal = -math.expm1(-a) - a * math.exp(-a)  # 1 - exp(-a)*(1 + a), without cancellation at small a
-    level = pedestal / (math.pi * settings.laser_linewidth_hz) * bin_hz / max(math.exp(-a), 1e-300)
+    a = 2 * math.pi * dnu * echo_delay_s(settings, static.range_m)
+    density = (-math.expm1(-a) - a * math.exp(-a)) / (math.pi * dnu)  # 1 - exp(-a)*(1 + a): no cancellation
+    f = abs(offset_hz)
+    if f > 0:
+        envelope = dnu / math.pi / (f * f + dnu * dnu) * (1 + math.exp(-a) * math.hypot(1.0, dnu / f))
+        density = min(density, envelope)
+    level = density * bin_hz / max(math.exp(-a), 1e-300)
     return 10.0 * math.log10(min(level, 1.0)) if level > 0 else -math.inf
 
 
@@ -438,8 +456,9 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       unless the declared laser's wings there stay :data:`WINGS_MARGIN_DB` below the "mover": it
       is then a Doppler line and the static lines its self-beat (an echo stronger than the LO on
       one photodiode: the self-beat ``sqrt(P_echo/P_lo)`` above the LO beats), not a target. With
-      no laser declared the static point stays, its speed not measured (``unknown``, a sigma that
-      covers the twin's speed): its lines are either's, at one range. Only on one photodiode
+      no laser declared, or a "mover" :data:`WINGS_BUMP_DB` but not :data:`WINGS_MARGIN_DB` above
+      the wings, the static point stays, its speed not measured (``unknown``, a sigma that covers
+      the twin's speed): its lines are either's, at one range. Only on one photodiode
       (``receiver``): balanced and IQ receivers cancel the self-beat.
     - A record of integer ADC codes (``quantized``): a "mover" at a stronger mover's range, its
       lines :data:`QUANTIZER_MARGIN_DB` weaker, may be the quantizer's product of that mover's lines
@@ -451,26 +470,30 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     # static lines (a laser declared incoherent at that range; issue 12's quasi-CW target at 930 m)
     points = [(k, p) for k, p in points if k == 0 or carrier_coherence(settings, p.range_m) >= MIN_CARRIER_COHERENCE]
     static = next((p for k, p in points if k == 0), None)
+    def wings(p: TargetPoint) -> float | None:  # the static lines' wings at the candidate's Doppler
+        return wings_level_db(settings, static, bin_hz, p.doppler_hz)
+
     if static is not None:
-        wings = wings_level_db(settings, static, bin_hz)
         points = [(k, p) for k, p in points if k == 0 or not (
             p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0
-            and (wings is None or median_snr(p) - median_snr(static) < wings + WINGS_MARGIN_DB))]
+            and not _above_wings(p, static, wings(p)))]
     movers = [p for k, p in points if k > 0]
     if static is not None and movers:
         loudest = max(median_snr(m) for m in movers)
         twins = [m for m in movers if _same_range(static, m)]
         # only one photodiode keeps an echo's self-beat (balanced and IQ receivers cancel it)
-        lines = [m for m in twins if receiver == "single" and (wings is None or _above_wings(m, static, wings))]
+        lines = [m for m in twins if receiver == "single" and (wings(m) is None or _above_wings(m, static, wings(m)))]
+        maybe = [m for m in twins if receiver == "single" and (
+            wings(m) is None or _above_wings(m, static, wings(m), WINGS_BUMP_DB))]
         if median_snr(static) < loudest - settings.self_beat_margin_db or any(
                 median_snr(m) >= median_snr(static) for m in twins) or any(
-                wings is not None and not m.flagged for m in lines):
+                wings(m) is not None and not m.flagged for m in lines):
             points = [(k, p) for k, p in points if k > 0]
         elif twins:
             # a twin that may be a Doppler line (no laser declared, or a flagged one above the
             # wings: a wrong cycle's sigma can put it at any range) may have put its self-beat on
             # the static lines: the range is either's, the speed 0 or the twin's: not measured
-            points = [(k, _speed_unknown(p, lines) if k == 0 and lines else p) for k, p in points
+            points = [(k, _speed_unknown(p, maybe) if k == 0 and maybe else p) for k, p in points
                       if not any(p is m for m in twins)]
     if quantized:
         points = _quantizer_products(points)
@@ -499,12 +522,14 @@ def _quantizer_products(points: list[tuple[int, TargetPoint]]) -> list[tuple[int
         for q in movers) else p) for k, p in points]
 
 
-def _above_wings(mover: TargetPoint, static: TargetPoint, wings: float) -> bool:
-    """A candidate at the static target's range whose lines stand :data:`WINGS_MARGIN_DB` above
-    the declared laser's wings there (``wings``, dB relative to the static lines) is a Doppler
-    line, not the wings (whether the static lines are then its self-beat, its flags decide:
-    :func:`select_targets`)."""
-    return median_snr(mover) - median_snr(static) >= wings + WINGS_MARGIN_DB
+def _above_wings(mover: TargetPoint, static: TargetPoint, wings: float | None,
+                  margin_db: float = WINGS_MARGIN_DB) -> bool:
+    """A candidate at the static target's range whose lines stand ``margin_db`` above the declared
+    laser's wings there (``wings``, dB relative to the static lines, at the mover's Doppler; None:
+    no laser declared, nothing bounds them): by :data:`WINGS_MARGIN_DB` a Doppler line, not the
+    wings (whether the static lines are then its self-beat, its flags decide:
+    :func:`select_targets`); by :data:`WINGS_BUMP_DB`, perhaps one."""
+    return wings is not None and median_snr(mover) - median_snr(static) >= wings + margin_db
 
 
 def _speed_unknown(static: TargetPoint, twins: list[TargetPoint]) -> TargetPoint:
