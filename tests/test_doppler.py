@@ -6,6 +6,8 @@ static lines at f_i, in white noise; the Doppler search must find f_d and nothin
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -483,7 +485,33 @@ class TestLineErrors:
         stat = np.sqrt(1.0 + 0.25) * 10.0 / 1.5
         assert delta == pytest.approx(30.0)
         assert chi2 == pytest.approx((30.0**2 + 60.0**2) / 100.0)
+        # the other line puts the correction at 90, 60 from the mean: 4.2 sigmas of their
+        # difference (sqrt(10^2 + 10^2)), so its gap is stated too
+        assert err == pytest.approx(math.hypot(stat * np.sqrt(chi2), 60.0))
+        # 50 apart (3.5 sigmas): the scatter's Birge ratio alone
+        delta, err, chi2, _ = _combine_lines(wt, np.ones(2), np.array([0.0, 50.0]), np.array([10.0, 10.0]) ** 2)
         assert err == pytest.approx(stat * np.sqrt(chi2))
+
+    def test_sidebands_that_agree_witness_a_bias_of_the_baseband_line(self):
+        """The envelope probe's scene 3413 (two sub-guard movers on one photodiode): the baseband
+        line's correction 1.4 kHz from the truth at an error of 2 Hz, its eight sidebands (80 Hz
+        each) agreeing on the truth. The power-weighted mean is the baseband's; the Birge ratio
+        (chi2/dof ~300) scaled its 2 Hz to ~35 Hz, 40 sigmas short. The sidebands' own mean, 14
+        sigmas of its difference away, is stated as the error: the truth about 1 sigma off. Without
+        the bias (all lines on the truth, noise drawn) nothing is added."""
+        rng = np.random.default_rng(3)
+        sd = np.array([2.0] + [80.0] * 8)
+        wt = np.array([1.0] + [1e-3] * 8)
+        truth = 1400.0
+        y = truth + sd * rng.standard_normal(9)
+        y[0] = 0.0
+        delta, err, chi2, _ = _combine_lines(wt, np.ones(9), y, sd**2)
+        assert abs(delta) < 20.0 and chi2 > 100  # the baseband's, nearly
+        assert abs(truth - delta) < 1.2 * err and err < 1.5 * truth
+        clean = truth + sd * rng.standard_normal(9)
+        delta, err, chi2, _ = _combine_lines(wt, np.ones(9), clean, sd**2)
+        stat = np.sqrt(np.sum(wt**2 * sd**2)) / np.sum(wt)
+        assert err == pytest.approx(stat * np.sqrt(max(chi2, 1.0)))
 
 
 class TestReassigned:
