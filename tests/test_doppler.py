@@ -834,6 +834,28 @@ class TestSmallDoppler:
         # the premise: the same lines, stronger than the static ones, are a mover
         assert self.estimate(x + 0.8 * np.cos(2 * np.pi * cyc(p) + 1.0), fr).detected
 
+    def test_a_slowly_moving_static_target_states_its_pull(self, monkeypatch):
+        """A "static" target 0.2 record bins off 0 Hz (its lines at 0.2 bin and f_i +- 0.2 bin,
+        10 dB under a mover 1.4 bins up): the fit holds them at 0 Hz and f_i, and their unmodelled
+        part pulls the mover's baseband line 0.107 bin, ~4 of the sigma the fit states without
+        the static lines let off their frequencies. With them let off by half a bin the line moves
+        by about its pull, which is stated: z ~1. A static target truly at 0 Hz moves it by less
+        than two of its sigmas: the stated error is the fit's own, unchanged."""
+        from mtcw_core.dsp import doppler
+
+        fd = 1.4 * DF
+        for seed in range(3):
+            slow = real_record(((fd, 1.0, 0.3), (0.2 * DF, 0.3, 0.1)), static=0.0, seed=seed)
+            still = real_record(((fd, 1.0, 0.3),), static=0.3, seed=seed)
+            est, at_rest = self.estimate(slow), self.estimate(still)
+            assert est.method == at_rest.method == "fit"
+            assert abs(est.fd_hz - fd) < 1.5 * est.refine_error_hz
+            monkeypatch.setattr(doppler, "STATIC_OFFSET_SIGMAS", math.inf)
+            before, rest_before = self.estimate(slow), self.estimate(still)
+            monkeypatch.undo()
+            assert abs(before.fd_hz - fd) > 3 * before.refine_error_hz  # the premise: the pull
+            assert at_rest.refine_error_hz == rest_before.refine_error_hz and abs(at_rest.fd_hz - fd) < 3 * at_rest.refine_error_hz
+
     def test_parabolic_profiles_do_not_search_below_the_guard(self):
         est = self.estimate(real_record(((2.6 * DF, 1.0, 0.3),)), profile="seed")
         assert not est.detected
