@@ -301,6 +301,16 @@ class TestSelectTargets:
         got = select_targets(cands, self.ST, quantized=True)
         assert got == [strong, close, replace(copy, blended=True), apart]
         assert select_targets(cands, self.ST) == [strong, close, copy, apart]
+        # at twice the mover's speed (within 5 sigmas) a copy only 2 dB weaker is one too (scene
+        # 2267: 8-bit codes, 15 m/s, its copy at 29.99 m/s 5 dB under it); 2.3x, or stronger, is not,
+        # nor is 3.0 m/s above (20x, but 5 sigmas of 20x reach 0.1 m/s: any speed would be a multiple)
+        double = replace(close, velocity_mps=0.3 + 4e-3)
+        off = replace(close, velocity_mps=0.345)
+        assert select_targets([(1, strong), (2, double)], self.ST, quantized=True) == [
+            strong, replace(double, blended=True)]
+        assert select_targets([(1, strong), (2, off)], self.ST, quantized=True) == [strong, off]
+        louder = replace(strong, velocity_mps=0.3, tone_snr_db={k: 50.0 for k in strong.tone_snr_db})
+        assert select_targets([(1, strong), (2, louder)], self.ST, quantized=True) == [louder, strong]
 
     def test_a_weak_twin_at_the_static_range_leaves_its_speed_unmeasured(self):
         """No laser declared: the weak twin may be the static target's wings or a mover whose

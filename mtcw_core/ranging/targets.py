@@ -514,12 +514,25 @@ def _quantizer_products(points: list[tuple[int, TargetPoint]]) -> list[tuple[int
     at ``f_i +- (1 + k)*f_d`` whose phases are the mover's own tone phases -- a "mover" at another
     speed and the same range. The envelope probe's ghosts (four scenes, 15 confident-false frames):
     8- and 12-bit ADCs, at 2x and 41x a mover's Doppler and at other offsets, 8-31 dB under its
-    lines, at its range within its sigma. A real second target at the same range and another speed
-    (a spinning part) cannot be told from such a copy in one frame: flagged, not dropped."""
+    lines, at its range within its sigma. A copy at a whole multiple of the mover's speed (``k + 1
+    >= 2``, within 5 sigmas) is one whenever it is weaker (the probe's scene 2267: 8-bit codes, a
+    15 m/s mover's copy at 29.99 m/s only 5 dB under it). A real second target at the same range and
+    another speed (a spinning part) cannot be told from such a copy in one frame: flagged, not
+    dropped."""
     movers = [p for k, p in points if k > 0]
     return [(k, replace(p, blended=True) if k > 0 and any(
-        q is not p and median_snr(q) >= median_snr(p) + QUANTIZER_MARGIN_DB and _same_range(p, q)
-        for q in movers) else p) for k, p in points]
+        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + QUANTIZER_MARGIN_DB or (
+            median_snr(q) > median_snr(p) and _speed_multiple(p, q))) for q in movers) else p) for k, p in points]
+
+
+def _speed_multiple(p: TargetPoint, q: TargetPoint) -> bool:
+    """Is ``p``'s speed a whole multiple (2 or more) of ``q``'s, within 5 sigmas of the two? Not
+    where those 5 sigmas reach a quarter of the way to the next multiple (any speed would be one)."""
+    if q.velocity_mps == 0.0:
+        return False
+    k = round(abs(p.velocity_mps) / abs(q.velocity_mps))
+    tol = 5 * math.hypot(p.velocity_sigma_mps, k * q.velocity_sigma_mps)
+    return k >= 2 and tol < 0.25 * abs(q.velocity_mps) and abs(abs(p.velocity_mps) - k * abs(q.velocity_mps)) <= tol
 
 
 def _above_wings(mover: TargetPoint, static: TargetPoint, wings: float | None,
