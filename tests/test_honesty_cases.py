@@ -603,3 +603,16 @@ def test_a_slow_static_target_states_its_pull_on_a_sub_guard_mover(scene):
 
     counts, lines = judge_scene(scene, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene", [2706, 3258])
+def test_static_lines_that_fit_one_range_improbably_are_not_confident(scene):
+    """The envelope probe's scenes 2706 (two static targets on three tones, balanced receiver: the
+    blend's phases miss one range at p 1e-3 to 0.014, ranged 6 mm off at 0.8-1.1 mm) and 3258 (one
+    photodiode, a sub-guard mover's self-beat on the static lines 5.6 sigmas from its range, a
+    confident false static point). The Birge ratio now scales the sigma from p < 0.05 on, the
+    declared drift's part with it: no frame confidently wrong or false."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

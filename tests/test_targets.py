@@ -189,6 +189,38 @@ class TestSolveTarget:
         assert p.range_sigma_m == pytest.approx(fisher_sigma([TONES], [f.phase_var]) * math.sqrt(p.chi2_per_dof),
                                                 rel=1e-9)
 
+    def test_phases_that_fit_one_range_improbably_widen_the_sigma(self):
+        """Three tones: a phase 0.06 rad off on one (6 of its sigmas) gives a chi2 of p ~0.03 --
+        improbable for one target, too little to flag a blend. The sigma is scaled by the Birge
+        ratio from p < 0.05 on (it was 1e-3: the envelope probe's scene 2706, two static targets on
+        three tones, p 1e-3 to 0.014, ranged 6 mm off at 0.8-1.1 mm). With a declared drift of the
+        tone phases the chi2 counts it, and the ratio scales it with the white noise's part."""
+        from dataclasses import replace as rep
+
+        from scipy.special import chdtrc
+
+        from mtcw_core.ranging.mixing import consistency
+        from mtcw_core.ranging.triangulation import tone_phase_sigma
+
+        def p_value(f, settings, p):
+            var = f.phase_var + settings.tone_phase_sigma_rad**2
+            chi2, dof = consistency([rep(f, phase_var=var)], PHI, 2 * p.range_m / C, settings.min_line_snr_db)
+            return chdtrc(dof, chi2)
+
+        for extra, st in ((0.06, ChainSettings()), (0.08, ChainSettings(tone_phase_sigma_rad=0.005))):
+            f = fam(range_m=3.7, var=(1e-4,) * 3, extra=(0.0, 0.0, extra))
+            p = solve_target([f], mix([f], PHI, 10.0)[0], dop(0.0, False), frame(), st, Reference(PHI, 0.0), None)
+            assert 1e-3 < p_value(f, st, p) < 0.05 and not p.blended
+            unscaled = math.hypot(fisher_sigma([TONES], [f.phase_var]),
+                                  tone_phase_sigma([TONES], [f.phase_var], st.tone_phase_sigma_rad))
+            assert p.range_sigma_m == pytest.approx(unscaled * math.sqrt(p.chi2_per_dof), rel=1e-9)
+        # consistent phases: nothing scaled
+        f0 = fam(range_m=3.7, var=(1e-4,) * 3, extra=(0.0, 0.0, 0.01))
+        p0 = solve_target([f0], mix([f0], PHI, 10.0)[0], dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0),
+                          None)
+        assert p_value(f0, ChainSettings(), p0) > 0.05
+        assert p0.range_sigma_m == pytest.approx(fisher_sigma([TONES], [f0.phase_var]), rel=1e-9)
+
     def test_seed_method(self):
         f = fam(range_m=5.5)
         obs = mix([f], PHI, 10.0)[0]
