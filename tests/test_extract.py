@@ -469,3 +469,38 @@ def test_a_fading_fit_on_two_segments_keeps_its_lines():
     x = 0.1 * env + sum(1e-2 * env * np.cos(2 * np.pi * f * (t - tc) + th) for f, th in zip(tones, (0.3, -1.1, 2.0)))
     c = fading_lines(x, FS, tones, np.arange(3), np.full(3, 1e-12), 4 * FS / n)
     assert c is None or np.all(np.isfinite(c))
+
+
+def test_a_static_echos_beat_on_a_movers_lines_is_bounded_at_its_size(monkeypatch):
+    """One photodiode, the LO a tenth of the power, a static echo at 0.15 dB loss and a mover at 12.5
+    dB (the envelope probe's scene 1937, noise and phase noise off): the static echo beats with the
+    mover's echo on the mover's own lines. Their change when the static echo is added (the same
+    frame simulated without it) is that beat: the bound from the static lines and the mover's
+    carrier (``cross_beat_bound``, one of its two terms) lies within a factor 2 of it -- here 2-4
+    times the mover's lines themselves."""
+    from mtcw_bench import envelope_probe as ep
+    from mtcw_core import chain
+    from mtcw_core.scene import load_scene, scene_variant
+    from mtcw_core.simulate import Simulator
+
+    kw = ep.draw(1937)
+    kw["noise"] = {"shot": False, "thermal": False, "trigger_jitter_s": 0.0, "rf_phase_drift_rad": 0.0}
+    kw["laser"]["linewidth_hz"] = 0.0
+    got = {}
+
+    def keep(*a, **k):
+        got["fams"] = extract_lines(*a, **k)
+        return got["fams"]
+
+    monkeypatch.setattr(chain, "extract_lines", keep)
+    lines = {}
+    for label, targets in (("both", kw["targets"]), ("mover", kw["targets"][1:])):
+        sc = scene_variant(load_scene("moving-target"), **{**kw, "targets": targets})
+        chain.process_frame(next(Simulator(sc, 5).frames(1)), "balanced")
+        lines[label] = {f.name: f for f in got["fams"] if f.target == 1}
+    for name in ("U", "L"):
+        both, alone = lines["both"][name], lines["mover"][name]
+        beat = np.abs(both.z[0] - alone.z[0])
+        assert both.cross_v is not None and alone.cross_v is not None
+        assert np.all(beat > 0.5 * both.cross_v) and np.all(beat < 2.5 * both.cross_v), (beat, both.cross_v)
+        assert np.all(both.cross_v > 1.5 * np.abs(alone.z[0]))  # the beat outgrows the mover's own lines

@@ -616,3 +616,16 @@ def test_static_lines_that_fit_one_range_improbably_are_not_confident(scene):
 
     counts, lines = judge_scene(scene, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene", [1385, 1937])
+def test_a_strong_static_echos_beat_on_a_mover_is_no_confident_range(scene):
+    """The envelope probe's scenes 1385 and 1937: one photodiode, the LO a tenth of the power, a
+    static echo at 5 and 0 dB loss beside a mover: the two echoes' beat sits on the mover's lines at
+    their own size, and the mover was ranged 200-1000 sigmas off, unflagged, in every profile.
+    ``extract.cross_beat_bound`` states that beat; a mover it could turn by more than 3 sigmas, away
+    from the static point's range, is flagged ``blended``: no frame confidently wrong."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -479,6 +479,32 @@ class TestSelectTargets:
         assert select_targets([], self.ST) == []
 
 
+class TestCrossBeaten:
+    """One photodiode: a static echo's beat with a mover, on the mover's own lines."""
+
+    @staticmethod
+    def fams(bound):
+        f = fam("U", 1, var=(1e-6,) * 3, fd=7.5e6)
+        return [LineFamily(f.name, f.tone_hz, f.line_hz, f.z, f.seg_centre_s, f.phase_var, 1, None,
+                           np.full(3, bound))]
+
+    def test_a_mover_the_static_echo_could_turn_is_flagged_where_it_lies_elsewhere(self):
+        """Lines of unit size at phase sigma 1e-3: a beat of 0.01 turns them 10 sigmas (flagged); of
+        2e-3, 2 sigmas (not). At the static point's own range the static lines are the mover's
+        self-beat left over, no second echo: not flagged."""
+        from mtcw_core.ranging.targets import _cross_beaten
+
+        static = point(1.98, [40.0] * 3)
+        mover = replace(point(5.0, [35.0] * 3), velocity_mps=4.8, direction="unknown")
+        st = get_profile("balanced")
+        (_, s), (_, m) = _cross_beaten([(0, static), (1, mover)], self.fams(0.01), st)
+        assert m.blended and not s.blended
+        assert not _cross_beaten([(0, static), (1, mover)], self.fams(2e-3), st)[1][1].blended
+        twin = replace(mover, range_m=1.98 + 1e-5)
+        assert not _cross_beaten([(0, static), (1, twin)], self.fams(0.01), st)[1][1].blended
+        assert not _cross_beaten([(1, mover)], self.fams(0.01), st)[0][1].blended  # no static point
+
+
 class TestSpeedNotMeasurable:
     """Issue 12 case 4: a speed that cannot be measured is not zero."""
 

@@ -53,6 +53,10 @@ class LineFamily:
         Doppler lines no found mover explains could add to each
         (:func:`~mtcw_core.dsp.doppler.self_beat_bound`); None where not measured (balanced, IQ,
         quasi-CW windows).
+    cross_v : ndarray, shape (T,), or None
+        A mover's lines on one photodiode: what a static echo's beat with it adds to each (V), if
+        the static lines are one (:func:`cross_beat_bound`; they may be the mover's own self-beat
+        left over, which adds nothing); None where not measured.
     """
 
     name: str
@@ -63,6 +67,7 @@ class LineFamily:
     phase_var: np.ndarray
     target: int = 0
     unexplained_v: np.ndarray | None = None
+    cross_v: np.ndarray | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -224,11 +229,11 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
         zs[target, name] = z
-    sb_bound = None
+    sb_bound, cross = None, {}
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings)
+        sb_bound, cross = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings)
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
@@ -241,22 +246,26 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
-                              sb_bound if target == 0 else None))
+                              sb_bound if target == 0 else None, cross.get(target) if target else None))
     return out
 
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
-                spec: Spectrum, frame: Frame, settings: ChainSettings) -> np.ndarray:
+                spec: Spectrum, frame: Frame, settings: ChainSettings) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
-    adding its own sidebands to every product), and the bound on those of movers the search did not
-    find or resolve is returned (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,))."""
+    adding its own sidebands to every product). Returned: the bound on those of movers the search
+    did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), and per
+    found mover the static echo's beat on its lines (:func:`cross_beat_bound`)."""
     found = [d.fd_hz for d in dops if d.detected]
+    cross = {}
     if found:
         pred = self_beat_lines(zs, z_all, uniq, found, dc)
         zs[0, "S"] = zs[0, "S"] - self_beat_scale(zs[0, "S"], pred) * pred
-    return self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins, found)
+        cross = cross_beat_bound(zs[0, "S"], z_all, uniq, found, dc)
+    return self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
+                           found), cross
 
 
 #: the static lines' envelope is taken as varying when the segments' amplitudes less their mean
@@ -552,15 +561,7 @@ def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[flo
     ndarray, shape (S, T): the predicted lines (0 where a mover's baseband line was not fitted)
     """
     out = np.zeros_like(zs[0, "S"])
-    base = []  # (target, its baseband line per segment) where that line was fitted
-    for k, fd in enumerate(fds, start=1):
-        i = int(np.argmin(np.abs(uniq - abs(fd))))
-        if abs(uniq[i] - abs(fd)) < 1e-3:
-            base.append((k, z_all[:, i]))
-    if not base:
-        return out
-    echo_dc = sum(np.abs(b) ** 2 for _, b in base)
-    lo_power = 0.5 * (dc + np.sqrt(np.maximum(dc**2 - echo_dc, 0.0)))  # A_L^2 (V), per segment
+    base, lo_power = _carriers(z_all, uniq, fds, dc)
     for k, b in base:
         if (k, "U") not in zs:
             continue
@@ -570,6 +571,46 @@ def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[flo
             np.abs(u) > 0, u * np.conj(b)[:, None], low * b[:, None]))
         out += pred / np.maximum(lo_power, 1e-300)[:, None]
     return out
+
+
+def _carriers(z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray
+              ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
+    """Each found mover's baseband (carrier) line per segment where it was fitted, as (target,
+    ndarray (S,)), and the LO's part of the record's mean, ``A_L^2`` (V, shape (S,)): the DC less
+    the echoes' own (``|B|^2/(4*A_L^2)`` each)."""
+    base = []
+    for k, fd in enumerate(fds, start=1):
+        i = int(np.argmin(np.abs(uniq - abs(fd))))
+        if abs(uniq[i] - abs(fd)) < 1e-3:
+            base.append((k, z_all[:, i]))
+    echo_dc = sum(np.abs(b) ** 2 for _, b in base) if base else 0.0
+    return base, 0.5 * (dc + np.sqrt(np.maximum(dc**2 - echo_dc, 0.0)))
+
+
+def cross_beat_bound(s_lines: np.ndarray, z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray
+                     ) -> dict[int, np.ndarray]:
+    """One photodiode: the static echo's beat with each mover's echo on the mover's own lines, the
+    amplitude (V) that could add to each, per mover target, shape (T,).
+
+    The static echo ``A_s*M(t - tau_s)*exp(j*Phi_s)`` and the mover's beat at ``f_i +- f_d`` too: the
+    mover's sideband with the static carrier (``a_0*A_s/A_L`` of the mover's line, one complex factor
+    for all tones: a common phase, no range) and the mover's carrier with the static sideband,
+    ``A_m*a_0*A_s*a_i`` with the static target's tone phase -- a tone-dependent pull. The static
+    lines give ``|S_i| = 2*A_L*A_s*a_i*|cos(Phi_s)|`` and the mover's carrier ``|B| = 2*A_L*A_m*a_0``,
+    so that term is ``|S_i|*|B|/(4*A_L^2)`` at least (the static lines' fading only hides more).
+    An echo near the LO's power on one photodiode (the envelope probe's scenes 725, 1385, 1937:
+    static echoes at 0-10 dB loss, the LO a tenth of the power) puts it at the mover's lines' own
+    size: their ranges came out 200-1000 sigmas off, unflagged.
+
+    Parameters
+    ----------
+    s_lines : ndarray, shape (S, T): the static lines, the movers' self-beats taken out (V)
+    z_all, uniq, fds, dc : as :func:`self_beat_lines`
+    """
+    base, lo_power = _carriers(z_all, uniq, fds, dc)
+    s = np.abs(s_lines)
+    return {k: np.sqrt(np.mean((s * (np.abs(b) / (4 * np.maximum(lo_power, 1e-300)))[:, None]) ** 2, axis=0))
+            for k, b in base}
 
 
 def seed_extract(x: np.ndarray, fs: float, freqs: np.ndarray, settings: ChainSettings) -> tuple[np.ndarray, float]:

@@ -271,20 +271,22 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
 UNEXPLAINED_SIGMAS = 3.0
 
 
-def unexplained_sigmas(fams: list[LineFamily], min_snr_db: float) -> float:
+def unexplained_sigmas(fams: list[LineFamily], min_snr_db: float, attr: str = "unexplained_v") -> float:
     """The largest phase turn (in the line's phase sigmas) that the unexplained Doppler lines could
     give a used line of ``fams``: ``bound / (|z| * sigma_phase)`` (a phasor of size ``b`` added
     to one of size ``a`` turns it by up to ``asin(b/a)``), over the lines at ``min_snr_db`` or
-    more of the families that carry a bound (:attr:`LineFamily.unexplained_v`); 0 if none."""
+    more of the families that carry a bound (``attr``: :attr:`LineFamily.unexplained_v`, or
+    :attr:`LineFamily.cross_v` for a static echo's beat on a mover's lines); 0 if none."""
     worst = 0.0
     for f in fams:
-        if f.unexplained_v is None:
+        bound = getattr(f, attr)
+        if bound is None:
             continue
         use = f.snr_db >= min_snr_db
         if not use.any():
             continue
         amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
-        turn = np.arcsin(np.minimum(f.unexplained_v[use] / np.maximum(amp, 1e-300), 1.0))
+        turn = np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))
         worst = max(worst, float(np.max(turn / np.sqrt(f.phase_var[use]))))
     return worst
 
@@ -386,7 +388,23 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     sep = quarters_resolve_hz(frame.fs_hz, frame.n)
     points = [(k, replace(p, blended=True)) if k and moving[k - 1].unresolved and (
         moving[k - 1].beside or within(moving[k - 1], kept, sep)) else (k, p) for k, p in points]
-    return points, l_unamb
+    return _cross_beaten(points, families, settings), l_unamb
+
+
+def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFamily], settings: ChainSettings
+                  ) -> list[tuple[int, TargetPoint]]:
+    """Movers whose lines a static echo's beat with them could turn by more than
+    :data:`UNEXPLAINED_SIGMAS` of their phase sigmas (:attr:`LineFamily.cross_v`, one photodiode),
+    flagged ``blended`` -- where the static point lies at another range than the mover's (at its
+    range the static lines are the mover's own self-beat, left over where its prediction missed:
+    no second echo; the envelope probe's scenes 725, 1385 and 1937, static echoes at 0-10 dB loss
+    with the LO a tenth of the power, had their movers ranged 200-1000 sigmas off, unflagged)."""
+    static = next((p for k, p in points if k == 0), None)
+    if static is None:
+        return points
+    return [(k, replace(p, blended=True)) if k and not p.blended and not _same_range(p, static) and unexplained_sigmas(
+        [f for f in families if f.target == k], settings.min_line_snr_db, "cross_v") > UNEXPLAINED_SIGMAS
+        else (k, p) for k, p in points]
 
 
 def _same_range(a: TargetPoint, b: TargetPoint) -> bool:
