@@ -470,6 +470,19 @@ class TestSelectTargets:
         assert wings_level_db(low, static, 5e3) == 0.0
         assert select_targets([(0, static), (1, mover)], low, 5e3) == [static]
         assert select_targets([(0, static), (1, mover)], dfb) == [static]  # no bin: nothing bounds the wings
+        # 2 MHz (the carrier beat at 8 m still 51 % a line): the wings -40.9 dB; a "mover" 24 dB
+        # under static lines at 50 dB is dropped as them but stands 17 dB over them -- perhaps a
+        # Doppler line whose self-beat the static lines are: the static point keeps its range, its
+        # speed not measured (one photodiode only); 34 dB under them, a bump of them: ``static``
+        wide = get_profile("balanced", laser_linewidth_hz=2e6)
+        strong = point(5.0, [50.0] * 3)
+        assert wings_level_db(wide, strong, 5e3) == pytest.approx(-40.9, abs=0.1)
+        fast = replace(point(8.0, [26.0] * 3, residual=1.0), velocity_mps=0.3, direction="unknown")
+        (kept,) = select_targets([(0, strong), (1, fast)], wide, 5e3)
+        assert kept.range_m == strong.range_m and not kept.speed_measured and kept.velocity_sigma_mps > 0.3
+        assert select_targets([(0, strong), (1, fast)], wide, 5e3, "balanced") == [strong]
+        louder = point(5.0, [60.0] * 3)
+        assert select_targets([(0, louder), (1, fast)], wide, 5e3) == [louder]
 
     def test_incoherent_residual_kept_without_static(self):
         mover = point(8.0, [38.0] * 3, residual=1.0)

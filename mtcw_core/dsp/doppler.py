@@ -941,7 +941,9 @@ def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_li
     the local floors that inverse-variance weights would trust are rough next to the strongest
     lines, so ``wt`` are power weights) and its error (Hz) -- the white-noise error of that mean,
     scaled by the lines' scatter about it when that exceeds what noise explains (Birge ratio:
-    leakage, skirts), and that scatter's chi2 per degree of freedom. All arrays shape (K,).
+    leakage, skirts), with the other lines' disagreement as a whole where they witness a bias of the
+    strongest (:func:`_witness_gap`), and that scatter's chi2 per degree of freedom. All arrays
+    shape (K,).
 
     ``shift``: the lines' modulation Doppler (:func:`modulation_doppler`) for ``f_d > 0``. With
     ``sign_known`` false (a real detector: the sign of the motion is unknown) both signs are
@@ -974,8 +976,10 @@ def _combine_lines(wt: np.ndarray, slope: np.ndarray, d_line: np.ndarray, var_li
     return delta, err, dof_chi2, (sign if dof_chi2 <= DIRECTION_MAX_CHI2 else 0)
 
 
-#: the other lines' mean must stand this many sigmas of its difference from the strongest line's
-#: Doppler correction to witness a bias that line carries (:func:`_witness_gap`)
+#: the other lines' mean must stand this many sigmas from the combined Doppler correction to witness a
+#: bias the strongest line carries (:func:`_witness_gap`; the sigma of the other lines' mean less the
+#: strongest line's: where the lines' powers are comparable the combined value lies between the two,
+#: and the test is the stricter)
 WITNESS_SIGMAS = 4.0
 
 
@@ -990,9 +994,9 @@ def _witness_gap(wt: np.ndarray, y: np.ndarray, var_line: np.ndarray, delta: flo
     ~300 Hz: chi2/dof 262 gave 27 Hz, speed z -11 and -33. All arrays shape (K,)."""
     top = int(np.argmax(wt))
     rest = np.arange(wt.size) != top
-    if not rest.any():
-        return 0.0
     w = 1.0 / var_line[rest]
+    if not rest.any() or not np.sum(w) > 0:
+        return 0.0
     mean = float(np.sum(w * y[rest]) / np.sum(w))
     gap = abs(mean - delta)
     return gap if gap > WITNESS_SIGMAS * math.sqrt(1.0 / np.sum(w) + var_line[top]) else 0.0
@@ -2279,7 +2283,8 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     combined Doppler correction and error (Hz) and the lines' chi2 per dof (:func:`_combine_lines`);
     None when the baseband line has no peak of its own. With ``spec`` (the search spectrum) the
     error holds what a line the fit does not model could pull the baseband line by
-    (:func:`unmodelled_pull`)."""
+    (:func:`unmodelled_pull`) and what a slowly moving static target's lines do
+    (:func:`_static_offset_gap`)."""
     dfr = fit.fs / fit.x.size
     use = snr >= LINE_FREQUENCY_SNR
     use[0] = True
@@ -2347,7 +2352,8 @@ def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np
     half = 0.5 * dfr
     static = fit.static[:fit.n_static]
     extra = np.concatenate([static + half, static - half] + ([] if fit.iq else [[half]]))
-    extra = _add_apart(held_f, [extra], 0.25 * dfr)[held_f.size:]
+    # none where the baseband line's trials reach (half a bin about it): the fit would be singular
+    extra = _add_apart(held_f, [extra[np.abs(np.abs(extra) - abs(f0)) > 0.75 * dfr]], 0.25 * dfr)[held_f.size:]
     if not extra.size:
         return 0.0
     hf = np.concatenate([held_f, extra])

@@ -73,7 +73,7 @@ from ..frame import Frame
 from ..phase import C, unambiguous_range, wrap_pi
 from ..profiles import ChainSettings
 from ..results import NoTarget, Rejected, TargetPoint
-from .targets import Reference, velocity
+from .targets import BIRGE_P, Reference, velocity
 from .triangulation import Observations, resolve_ml, resolve_seed
 
 
@@ -568,12 +568,12 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
         i = int(np.argmax(obs.df_hz))
         sigma = _info_sigma(obs.df_hz[i:i + 1], var[i:i + 1])
-    # do the tones agree with one range within their noise? (Birge ratio, as the PB chain)
+    # do the tones agree with one range within their noise? (Birge ratio from p < BIRGE_P, as the PB chain)
     res = wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
     chi2 = float(np.sum(res**2 / var))
     dof = obs.df_hz.size - 1
     ratio = chi2 / dof if dof > 0 else 1.0
-    if dof > 0 and chi2_dist.sf(chi2, dof) < 1e-3:
+    if dof > 0 and chi2_dist.sf(chi2, dof) < BIRGE_P:
         sigma *= math.sqrt(ratio)
     sigma = math.hypot(sigma, s_ref)
     # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range

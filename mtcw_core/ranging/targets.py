@@ -473,7 +473,9 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       target is there -- unless the declared laser's wings (:func:`wings_level_db` in a record bin
       of ``bin_hz``) stay :data:`WINGS_MARGIN_DB` below its lines (issue 12 case 3: a mover 6 dB
       above the static target, 100 kHz laser, whose blended lines miss one range by 0.26 rad; the
-      wings there lie 70 dB below the static lines in a 5 kHz bin).
+      wings there lie 70 dB below the static lines in a 5 kHz bin). One :data:`WINGS_BUMP_DB` above
+      them may be a Doppler line whose self-beat the static lines are (one photodiode): the static
+      point's speed is then not measured.
     - The static candidate of a frame with moving targets is often their own self-beat
       (``|E_echo|^2`` has no Doppler): at a mover's range, or far weaker than the movers' LO
       beats (a self-beat is ``sqrt(P_echo/P_lo)`` below them), it is not a second target.
@@ -499,10 +501,13 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
     def wings(p: TargetPoint) -> float | None:  # the static lines' wings at the candidate's Doppler
         return wings_level_db(settings, static, bin_hz, p.doppler_hz)
 
+    doubt: list[TargetPoint] = []
     if static is not None:
-        points = [(k, p) for k, p in points if k == 0 or not (
-            p.residual_rms_rad > settings.incoherent_residual_rad and median_snr(p) > 25.0
-            and not _above_wings(p, static, wings(p)))]
+        wild = [p for k, p in points if k and p.residual_rms_rad > settings.incoherent_residual_rad
+                and median_snr(p) > 25.0 and not _above_wings(p, static, wings(p))]
+        points = [(k, p) for k, p in points if not any(p is q for q in wild)]
+        # one WINGS_BUMP_DB above them may be a Doppler line whose self-beat the static lines are
+        doubt = [p for p in wild if receiver == "single" and _above_wings(p, static, wings(p), WINGS_BUMP_DB)]
     movers = [p for k, p in points if k > 0]
     if static is not None and movers:
         loudest = max(median_snr(m) for m in movers)
@@ -521,6 +526,8 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
             # the static lines: the range is either's, the speed 0 or the twin's: not measured
             points = [(k, _speed_unknown(p, maybe) if k == 0 and maybe else p) for k, p in points
                       if not any(p is m for m in twins)]
+    if doubt:
+        points = [(k, _speed_unknown(p, doubt) if k == 0 and p.direction == "static" else p) for k, p in points]
     if quantized:
         points = _quantizer_products(points)
     return [p for _, p in sorted(points, key=lambda kp: -median_snr(kp[1]))]
@@ -554,9 +561,10 @@ def _quantizer_products(points: list[tuple[int, TargetPoint]]) -> list[tuple[int
 def _speed_multiple(p: TargetPoint, q: TargetPoint) -> bool:
     """Is ``p``'s speed a whole multiple (2 or more) of ``q``'s, within 5 sigmas of the two? Not
     where those 5 sigmas reach a quarter of the way to the next multiple (any speed would be one)."""
-    if q.velocity_mps == 0.0:
+    ratio = abs(p.velocity_mps) / abs(q.velocity_mps) if q.velocity_mps else math.inf
+    if not math.isfinite(ratio):
         return False
-    k = round(abs(p.velocity_mps) / abs(q.velocity_mps))
+    k = round(ratio)
     tol = 5 * math.hypot(p.velocity_sigma_mps, k * q.velocity_sigma_mps)
     return k >= 2 and tol < 0.25 * abs(q.velocity_mps) and abs(abs(p.velocity_mps) - k * abs(q.velocity_mps)) <= tol
 
