@@ -273,12 +273,15 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             rest = s - self_beat_scale(s, pred) * pred
             left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest))
         _, echo_larger, zs[0, "S"] = min(left, key=lambda t: t[:2])
-        cross = cross_beat_bound(zs[0, "S"], z_all, uniq, found, dc, not echo_larger)
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
         took = np.sqrt(np.mean(np.abs(s - zs[0, "S"]) ** 2, axis=0))
         kept = np.sqrt(np.mean(np.abs(zs[0, "S"]) ** 2, axis=0))
         taken = SELF_BEAT_LEFT * took if np.sum(took**2) > np.sum(kept**2) else 0.0
+        # a static echo beating with the movers is what stands above that leftover (a leftover at
+        # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
+        cross = cross_beat_bound(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), z_all, uniq, found, dc,
+                                 not echo_larger)
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
