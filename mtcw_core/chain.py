@@ -132,7 +132,7 @@ def _square_applies(s: FrameState) -> bool:
 
 
 def _select(s: FrameState) -> None:
-    targets = select_targets(s.candidates, s.settings, s.frame.fs_hz / s.frame.n, s.frame.receiver, s.frame.quantized)
+    targets = select_targets(s.candidates, s.settings, s.frame.fs_hz / s.frame.n, s.frame.receiver)
     if not targets:
         s.no_target_why = f"fewer than two lines above {s.settings.min_line_snr_db} dB"
         if _square_applies(s):

@@ -98,11 +98,6 @@ class Frame:
         return int(self.samples.shape[-1])
 
     @property
-    def quantized(self) -> bool:
-        """The samples are integer ADC codes (the quantizer's products of strong lines may be in them)."""
-        return self.samples.dtype.kind in "iu"
-
-    @property
     def duration_s(self) -> float:
         return self.n / self.fs_hz
 

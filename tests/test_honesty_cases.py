@@ -633,3 +633,14 @@ def test_a_strong_static_echos_beat_on_a_mover_is_no_confident_range(scene):
 
     counts, lines = judge_scene(scene, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_copy_of_a_mover_on_float_volts_is_no_confident_target():
+    """The envelope probe's scene 3275 (float volts, one photodiode, a 1 MHz laser, the LO a tenth
+    of the power): a "mover" at 4.5 m/s, 19 dB under a 0.08 m/s mover, at its range -- a copy of its
+    line family, as the quantizer makes them on integer codes. The copy rule looked at integer codes
+    only; now at every record: flagged ``blended``, no confident frame."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(3275, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -459,7 +459,7 @@ def wings_level_db(settings: ChainSettings, static: TargetPoint, bin_hz: float |
 
 
 def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSettings,
-                   bin_hz: float | None = None, receiver: str = "single", quantized: bool = False
+                   bin_hz: float | None = None, receiver: str = "single"
                    ) -> list[TargetPoint]:
     """The stage: which candidates are targets, strongest first (by the median SNR of their lines).
 
@@ -488,10 +488,10 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
       the wings, the static point stays, its speed not measured (``unknown``, a sigma that covers
       the twin's speed): its lines are either's, at one range. Only on one photodiode
       (``receiver``): balanced and IQ receivers cancel the self-beat.
-    - A record of integer ADC codes (``quantized``): a "mover" at a stronger mover's range, its
-      lines :data:`QUANTIZER_MARGIN_DB` weaker, may be the quantizer's product of that mover's lines
-      with its carrier's harmonics -- a copy of its line family at another Doppler, with its tone
-      phases -- and is flagged ``blended`` (:func:`_quantizer_products`).
+    - A "mover" at a stronger mover's range, its lines :data:`COPY_MARGIN_DB` weaker (or at a whole
+      multiple of its speed), may be a copy of that mover's line family at another Doppler, with
+      its tone phases (the quantizer's products on integer ADC codes; on float volts too, the
+      envelope probe's scene 3275), and is flagged ``blended`` (:func:`_copies`).
     """
     points = [(k, p) for k, p in points if is_finite(p)]
     # no Doppler line where the carrier beat is no line: a "mover" there is the wings of the
@@ -528,33 +528,34 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
                       if not any(p is m for m in twins)]
     if doubt:
         points = [(k, _speed_unknown(p, doubt) if k == 0 and p.direction == "static" else p) for k, p in points]
-    if quantized:
-        points = _quantizer_products(points)
+    points = _copies(points)
     return [p for _, p in sorted(points, key=lambda kp: -median_snr(kp[1]))]
 
 
-#: a mover's line family copied by the quantizer stands this far (dB) below the mover's own lines
-#: at least (the envelope probe's ghosts: 8-31 dB below)
-QUANTIZER_MARGIN_DB = 6.0
+#: a copy of a mover's line family stands this far (dB) below the mover's own lines at least (the
+#: envelope probe's ghosts: 8-31 dB below)
+COPY_MARGIN_DB = 6.0
 
 
-def _quantizer_products(points: list[tuple[int, TargetPoint]]) -> list[tuple[int, TargetPoint]]:
-    """Movers that may be the quantizer's products of a stronger mover's lines, flagged ``blended``.
+def _copies(points: list[tuple[int, TargetPoint]]) -> list[tuple[int, TargetPoint]]:
+    """Movers that may be copies of a stronger mover's lines, flagged ``blended``.
 
-    Integer ADC codes quantize the whole record, where one photodiode's or a strong echo's carrier
-    beat sweeps many codes: the quantization error is a function of the carrier, with harmonics
-    ``k*f_d`` up to ``k ~ 2*pi*A/LSB``, and its products with the sidebands ``f_i +- f_d`` are lines
-    at ``f_i +- (1 + k)*f_d`` whose phases are the mover's own tone phases -- a "mover" at another
-    speed and the same range. The envelope probe's ghosts (four scenes, 15 confident-false frames):
-    8- and 12-bit ADCs, at 2x and 41x a mover's Doppler and at other offsets, 8-31 dB under its
-    lines, at its range within its sigma. A copy at a whole multiple of the mover's speed (``k + 1
-    >= 2``, within 5 sigmas) is one whenever it is weaker (the probe's scene 2267: 8-bit codes, a
-    15 m/s mover's copy at 29.99 m/s only 5 dB under it). A real second target at the same range and
-    another speed (a spinning part) cannot be told from such a copy in one frame: flagged, not
-    dropped."""
+    Integer ADC codes quantize the whole record, where one photodiode's or a strong
+    echo's carrier beat sweeps many codes: the quantization error is a function of the carrier, with
+    harmonics ``k*f_d`` up to ``k ~ 2*pi*A/LSB``, and its products with the sidebands ``f_i +- f_d``
+    are lines at ``f_i +- (1 + k)*f_d`` whose phases are the mover's own tone phases -- a "mover" at
+    another speed and the same range. The envelope probe's ghosts (four scenes, 15 confident-false
+    frames): 8- and 12-bit ADCs, at 2x and 41x a mover's Doppler and at other offsets, 8-31 dB under
+    its lines, at its range within its sigma. A copy at a whole multiple of the mover's speed (``k +
+    1 >= 2``, within 5 sigmas) is one whenever it is weaker (scene 2267: 8-bit codes, a 15 m/s
+    mover's copy at 29.99 m/s only 5 dB under it). Float volts hold such copies too (scene 3275: one
+    photodiode, a 1 MHz laser, an echo at 7.7 dB loss with the LO a tenth of the power: a "mover" at
+    4.5 m/s, 19 dB under a 0.08 m/s mover, at its range), and are judged alike (the rule had looked
+    at integer codes only). A real second target at the same range and another speed (a
+    spinning part) cannot be told from such a copy in one frame: flagged, not dropped."""
     movers = [p for k, p in points if k > 0]
     return [(k, replace(p, blended=True) if k > 0 and any(
-        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + QUANTIZER_MARGIN_DB or (
+        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + COPY_MARGIN_DB or (
             median_snr(q) > median_snr(p) and _speed_multiple(p, q))) for q in movers) else p) for k, p in points]
 
 
