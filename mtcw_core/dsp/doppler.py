@@ -2292,14 +2292,7 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     held_f, held_d = np.concatenate([fit.static, fm, fb]), np.concatenate([fit.d_static, dm, db])
     lines = np.flatnonzero(use)
 
-    def gains(idx: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-        # the energy line j adds at each offset, every other line held (one pass over the record
-        # for every line's three trials)
-        trial = fm[lines[idx], None] + offsets
-        d_trial = exact_dft(fit.x, trial.ravel(), fit.fs).reshape(trial.shape)
-        return line_gains(held_d, held_f, fit.fs, fit.x.size, fit.total, fit.iq, fit.static.size + lines[idx],
-                          trial, d_trial)
-
+    gains = _trial_gains(fit, held_f, held_d, fm[lines], fit.static.size + lines)
     # the energy's curvature there (V^2/Hz^2) is the Fisher information of the line's frequency with
     # every amplitude of the model free -- near 0 Hz, its image and the static line, less than an
     # isolated line's
@@ -2314,13 +2307,31 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
     # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
     # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
-    var_line = (1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2[use] / -curv[use]
+    var_line = _line_frequency_var(fit, s2[use], curv[use])
     _, slope = target_lines(fit.tones, fd, fit.iq)
     delta, err, chi2, _ = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
     if spec is not None:
         err = math.hypot(err, unmodelled_pull(spec, float(fm[0]), held_f, dfr),
                          _static_offset_gap(fit, float(fm[0]), held_f, held_d, float(d_line[0]), float(s2[0])))
     return delta, err, chi2
+
+
+def _trial_gains(fit: _SmallFit, held_f: np.ndarray, held_d: np.ndarray, freqs: np.ndarray, moved: np.ndarray):
+    """``gains(idx, offsets)`` for :func:`_parabola_peaks`: the energy line ``moved[i]`` of the held set
+    (``held_f``, Hz, its exact DFTs ``held_d``; at ``freqs[i]``) adds at each offset (Hz, shape
+    (len(idx), 3)), every other line held -- one pass over the record for all the trials."""
+    def gains(idx: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        trial = freqs[idx, None] + offsets
+        d_trial = exact_dft(fit.x, trial.ravel(), fit.fs).reshape(trial.shape)
+        return line_gains(held_d, held_f, fit.fs, fit.x.size, fit.total, fit.iq, moved[idx], trial, d_trial)
+    return gains
+
+
+def _line_frequency_var(fit: _SmallFit, s2, curv):
+    """A line's frequency variance (Hz^2) from white noise of per-sample variance ``s2`` (real; total
+    for IQ) and the fit's energy curvature there (``curv`` < 0, V^2/Hz^2): ``(2 or 1)*s2/(-E'')``,
+    times :data:`PEDESTAL_FACTOR` (a pedestal's floor lies wholly in the phase quadrature)."""
+    return (1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2 / -curv
 
 
 #: the baseband line's frequency with the static lines let off their exact frequencies must move more
@@ -2358,17 +2369,12 @@ def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np
         return 0.0
     hf = np.concatenate([held_f, extra])
     hd = np.concatenate([held_d, exact_dft(fit.x, extra, fit.fs)])
-    moved = np.array([fit.static.size])  # the mover's baseband line, first of its lines
-
-    def gains(idx: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-        trial = f0 + offsets
-        return line_gains(hd, hf, fit.fs, fit.x.size, fit.total, fit.iq, moved, trial,
-                          exact_dft(fit.x, trial.ravel(), fit.fs).reshape(trial.shape))
-
+    # the mover's baseband line, first of its lines
+    gains = _trial_gains(fit, hf, hd, np.array([f0]), np.array([fit.static.size]))
     d1, curv = _parabola_peaks(gains, 1, SMALL_CURVATURE_STEP * dfr, -0.5 * dfr, 0.5 * dfr, 2, np.array([d0]))
     if curv[0] >= 0:
         return 0.0
-    sigma = math.sqrt((1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2 / -curv[0])
+    sigma = math.sqrt(float(_line_frequency_var(fit, s2, curv[0])))
     gap = abs(float(d1[0]) - d0)
     return gap if gap > STATIC_OFFSET_SIGMAS * sigma else 0.0
 

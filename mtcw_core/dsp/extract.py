@@ -267,12 +267,13 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         s = zs[0, "S"]
         left = []
         for lo_larger in (True, False):
-            if not lo_larger and not np.all(_carriers(z_all, uniq, found, dc, False)[1] > 1e-3 * np.abs(dc)):
+            carriers = _carriers(z_all, uniq, found, dc, lo_larger)
+            if not lo_larger and not np.all(carriers[1] > 1e-3 * np.abs(dc)):
                 continue  # echoes under 0.1 % of the mean: no LO below them (their self-beat is negligible)
-            pred = self_beat_lines(zs, z_all, uniq, found, dc, lo_larger)
+            pred = _predicted_self_beats(zs, *carriers)
             rest = s - self_beat_scale(s, pred) * pred
-            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest))
-        _, echo_larger, zs[0, "S"] = min(left, key=lambda t: t[:2])
+            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers))
+        _, _, zs[0, "S"], carriers = min(left, key=lambda t: t[:2])
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
         took = np.sqrt(np.mean(np.abs(s - zs[0, "S"]) ** 2, axis=0))
@@ -280,8 +281,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         taken = SELF_BEAT_LEFT * took if np.sum(took**2) > np.sum(kept**2) else 0.0
         # a static echo beating with the movers is what stands above that leftover (a leftover at
         # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
-        cross = cross_beat_bound(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), z_all, uniq, found, dc,
-                                 not echo_larger)
+        cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), *carriers)
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
@@ -593,8 +593,12 @@ def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[flo
     -------
     ndarray, shape (S, T): the predicted lines (0 where a mover's baseband line was not fitted)
     """
+    return _predicted_self_beats(zs, *_carriers(z_all, uniq, fds, dc, lo_larger))
+
+
+def _predicted_self_beats(zs: dict, base: list[tuple[int, np.ndarray]], lo_power: np.ndarray) -> np.ndarray:
+    """:func:`self_beat_lines` from the movers' carrier lines and the LO's power (:func:`_carriers`)."""
     out = np.zeros_like(zs[0, "S"])
-    base, lo_power = _carriers(z_all, uniq, fds, dc, lo_larger)
     for k, b in base:
         if (k, "U") not in zs:
             continue
@@ -645,8 +649,11 @@ def cross_beat_bound(s_lines: np.ndarray, z_all: np.ndarray, uniq: np.ndarray, f
     s_lines : ndarray, shape (S, T): the static lines, the movers' self-beats taken out (V)
     z_all, uniq, fds, dc, lo_larger : as :func:`self_beat_lines`
     """
-    base, lo_power = _carriers(z_all, uniq, fds, dc, lo_larger)
-    s = np.abs(s_lines)
+    return _cross_beats(np.abs(s_lines), *_carriers(z_all, uniq, fds, dc, lo_larger))
+
+
+def _cross_beats(s: np.ndarray, base: list[tuple[int, np.ndarray]], lo_power: np.ndarray) -> dict[int, np.ndarray]:
+    """:func:`cross_beat_bound` from the static lines' sizes ``s`` (S, T) and :func:`_carriers`."""
     return {k: np.sqrt(np.mean((s * (np.abs(b) / (4 * np.maximum(lo_power, 1e-300)))[:, None]) ** 2, axis=0))
             for k, b in base}
 
