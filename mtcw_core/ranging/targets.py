@@ -62,6 +62,36 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
 #: ~5e-6 bin (the map's "beat before its parent" case: |z| 4.9 under a floor of 1e-6)
 SPEED_FLOOR_BINS = 1e-5
 
+#: the largest frequency error (record bins) a phase wobble of one radian puts on a Doppler line:
+#: the least-squares slope of ``sin(2*pi*x*t/T + phi)`` over the record peaks at 0.42 cycles per
+#: record, for ``x`` = 0.66 cycles (slower wobbles are mostly a constant, faster ones average out)
+CROSS_PULL_BINS = 0.42
+
+
+def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
+    """One photodiode: how far the beat of an echo among the static lines with a mover's echo can
+    pull the mover's Doppler (Hz); 0 where no bound is carried (:attr:`LineFamily.cross_v`).
+
+    That beat lies at the mover's lines less the static echo's own Doppler ``f_s``, a phasor
+    ``rho = A_s/A_L`` of each line's size (the mover's carrier with the static sideband, or its
+    sideband with the static carrier; ``A_L`` the LO's amplitude): a phase wobble of ``rho`` at
+    ``f_s``, which pulls the line by ``rho*f_s`` while ``f_s`` is under a record bin, and by at most
+    :data:`CROSS_PULL_BINS` bins times ``rho`` whatever ``f_s`` is. ``f_s`` lies below the static
+    guard, unmeasured: the bound takes the largest. :func:`~mtcw_core.dsp.extract.cross_beat_bound`
+    is ``A_s*A_m*a_0*a_i``, the mover's sideband line ``2*A_L*A_m*a_i`` (``a_0 <= 1``): ``rho`` is at
+    most twice their ratio, taken over the mover's lines by energy (one ``rho`` for all tones).
+    The envelope probe's scenes 5081, 4019, 4277 and 4464: an ideal laser, a mover at 24-36 dB of
+    loss and a second echo 13-50 dB under it, half a record bin from zero Doppler -- the mover's
+    speed 5-21 sigmas off at a stated 0.6-3 Hz, the pull 3-7 Hz."""
+    num = den = 0.0
+    for f in families:
+        if f.cross_v is None:
+            continue
+        use = np.isfinite(f.phase_var)
+        num += float(np.sum(f.cross_v[use] ** 2))
+        den += float(np.sum(np.mean(np.abs(f.z[:, use]) ** 2, axis=0)))
+    return 2.0 * math.sqrt(num / den) * CROSS_PULL_BINS * bin_hz if den > 0 else 0.0
+
 
 def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
     """Low-frequency two-sided PSD (rad^2/Hz) of the phase a target's lines share: the declared
@@ -139,7 +169,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
             inv_var += float(np.sum(1 / var_f))
         sig_f = math.hypot(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, dop.refine_error_hz, dop.wander_hz)
-    sig_f = max(sig_f, SPEED_FLOOR_BINS * fs / n)
+    sig_f = max(math.hypot(sig_f, cross_pull_hz(families, fs / n)), SPEED_FLOOR_BINS * fs / n)
     if iq or (sideband_direction and dop.motion_sign):
         # the sign of f_d = -2v/lambda: IQ carries it, one photodiode's sidebands' modulation
         # Doppler may have decided it
