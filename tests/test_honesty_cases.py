@@ -644,3 +644,18 @@ def test_a_copy_of_a_mover_on_float_volts_is_no_confident_target():
 
     counts, lines = judge_scene(3275, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene", [5081, 4464])
+def test_a_weak_echo_beside_a_strong_mover_does_not_pull_it_unstated(scene):
+    """The envelope probe's scenes 5081 and 4464: an ideal laser on one photodiode, a mover at 26 and
+    36 dB of loss, and a second echo 40 and 13 dB under it that the chain does not report: 5081's
+    drifts 0.39 record bin from zero Doppler and its beat with the mover pulled the mover's line by
+    7 Hz at a stated 0.6 Hz (speed z -10 and +12); 4464's lies inside the reassignment's main lobe
+    and pulled it 9-21 sigmas. The beat's pull (``targets.cross_pull_hz``) and a neighbour read
+    beside the reassigned line (``doppler.neighbour_pull``) are now in the speed sigma: no frame
+    confidently wrong."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
