@@ -659,3 +659,16 @@ def test_a_weak_echo_beside_a_strong_mover_does_not_pull_it_unstated(scene):
 
     counts, lines = judge_scene(scene, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_mover_at_the_lower_edge_of_the_sub_guard_band_is_found():
+    """The envelope probe's scene 5448 (IQ, a 100 kHz laser, 2^16 samples): a mover 1.1 record bins
+    up, 17 dB above a static target, peaked at the sub-guard band's lower edge (1 bin); the scan
+    took it out as a line beside the band, found no mover, and its lines blended into the static
+    point's: 0.86 m against 6.24 m, 414 sigmas off. A line whose peak lies inside the band's lower
+    edge is now the band's own: the mover is found, right, and no frame is confidently wrong."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(5448, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["ok"] == 6 and counts["missed"] == 6, counts  # the mover in every frame, not the static target

@@ -2000,6 +2000,7 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     for f0 in near:
         mask |= np.abs((grid if iq else np.abs(grid)) - (f0 if iq else abs(f0))) < SMALL_OTHER_BINS * dfr
     side = int(np.sum(grid > 0))
+    edge = None
     for _ in range(SMALL_EDGE_LINES + 1):
         p = np.where(mask, 0.0, np.abs(xs) ** 2)
         k = int(np.argmax(p))
@@ -2007,24 +2008,33 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
         if not p[k] > 0:
             return None
         if 0 < i < count - 1:
+            edge = None
             break
         edge = _edge_line(low, grid, k, -1.0 if i == 0 else 1.0, iq)
         if edge is None:
             return None
         fp, line = edge
+        if abs(grid[k]) < (lo + hi) / 2 and lo + SMALL_EDGE_INSIDE * dfr <= abs(fp) < hi:
+            break  # its peak lies inside the band's lower edge: the band's own line (scene 5448)
         xs = xs - line  # and the scan keeps clear of it, as of a mover found (its kernel's last digits)
         mask |= np.abs((grid if iq else np.abs(grid)) - fp) < SMALL_OTHER_BINS * dfr
     else:
         return None
     if contrast is not None and not p[k] >= contrast * float(np.median(p)):
         return None
-    return float(grid[k])
+    return float(grid[k]) if edge is None else float(fp if iq else math.copysign(fp, grid[k]))
 
 
 #: how far (record bins) past the scan band's edge a line's peak is looked for (:func:`_edge_line`) ...
 SMALL_EDGE_BINS = 3.0
 #: ... and how many such lines are taken out of one scan
 SMALL_EDGE_LINES = 2
+#: ... unless its peak lies this far (record bins) inside the band's lower edge: then it is the
+#: band's own line
+#: (the envelope probe's scene 5448: a mover 17 dB above a static target, 1.1 bins up at a band
+#: starting at 1 bin, IQ, was taken out as a line beside the band, and its lines blended into the
+#: static point's, ranged 414 sigmas off)
+SMALL_EDGE_INSIDE = 0.05
 
 
 def _edge_line(low: LowBand, grid: np.ndarray, k: int, outward: float, iq: bool
