@@ -22,7 +22,7 @@ from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
-from .spectrum import Spectrum
+from .spectrum import Spectrum, still_line_doppler_bins
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
@@ -57,6 +57,10 @@ class LineFamily:
         A mover's lines on one photodiode: what a static echo's beat with it adds to each (V), if
         the static lines are one (:func:`cross_beat_bound`; they may be the mover's own self-beat
         left over, which adds nothing); None where not measured.
+    cross_x : float or None
+        ... and the largest Doppler (record bins) that static echo could have, as its lines' width
+        shows (:func:`~.spectrum.still_line_doppler_bins`): its beat lies that far from the mover's
+        lines and pulls their frequency; None where not read (any Doppler up to the guard).
     """
 
     name: str
@@ -68,6 +72,7 @@ class LineFamily:
     target: int = 0
     unexplained_v: np.ndarray | None = None
     cross_v: np.ndarray | None = None
+    cross_x: float | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -229,11 +234,11 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
         zs[target, name] = z
-    sb_bound, cross = None, {}
+    sb_bound, cross, still = None, {}, None
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings)
+        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2])
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
@@ -246,20 +251,25 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
-                              sb_bound if target == 0 else None, cross.get(target) if target else None))
+                              sb_bound if target == 0 else None, cross.get(target) if target else None,
+                              still if target else None))
     return out
 
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
-                spec: Spectrum, frame: Frame, settings: ChainSettings) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+                spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray
+                ) -> tuple[np.ndarray, dict[int, np.ndarray], float | None]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
     adding its own sidebands to every product). Returned: the bound on those of movers the search
-    did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), and per
-    found mover the static echo's beat on its lines (:func:`cross_beat_bound`)."""
+    did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), per
+    found mover the static echo's beat on its lines (:func:`cross_beat_bound`), and the largest
+    Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
+    own (:func:`~.spectrum.still_line_doppler_bins`; None where a mover's self-beat outweighs it
+    there: a still self-beat narrows the lines whatever the echo under it does)."""
     found = [d.fd_hz for d in dops if d.detected]
-    cross = {}
+    cross, still = {}, None
     if found:
         # the LO the larger part of the record's mean, or the echoes: whichever prediction leaves
         # less of the static lines (an echo above the LO's power had its self-beat predicted
@@ -278,14 +288,16 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         # the static lines (a static target's own lines outweighing it: left as they are)
         took = np.sqrt(np.mean(np.abs(s - zs[0, "S"]) ** 2, axis=0))
         kept = np.sqrt(np.mean(np.abs(zs[0, "S"]) ** 2, axis=0))
-        taken = SELF_BEAT_LEFT * took if np.sum(took**2) > np.sum(kept**2) else 0.0
+        mostly_self = np.sum(took**2) > np.sum(kept**2)
+        taken = SELF_BEAT_LEFT * took if mostly_self else 0.0
+        still = None if mostly_self else still_line_doppler_bins(spec, static_hz, settings.window_beta)
         # a static echo beating with the movers is what stands above that leftover (a leftover at
         # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
         cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), *carriers)
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
-                                   found), cross
+                                   found), cross, still
 
 
 #: the part of a mover's self-beat its prediction may leave on the static lines (the strong-echo

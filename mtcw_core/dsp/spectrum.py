@@ -865,3 +865,49 @@ class LowBand:
         turn = np.exp(-2j * np.pi * r * ((b - 1) / 2.0 - (self.n - 1) / 2.0))  # block 0's centre from the record's
         order = np.concatenate([np.flatnonzero(f > 0), np.flatnonzero(f < 0)])
         return f[order], (spec[keep] * turn / droop)[order]
+
+
+#: a single-photodiode echo moving ``x`` record bins splits its line into two at ``+-x`` (a real
+#: envelope ``cos(2*pi*x*t/T + Phi)``): its equivalent width grows by at least this times ``x^2``
+#: bins over a still line's, at every ``Phi`` (0.6-1.0 from 0.1 to 0.5 bin, Kaiser(14))
+WIDTH_PER_BIN2 = 0.6
+
+
+@lru_cache(maxsize=64)
+def _still_width(beta: float, offset: float) -> float:
+    """The equivalent width (bins) of a still line ``offset`` bins from a bin's centre through a
+    Kaiser(``beta``) window (shape-invariant in the record's length: a 4096-sample window)."""
+    m = 4096
+    w = get_window(("kaiser", beta), m, fftbins=False)
+    k = np.arange(-32, 33) - offset
+    p = np.abs(np.exp(-2j * np.pi * np.outer(k, np.arange(m)) / m) @ w) ** 2
+    return float(equivalent_width(p) or 0.0)
+
+
+def still_line_doppler_bins(spec: Spectrum, freqs_hz, beta: float) -> float | None:
+    """The largest Doppler (record bins) an echo on one photodiode could have and still show its
+    lines at ``freqs_hz`` as narrow as they are in the search spectrum (Kaiser(``beta``)): from the
+    median excess of their equivalent widths over a still line's at their offsets from the bins'
+    centres (:data:`WIDTH_PER_BIN2`); None where the spectrum is of part of the record (``fast``'s,
+    whose bins are 8x wider) or no width is read. Noise in the bins widens a line: the bound errs
+    large."""
+    if spec.record_n is not None:
+        return None
+    freqs = np.atleast_1d(np.asarray(freqs_hz, dtype=float))
+    if not spec.complex_input:
+        freqs = np.abs(freqs)
+    p = spec.power
+    dc = int(spec.bin_of(0.0))
+    ks = [int(k) for k in spec.bin_of(freqs)]
+    if hasattr(p, "prefetch"):
+        p.prefetch([(k - 32, k + 33) for k in ks])
+    excess = []
+    for f, k0 in zip(freqs, ks):
+        lo, hi = max(k0 - 32, 0), min(k0 + 33, p.size)
+        w = equivalent_width(np.asarray(p[lo:hi], dtype=np.float64).copy(), dc - lo)
+        if w is not None:
+            offset = (f - spec.f0_hz) / spec.df_hz - k0
+            excess.append(w - _still_width(beta, round(abs(offset), 2)))
+    if not excess:
+        return None
+    return math.sqrt(max(float(np.median(excess)), 0.0) / WIDTH_PER_BIN2)

@@ -75,22 +75,28 @@ def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
     That beat lies at the mover's lines less the static echo's own Doppler ``f_s``, a phasor
     ``rho = A_s/A_L`` of each line's size (the mover's carrier with the static sideband, or its
     sideband with the static carrier; ``A_L`` the LO's amplitude): a phase wobble of ``rho`` at
-    ``f_s``, which pulls the line by ``rho*f_s`` while ``f_s`` is under a record bin, and by at most
-    :data:`CROSS_PULL_BINS` bins times ``rho`` whatever ``f_s`` is. ``f_s`` lies below the static
-    guard, unmeasured: the bound takes the largest. :func:`~mtcw_core.dsp.extract.cross_beat_bound`
-    is ``A_s*A_m*a_0*a_i``, the mover's sideband line ``2*A_L*A_m*a_i`` (``a_0 <= 1``): ``rho`` is at
-    most twice their ratio, taken over the mover's lines by energy (one ``rho`` for all tones).
-    The envelope probe's scenes 5081, 4019, 4277 and 4464: an ideal laser, a mover at 24-36 dB of
-    loss and a second echo 13-50 dB under it, half a record bin from zero Doppler -- the mover's
-    speed 5-21 sigmas off at a stated 0.6-3 Hz, the pull 3-7 Hz."""
+    ``f_s``, which pulls the line by ``rho*f_s`` (record bins) while ``f_s`` is small, and by at
+    most :data:`CROSS_PULL_BINS` bins times ``rho`` whatever ``f_s`` is. ``f_s`` lies below the
+    static guard: where the static lines are mostly that echo's own, their width in the search
+    spectrum bounds it (:attr:`LineFamily.cross_x`; issue 12 case 3's still target: the mover's
+    speed sigma was ~200x its error at the largest), else the bound takes the largest.
+    :func:`~mtcw_core.dsp.extract.cross_beat_bound` is ``A_s*A_m*a_0*a_i``, the mover's sideband
+    line ``2*A_L*A_m*a_i`` (``a_0 <= 1``): ``rho`` is at most twice their ratio, taken over the
+    mover's lines by energy (one ``rho`` for all tones). The envelope probe's scene 5081: an ideal
+    laser, a mover at 26 dB of loss and an echo 40 dB under it, 0.39 record bin from zero Doppler,
+    that the chain does not report -- the mover's speed 5-12 sigmas off at a stated 0.6 Hz, the
+    pull 3-7 Hz."""
     num = den = 0.0
+    reach = CROSS_PULL_BINS
     for f in families:
         if f.cross_v is None:
             continue
         use = np.isfinite(f.phase_var)
         num += float(np.sum(f.cross_v[use] ** 2))
         den += float(np.sum(np.mean(np.abs(f.z[:, use]) ** 2, axis=0)))
-    return 2.0 * math.sqrt(num / den) * CROSS_PULL_BINS * bin_hz if den > 0 else 0.0
+        if f.cross_x is not None:
+            reach = min(reach, f.cross_x)
+    return 2.0 * math.sqrt(num / den) * reach * bin_hz if den > 0 else 0.0
 
 
 def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
@@ -268,7 +274,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # (the chi2 counts it: the Birge ratio scales both)
     sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, settings.tone_phase_sigma_rad))
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
-    if dof > 0 and chdtrc(dof, chi2) < BIRGE_P:
+    p_fit = chdtrc(dof, chi2) if dof > 0 else 1.0
+    if p_fit < BIRGE_P:
         sigma *= math.sqrt(ratio)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
