@@ -239,6 +239,11 @@ def cycle_slip_probability(fams: list[LineFamily], ref: Reference, sol: RangeSol
 #: probe's scene 2706, two static targets on three tones whose blended phases miss one range by
 #: chi2 8.5-13.6 on 2 dof, p 1e-3 to 0.014, ranged 6 mm off at 0.8-1.1 mm, z -6 and -8)
 BIRGE_P = 0.05
+#: ... and flags the point ``blended`` where it is this improbable (besides a chi2/dof above the
+#: profile's ``blended_chi2``): a blend of two echoes on one line set fits a range far from both
+#: (the envelope probe's scene 4314: two static echoes 4 dB apart on four tones, chi2 26.5 on 3
+#: dof, p 8e-6, ranged 12 m off with a Birge-scaled sigma of 4 mm)
+BLENDED_P = 1e-4
 
 
 def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate, frame: Frame,
@@ -296,7 +301,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         # (the static lines, one photodiode) Doppler lines no mover found explains could have put
         # their self-beats on them, as large as several of their sigmas; a Doppler line that hid a
         # second mover (``dop.unresolved``) is judged in resolve_targets, once the second is known
-        blended=bool((dof > 0 and ratio > settings.blended_chi2) or dop.lines_chi2 > settings.blended_lines_chi2
+        blended=bool((dof > 0 and (ratio > settings.blended_chi2 or p_fit < BLENDED_P))
+                     or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous or unexplained > UNEXPLAINED_SIGMAS),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
