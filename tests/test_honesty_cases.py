@@ -131,6 +131,18 @@ def test_case3_mover_is_not_taken_for_the_static_targets_wings():
     assert not confident(runs), confident(runs)
 
 
+def test_case3_movers_speed_sigma_is_its_error_not_the_still_targets_possible_pull():
+    """One photodiode: the static echo's beat with the mover pulls the mover's Doppler by up to
+    ``rho*f_s`` for an echo moving ``f_s`` (``targets.cross_pull_hz``); taken at its largest
+    (0.42 bin) it made case 3's mover's speed sigma ~16x its error (speed z rms 0.06 over 12
+    frames). The static lines' width bounds ``f_s`` (``spectrum.still_line_doppler_bins``): the
+    mover's speed z rms lies within 0.6-1.5 (1.0)."""
+    sc = scene([tgt(0.81, 0.0, 20.0), tgt(2.46, 0.35, 26.0)], 2**16)
+    runs = run(sc, "balanced", 12, seed=0)
+    z = [p.speed_z for _, _, v in runs for p in v.points if p.truth_index == 1 and p.speed_z is not None]
+    assert len(z) >= 10 and 0.6 < float(np.sqrt(np.mean(np.square(z)))) < 1.5, np.round(z, 2)
+
+
 # -------------------------------------------------------------------------------------------
 # 4. low-coherence movers
 LOW_MOVER = [tgt(1.12, 0.10, 14.0)]
@@ -672,3 +684,15 @@ def test_a_mover_at_the_lower_edge_of_the_sub_guard_band_is_found():
     counts, lines = judge_scene(5448, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["ok"] == 6 and counts["missed"] == 6, counts  # the mover in every frame, not the static target
+
+
+def test_two_static_echoes_whose_phases_fit_one_range_improbably_are_flagged():
+    """The envelope probe's scene 4314 (IQ, 8-bit ADC, four tones): two static echoes 4 dB apart at
+    17.3 and 1.1 m blend on one line set; their phases fit 5.45 m with chi2 26.5 on 3 dof (p 8e-6)
+    -- under the profile's chi2/dof of 10 -- and the Birge-scaled sigma (4 mm) left it 722 sigmas
+    off, unflagged. A fit that improbable under one target (p < ``targets.BLENDED_P``) is now
+    flagged ``blended``: no frame confidently wrong."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(4314, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
