@@ -22,7 +22,7 @@ from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
-from .spectrum import Spectrum, still_line_doppler_bins
+from .spectrum import Spectrum, cached_window, equivalent_width, still_line_doppler_bins, width_doppler_bins
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
@@ -238,7 +238,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2])
+        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2], x)
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
@@ -256,8 +256,23 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     return out
 
 
+def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarray, strongest: int) -> float | None:
+    """:func:`~.spectrum.still_line_doppler_bins`; where the search spectrum is of part of the
+    record (``fast``'s, its bins 8x wider), the strongest static line ``static_hz[strongest]`` read
+    at the record's own resolution instead: its Kaiser-windowed DFT at whole record bins about it
+    (17 exact DFTs over the record; issue 12 case 3's mover in ``fast``)."""
+    if spec.record_n is None:
+        return still_line_doppler_bins(spec, static_hz, beta)
+    n, f0 = x.size, float(abs(static_hz[strongest]))
+    k = np.arange(-8, 9)
+    p = np.abs(exact_dft((x - x.mean()) * cached_window(("kaiser", beta), n), f0 + k * spec.fs_hz / n,
+                         spec.fs_hz)) ** 2
+    w = equivalent_width(p)
+    return None if w is None else width_doppler_bins(w, beta)
+
+
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
-                spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray
+                spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray
                 ) -> tuple[np.ndarray, dict[int, np.ndarray], float | None]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
@@ -266,8 +281,9 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), per
     found mover the static echo's beat on its lines (:func:`cross_beat_bound`), and the largest
     Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
-    own (:func:`~.spectrum.still_line_doppler_bins`; None where a mover's self-beat outweighs it
-    there: a still self-beat narrows the lines whatever the echo under it does)."""
+    own (:func:`~.spectrum.still_line_doppler_bins`, the record ``x`` read about the strongest where
+    the spectrum is of part of it; None where a mover's self-beat outweighs it there: a still
+    self-beat narrows the lines whatever the echo under it does)."""
     found = [d.fd_hz for d in dops if d.detected]
     cross, still = {}, None
     if found:
@@ -290,7 +306,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         kept = np.sqrt(np.mean(np.abs(zs[0, "S"]) ** 2, axis=0))
         mostly_self = np.sum(took**2) > np.sum(kept**2)
         taken = SELF_BEAT_LEFT * took if mostly_self else 0.0
-        still = None if mostly_self else still_line_doppler_bins(spec, static_hz, settings.window_beta)
+        still = None if mostly_self else _still_bins(spec, static_hz, settings.window_beta, x, int(np.argmax(kept)))
         # a static echo beating with the movers is what stands above that leftover (a leftover at
         # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
         cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), *carriers)

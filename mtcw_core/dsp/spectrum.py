@@ -884,13 +884,19 @@ def _still_width(beta: float, offset: float) -> float:
     return float(equivalent_width(p) or 0.0)
 
 
+def width_doppler_bins(width: float, beta: float, offset: float = 0.0) -> float:
+    """The largest Doppler (record bins) of a one-photodiode echo whose line, ``offset`` bins from a
+    bin's centre, shows an equivalent width ``width`` (bins) through a Kaiser(``beta``) window
+    (:data:`WIDTH_PER_BIN2`)."""
+    return math.sqrt(max(width - _still_width(beta, round(abs(offset), 2)), 0.0) / WIDTH_PER_BIN2)
+
+
 def still_line_doppler_bins(spec: Spectrum, freqs_hz, beta: float) -> float | None:
     """The largest Doppler (record bins) an echo on one photodiode could have and still show its
     lines at ``freqs_hz`` as narrow as they are in the search spectrum (Kaiser(``beta``)): from the
-    median excess of their equivalent widths over a still line's at their offsets from the bins'
-    centres (:data:`WIDTH_PER_BIN2`); None where the spectrum is of part of the record (``fast``'s,
-    whose bins are 8x wider) or no width is read. Noise in the bins widens a line: the bound errs
-    large."""
+    median of their widths' bounds (:func:`width_doppler_bins`); None where the spectrum is of part
+    of the record (``fast``'s, whose bins are 8x wider) or no width is read. Noise in the bins
+    widens a line: the bound errs large."""
     if spec.record_n is not None:
         return None
     freqs = np.atleast_1d(np.asarray(freqs_hz, dtype=float))
@@ -906,8 +912,5 @@ def still_line_doppler_bins(spec: Spectrum, freqs_hz, beta: float) -> float | No
         lo, hi = max(k0 - 32, 0), min(k0 + 33, p.size)
         w = equivalent_width(np.asarray(p[lo:hi], dtype=np.float64).copy(), dc - lo)
         if w is not None:
-            offset = (f - spec.f0_hz) / spec.df_hz - k0
-            excess.append(w - _still_width(beta, round(abs(offset), 2)))
-    if not excess:
-        return None
-    return math.sqrt(max(float(np.median(excess)), 0.0) / WIDTH_PER_BIN2)
+            excess.append(width_doppler_bins(w, beta, (f - spec.f0_hz) / spec.df_hz - k0))
+    return float(np.median(excess)) if excess else None
