@@ -569,6 +569,20 @@ class TestReassigned:
         z = np.abs(z)
         assert 0.1 < np.max(z) < 3, np.round(z, 3)
 
+    @pytest.mark.parametrize("gap", [5.5, 6.3])
+    def test_a_known_line_beside_is_no_neighbour(self, gap):
+        """A static line 40 dB above the mover's, 5.5-6.3 record bins away (where the reassignment
+        works: a mover a few bins from the static lines), leaks into the Hann probes beside the
+        mover's line 40 dB under itself; read at its own frequency and taken out through the
+        window's kernel it leaves no neighbour (without that, a pull bound of up to 7.5 bins)."""
+        from mtcw_core.dsp.doppler import neighbour_pull
+
+        f0 = 40.3 * DF
+        fk = f0 - gap * DF
+        rng = np.random.default_rng(9)
+        x = 100 * np.cos(2 * np.pi * cyc(fk) + 0.2) + np.cos(2 * np.pi * cyc(f0) + 1.0) + 1e-3 * rng.standard_normal(N)
+        assert neighbour_pull(x - x.mean(), f0, FS, 1e-6, np.array([fk, 0.0, -f0, -fk])) == 0.0
+
     def test_lines_at_the_noise_do_not_enter(self):
         """Sidebands at the noise (post-integration SNR ~1): their reassigned frequencies are
         ratios with noise in the denominator, heavy-tailed; they are left out

@@ -1555,7 +1555,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
                              np.concatenate([freqs, near])) if pedestal else 0.0
     # a line under the search's threshold within the window's main lobe pulls the strongest line
     # beyond its white-noise error (the envelope probe's scene 4019): probed beside it
-    line = float(freqs[use][top])
+    line = float(freqs[use][top] + d_line[top])  # where the last step read it
     known = np.concatenate([near, freqs[np.arange(freqs.size) != np.flatnonzero(use)[top]]]
                            + ([] if iq else [[0.0, -line]]))
     spread = math.hypot(spread, neighbour_pull(x - x.mean(), line, fs, float(s2[top]), known))
@@ -1984,7 +1984,9 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     the band, else None. A line just outside has its peak at the band's edge and hides what lies
     inside: where its peak lies within :data:`SMALL_EDGE_BINS` of the edge it is taken out of the
     scan (:func:`_edge_line`) and the strongest point taken again (a stronger mover 16 record bins
-    below a lobe search's band hid the one inside it). ``others``: the movers already found; the
+    below a lobe search's band hid the one inside it) -- unless, at the lower edge, its fitted peak
+    lies :data:`SMALL_EDGE_INSIDE` or more inside the band: that peak (Hz, off the grid) is then the
+    scan's (at the upper edge, a guard short of movers found beyond it, a line is always taken out). ``others``: the movers already found; the
     points near them and their beats are left out (their beats only where the echoes beat with
     each other, ``beats``: one photodiode), and with ``fit`` (its ``others`` the same) their
     baseband lines taken out first. ``contrast``: the peak must stand this far above the scan's
@@ -2406,45 +2408,57 @@ NEIGHBOUR_PROBE_BINS = 6
 NEIGHBOUR_PULL_PER_PROBE = (21.0, 5.0, 0.35, 0.1)
 
 
-@lru_cache(maxsize=8)
-def _hann_response(n: int) -> np.ndarray:
-    """The Hann window's DFT at whole record bins -K..K from a line, over its value at the line:
-    shape (2K+1,), complex (~-0.5 at +-1 bin, ~0 beyond)."""
-    k = np.arange(-NEIGHBOUR_PROBE_BINS, NEIGHBOUR_PROBE_BINS + 1)
-    w = exact_dft(cached_window("hann", n), k / n, 1.0)
-    return w / w[NEIGHBOUR_PROBE_BINS]
+def _hann_kernel(theta: np.ndarray | float, n: int) -> np.ndarray:
+    """A unit line's DFT through the symmetric Hann window of ``n`` samples, centred phases,
+    ``theta = 2*pi*(f - f_line)/fs`` (rad per sample): ``D(theta)/2 + (D(theta - p) + D(theta + p))/4``
+    with ``D`` the centred Dirichlet kernel and ``p = 2*pi/(n - 1)``; real."""
+    p = 2 * np.pi / (n - 1)
+    return 0.5 * _dirichlet(theta, n) + 0.25 * (_dirichlet(theta - p, n) + _dirichlet(theta + p, n))
 
 
 def neighbour_pull(x0: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray) -> float:
     """The most (Hz) an unmodelled line within the reassignment's main lobe could pull ``line_hz``.
 
     The record (mean removed, ``x0``) is read through a Hann window at the line and at whole record
-    bins either side (:data:`NEIGHBOUR_PROBE_BINS`); the line itself, fitted at its estimated
-    frequency, is taken out of those probes (:func:`_hann_response`), and the largest residual,
-    where it stands :data:`UNMODELLED_BUMP` times above both the white floor (``s2``, V^2 per
-    sample) and the probes' median (a laser's pedestal), gives a neighbour's size ``q`` over the
-    line's; the pull is at most :data:`NEIGHBOUR_PULL_PER_PROBE` times ``q`` record bins. Probes
-    within 3 bins of a line in ``known_hz`` (Hz: 0 Hz, other targets' lines, the image) are
-    skipped. The envelope probe's scene 4019: an ideal laser, a mover 34 dB under another 2.8 bins
-    away, under the search's threshold, pulled its line by 52 Hz at a stated 3.7 Hz (0.15 bins per
-    unit of its amplitude ratio, as measured here). One Hann-windowed pass and 13 exact DFTs over
-    the record, for a reassigned line only (none on the benchmark's scenes at 1e6 samples)."""
+    bins either side (:data:`NEIGHBOUR_PROBE_BINS`). The line itself, and every line of
+    ``known_hz`` within 32 bins (Hz: 0 Hz, other targets' lines, the image), their amplitudes
+    solved together from the DFTs at them, are taken out of those probes through the window's
+    kernel (:func:`_hann_kernel`: a strong static line 5.5 bins away leaks into the probes 40 dB
+    under itself); probes within 3 bins of a known line are skipped. The largest residual, where it stands :data:`UNMODELLED_BUMP`
+    times above the white floor (``s2``, V^2 per sample) and, with 6 probes or more, their median
+    (a laser's pedestal), gives a neighbour's size ``q`` over the line's; the pull is at most
+    :data:`NEIGHBOUR_PULL_PER_PROBE` times ``q`` record bins. 0 where fewer than 2 probes are left.
+    The envelope probe's scene 4019: an ideal laser, a mover 34 dB under another 2.8 bins away,
+    under the search's threshold, pulled its line by 52 Hz at a stated 3.7 Hz (0.15 bins per unit
+    of its amplitude ratio, as measured here). One Hann-windowed pass and 13 exact DFTs over the
+    record (and one per known line near), for a reassigned line only (none on the benchmark's
+    scenes at 1e6 samples)."""
     n = x0.size
     dfr = fs / n
     k = np.arange(-NEIGHBOUR_PROBE_BINS, NEIGHBOUR_PROBE_BINS + 1)
     probes = line_hz + k * dfr
-    xk = exact_dft(x0 * cached_window("hann", n), probes, fs)
+    known = np.atleast_1d(np.asarray(known_hz, dtype=float))
+    near = np.unique(known[(np.abs(known - line_hz) <= 32 * dfr) & (np.abs(known - line_hz) > 0.5 * dfr)])
+    near = near[np.concatenate([[True], np.diff(near) > 0.5 * dfr])] if near.size else near
+    xk = exact_dft(x0 * cached_window("hann", n), np.concatenate([probes, near]), fs)
     centre = xk[NEIGHBOUR_PROBE_BINS]
     if not abs(centre) > 0:
         return 0.0
-    r2 = np.abs(xk - centre * _hann_response(n)) ** 2
+    # the line's and the known lines' amplitudes together (each one's DFT holds the others' leakage)
+    lines = np.concatenate([[line_hz], near])
+    at = np.concatenate([[centre], xk[k.size:]])
+    amps = np.linalg.lstsq(_hann_kernel(2 * np.pi * (lines[:, None] - lines[None, :]) / fs, n), at, rcond=None)[0]
+    model = _hann_kernel(2 * np.pi * (probes[:, None] - lines[None, :]) / fs, n) @ amps
+    r2 = np.abs(xk[:k.size] - model) ** 2
     keep = k != 0
-    if np.size(known_hz):
-        keep &= np.min(np.abs(probes[:, None] - np.asarray(known_hz, float)[None, :]), axis=1) > 3 * dfr
-    if keep.sum() < 4:
+    if known.size:
+        keep &= np.min(np.abs(probes[:, None] - known[None, :]), axis=1) > 3 * dfr
+    if keep.sum() < 2:
         return 0.0
     r2, dist = r2[keep], np.abs(k[keep])
-    floor = max(s2 * window_power("hann", n), float(np.median(r2)) / math.log(2))
+    floor = s2 * window_power("hann", n)
+    if r2.size >= 6:
+        floor = max(floor, float(np.median(r2)) / math.log(2))
     j = int(np.argmax(r2))
     if not r2[j] > UNMODELLED_BUMP * floor:
         return 0.0

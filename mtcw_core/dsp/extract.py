@@ -267,6 +267,8 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
     k = np.arange(-8, 9)
     p = np.abs(exact_dft((x - x.mean()) * cached_window(("kaiser", beta), n), f0 + k * spec.fs_hz / n,
                          spec.fs_hz)) ** 2
+    if abs(int(np.argmax(p)) - 8) > 1:
+        return None  # its neighbourhood peaks elsewhere: split lines, a mover beside it
     w = equivalent_width(p)
     return None if w is None else width_doppler_bins(w, beta)
 

@@ -895,8 +895,10 @@ def still_line_doppler_bins(spec: Spectrum, freqs_hz, beta: float) -> float | No
     """The largest Doppler (record bins) an echo on one photodiode could have and still show its
     lines at ``freqs_hz`` as narrow as they are in the search spectrum (Kaiser(``beta``)): from the
     median of their widths' bounds (:func:`width_doppler_bins`); None where the spectrum is of part
-    of the record (``fast``'s, whose bins are 8x wider) or no width is read. Noise in the bins
-    widens a line: the bound errs large."""
+    of the record (``fast``'s, whose bins are 8x wider) or no width is read -- a line whose
+    neighbourhood peaks more than a bin from it gives none (an echo moving ~2.6 bins or more shows
+    two narrow lines, a stronger mover beside it its own). Noise in the bins widens a line: the
+    bound errs large."""
     if spec.record_n is not None:
         return None
     freqs = np.atleast_1d(np.asarray(freqs_hz, dtype=float))
@@ -910,7 +912,12 @@ def still_line_doppler_bins(spec: Spectrum, freqs_hz, beta: float) -> float | No
     excess = []
     for f, k0 in zip(freqs, ks):
         lo, hi = max(k0 - 32, 0), min(k0 + 33, p.size)
-        w = equivalent_width(np.asarray(p[lo:hi], dtype=np.float64).copy(), dc - lo)
+        seg = np.asarray(p[lo:hi], dtype=np.float64).copy()
+        if 0 <= dc - lo < seg.size:
+            seg[max(dc - lo - 1, 0):dc - lo + 2] = 0.0  # the mean's notch
+        if not seg.size or abs(int(np.argmax(seg)) - (k0 - lo)) > 1:
+            continue  # its peak is not the line's: split lines (an echo moving ~2.6 bins or more), a mover
+        w = equivalent_width(seg)
         if w is not None:
             excess.append(width_doppler_bins(w, beta, (f - spec.f0_hz) / spec.df_hz - k0))
     return float(np.median(excess)) if excess else None

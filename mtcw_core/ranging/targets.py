@@ -62,10 +62,11 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
 #: ~5e-6 bin (the map's "beat before its parent" case: |z| 4.9 under a floor of 1e-6)
 SPEED_FLOOR_BINS = 1e-5
 
-#: the largest frequency error (record bins) a phase wobble of one radian puts on a Doppler line:
-#: the least-squares slope of ``sin(2*pi*x*t/T + phi)`` over the record peaks at 0.42 cycles per
-#: record, for ``x`` = 0.66 cycles (slower wobbles are mostly a constant, faster ones average out)
-CROSS_PULL_BINS = 0.42
+#: the largest frequency error (record bins) a neighbour phasor of unit relative size ``x`` bins
+#: away puts on a Doppler line's estimate: the least-squares phase slope over the record peaks at
+#: 0.42 bin (``x`` = 0.66), the Kaiser(14) reassignment's weighted mean at 0.74 (``x`` = 1.2);
+#: both below ``x`` for every ``x`` (slower wobbles are mostly a constant, faster ones average out)
+CROSS_PULL_BINS = 0.75
 
 
 def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
@@ -75,8 +76,8 @@ def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
     That beat lies at the mover's lines less the static echo's own Doppler ``f_s``, a phasor
     ``rho = A_s/A_L`` of each line's size (the mover's carrier with the static sideband, or its
     sideband with the static carrier; ``A_L`` the LO's amplitude): a phase wobble of ``rho`` at
-    ``f_s``, which pulls the line by ``rho*f_s`` (record bins) while ``f_s`` is small, and by at
-    most :data:`CROSS_PULL_BINS` bins times ``rho`` whatever ``f_s`` is. ``f_s`` lies below the
+    ``f_s``, which pulls the line by at most ``rho*f_s`` (record bins), and by at most
+    :data:`CROSS_PULL_BINS` bins times ``rho`` whatever ``f_s`` is. ``f_s`` lies below the
     static guard: where the static lines are mostly that echo's own, their width in the search
     spectrum bounds it (:attr:`LineFamily.cross_x`; issue 12 case 3's still target: the mover's
     speed sigma was ~200x its error at the largest), else the bound takes the largest.
