@@ -634,3 +634,21 @@ def test_a_moving_echos_line_is_wider_than_a_still_ones(n):
             rec = rec + 1e-4 * rng.standard_normal(n)
             bound = still_line_doppler_bins(power_spectrum(rec, FS), tones, 14.0)
             assert bound >= x, (x, phi, bound)
+
+
+def test_a_line_whose_neighbourhood_peaks_elsewhere_gives_no_still_bound():
+    """An echo moving 3 record bins shows two narrow lines at +-3 bins, each as narrow as a still
+    line; a mover 10 dB stronger 10 bins from a static line is the strongest within reach. Neither
+    may be read as a still line's width (the bound would be ~0 and the cross-beat pull with it):
+    ``still_line_doppler_bins`` gives none."""
+    from mtcw_core.dsp.spectrum import still_line_doppler_bins
+
+    n = 2**16
+    t = np.arange(n)
+    tone = 301.81 * FS / n * 97
+    rng = np.random.default_rng(6)
+    split = np.cos(2 * np.pi * 3 * t / n) * np.cos(2 * np.pi * np.mod(t * tone / FS, 1.0)) + 1e-4 * rng.standard_normal(n)
+    assert still_line_doppler_bins(power_spectrum(split, FS), [tone], 14.0) is None
+    beside = (np.cos(2 * np.pi * np.mod(t * tone / FS, 1.0)) + 3.2 * np.cos(2 * np.pi * np.mod(t * (tone / FS + 10 / n), 1.0))
+              + 1e-4 * rng.standard_normal(n))
+    assert still_line_doppler_bins(power_spectrum(beside, FS), [tone], 14.0) is None
