@@ -311,11 +311,21 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         still = None if mostly_self else _still_bins(spec, static_hz, settings.window_beta, x, int(np.argmax(kept)))
         # a static echo beating with the movers is what stands above that leftover (a leftover at
         # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
-        cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken, 0.0), *carriers)
+        # and above the noise (CROSS_NOISE_SIGMAS of each line's amplitude noise: the noise of
+        # static lines with no echo made a lone mover's speed sigma up to 1.3x its own at 45 dB)
+        noise = CROSS_NOISE_SIGMAS * np.sqrt(2.0 * spec.noise_variances(static_hz, uniq, guard=spec.line_floor_guard())
+                                             / frame.n)
+        cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken - noise, 0.0), *carriers)
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
                                    found), cross, still
+
+
+#: a static line counts toward a static echo's beat with the movers (:func:`cross_beat_bound`) by
+#: what it stands above this many of its amplitude noise's sigmas (a line of noise alone exceeds 3
+#: sigmas with odds ~1 %)
+CROSS_NOISE_SIGMAS = 3.0
 
 
 #: the part of a mover's self-beat its prediction may leave on the static lines (the strong-echo
