@@ -234,15 +234,16 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
         zs[target, name] = z
-    sb_bound, cross, still = None, {}, None
-    if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
-            and not windows):
-        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2], x)
     # every family's local floors in one call (each row is its own line's statistic)
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
+    sb_bound, cross, still = None, {}, None
+    if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
+            and not windows):
+        dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
+        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2], x,
+                                             s2_all[:first[1]])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -274,8 +275,8 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
 
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
-                spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray
-                ) -> tuple[np.ndarray, dict[int, np.ndarray], float | None]:
+                spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray,
+                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
@@ -285,7 +286,8 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
     own (:func:`~.spectrum.still_line_doppler_bins`, the record ``x`` read about the strongest where
     the spectrum is of part of it; None where a mover's self-beat outweighs it there: a still
-    self-beat narrows the lines whatever the echo under it does)."""
+    self-beat narrows the lines whatever the echo under it does). ``static_s2``: the static lines'
+    noise floors (V^2 per sample)."""
     found = [d.fd_hz for d in dops if d.detected]
     cross, still = {}, None
     if found:
@@ -311,10 +313,9 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         still = None if mostly_self else _still_bins(spec, static_hz, settings.window_beta, x, int(np.argmax(kept)))
         # a static echo beating with the movers is what stands above that leftover (a leftover at
         # a random range is no echo: it had flagged a lone 0 dB mover, right, in half its frames)
-        # and above the noise (CROSS_NOISE_SIGMAS of each line's amplitude noise: the noise of
-        # static lines with no echo made a lone mover's speed sigma up to 1.3x its own at 45 dB)
-        noise = CROSS_NOISE_SIGMAS * np.sqrt(2.0 * spec.noise_variances(static_hz, uniq, guard=spec.line_floor_guard())
-                                             / frame.n)
+        # and above the noise (CROSS_NOISE_SIGMAS of each line's amplitude noise, ``static_s2`` its
+        # floor: static lines of noise alone made a lone mover's speed sigma 1.5x its own at 2^16)
+        noise = CROSS_NOISE_SIGMAS * np.sqrt(2.0 * static_s2 / frame.n)
         cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken - noise, 0.0), *carriers)
     else:
         taken = 0.0
