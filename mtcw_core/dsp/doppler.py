@@ -28,6 +28,7 @@ from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
+                       windowed_record,
                        window_sum)
 from .tones import (PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, lines_signal, solve_lines,
                     solve_lines_many)
@@ -1119,7 +1120,7 @@ def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, ot
     keep = np.array([np.all(np.abs(near - f) > sep) and (iq or 2 * abs(f) > sep) for f in freqs0])
     if not keep.any():
         return first
-    xw = (x - x.mean()) * cached_window(("kaiser", PHASE_WINDOW_BETA), x.size)
+    xw = windowed_record(x, ("kaiser", PHASE_WINDOW_BETA))
 
     def neg_power(fd: float) -> float:
         f, _ = target_lines(frame.tones_hz, fd, iq)
@@ -1558,7 +1559,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     line = float(freqs[use][top] + d_line[top])  # where the last step read it
     known = np.concatenate([near, freqs[np.arange(freqs.size) != np.flatnonzero(use)[top]]]
                            + ([] if iq else [[0.0, -line]]))
-    spread = math.hypot(spread, neighbour_pull(x - x.mean(), line, fs, float(s2[top]), known))
+    spread = math.hypot(spread, neighbour_pull(x, line, fs, float(s2[top]), known))
     return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
                    pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign)
 
@@ -1986,11 +1987,11 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     scan (:func:`_edge_line`) and the strongest point taken again (a stronger mover 16 record bins
     below a lobe search's band hid the one inside it) -- unless, at the lower edge, its fitted peak
     lies :data:`SMALL_EDGE_INSIDE` or more inside the band: that peak (Hz, off the grid) is then the
-    scan's (at the upper edge, a guard short of movers found beyond it, a line is always taken out). ``others``: the movers already found; the
-    points near them and their beats are left out (their beats only where the echoes beat with
-    each other, ``beats``: one photodiode), and with ``fit`` (its ``others`` the same) their
-    baseband lines taken out first. ``contrast``: the peak must stand this far above the scan's
-    median power, else None."""
+    scan's (at the upper edge, a guard short of movers found beyond it, a line is always taken
+    out). ``others``: the movers already found; the points near them and their beats are left out
+    (their beats only where the echoes beat with each other, ``beats``: one photodiode), and with
+    ``fit`` (its ``others`` the same) their baseband lines taken out first. ``contrast``: the peak
+    must stand this far above the scan's median power, else None."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
@@ -2416,31 +2417,32 @@ def _hann_kernel(theta: np.ndarray | float, n: int) -> np.ndarray:
     return 0.5 * _dirichlet(theta, n) + 0.25 * (_dirichlet(theta - p, n) + _dirichlet(theta + p, n))
 
 
-def neighbour_pull(x0: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray) -> float:
+def neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray) -> float:
     """The most (Hz) an unmodelled line within the reassignment's main lobe could pull ``line_hz``.
 
-    The record (mean removed, ``x0``) is read through a Hann window at the line and at whole record
-    bins either side (:data:`NEIGHBOUR_PROBE_BINS`). The line itself, and every line of
+    The record ``x`` (its mean removed) is read through a Hann window at the line and at whole
+    record bins either side (:data:`NEIGHBOUR_PROBE_BINS`). The line itself, and every line of
     ``known_hz`` within 32 bins (Hz: 0 Hz, other targets' lines, the image), their amplitudes
     solved together from the DFTs at them, are taken out of those probes through the window's
     kernel (:func:`_hann_kernel`: a strong static line 5.5 bins away leaks into the probes 40 dB
-    under itself); probes within 3 bins of a known line are skipped. The largest residual, where it stands :data:`UNMODELLED_BUMP`
-    times above the white floor (``s2``, V^2 per sample) and, with 6 probes or more, their median
-    (a laser's pedestal), gives a neighbour's size ``q`` over the line's; the pull is at most
+    under itself); probes within 3 bins of a known line are skipped. The largest residual, where
+    it stands :data:`UNMODELLED_BUMP` times above the white floor (``s2``, V^2 per sample) and,
+    with 6 probes or more, their median (a laser's pedestal), gives a neighbour's size ``q`` over
+    the line's; the pull is at most
     :data:`NEIGHBOUR_PULL_PER_PROBE` times ``q`` record bins. 0 where fewer than 2 probes are left.
     The envelope probe's scene 4019: an ideal laser, a mover 34 dB under another 2.8 bins away,
     under the search's threshold, pulled its line by 52 Hz at a stated 3.7 Hz (0.15 bins per unit
     of its amplitude ratio, as measured here). One Hann-windowed pass and 13 exact DFTs over the
     record (and one per known line near), for a reassigned line only (none on the benchmark's
     scenes at 1e6 samples)."""
-    n = x0.size
+    n = x.size
     dfr = fs / n
     k = np.arange(-NEIGHBOUR_PROBE_BINS, NEIGHBOUR_PROBE_BINS + 1)
     probes = line_hz + k * dfr
     known = np.atleast_1d(np.asarray(known_hz, dtype=float))
     near = np.unique(known[(np.abs(known - line_hz) <= 32 * dfr) & (np.abs(known - line_hz) > 0.5 * dfr)])
     near = near[np.concatenate([[True], np.diff(near) > 0.5 * dfr])] if near.size else near
-    xk = exact_dft(x0 * cached_window("hann", n), np.concatenate([probes, near]), fs)
+    xk = exact_dft(windowed_record(x, "hann"), np.concatenate([probes, near]), fs)
     centre = xk[NEIGHBOUR_PROBE_BINS]
     if not abs(centre) > 0:
         return 0.0

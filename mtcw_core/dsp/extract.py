@@ -22,7 +22,7 @@ from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
-from .spectrum import Spectrum, cached_window, equivalent_width, still_line_doppler_bins, width_doppler_bins
+from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
@@ -266,8 +266,7 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
         return still_line_doppler_bins(spec, static_hz, beta)
     n, f0 = x.size, float(abs(static_hz[strongest]))
     k = np.arange(-8, 9)
-    p = np.abs(exact_dft((x - x.mean()) * cached_window(("kaiser", beta), n), f0 + k * spec.fs_hz / n,
-                         spec.fs_hz)) ** 2
+    p = np.abs(exact_dft(windowed_record(x, ("kaiser", beta)), f0 + k * spec.fs_hz / n, spec.fs_hz)) ** 2
     if abs(int(np.argmax(p)) - 8) > 1:
         return None  # its neighbourhood peaks elsewhere: split lines, a mover beside it
     w = equivalent_width(p)

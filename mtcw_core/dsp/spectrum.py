@@ -239,6 +239,14 @@ def cached_window(window: tuple | str, m: int, dtype: str = "float64") -> np.nda
     return w
 
 
+def windowed_record(x: np.ndarray, window: tuple | str) -> np.ndarray:
+    """The record less its mean, times the (cached) ``window`` over its whole length, shape (N,)
+    (one new array: the exact DFTs that read a line and what stands beside it)."""
+    y = np.subtract(x, x.mean())
+    y *= cached_window(window, x.size)
+    return y
+
+
 @lru_cache(maxsize=8)
 def window_sum(window: tuple | str, m: int, dtype: str = "float64") -> float:
     """``sum(w)`` of :func:`cached_window` (cached; summed in float64)."""
