@@ -110,7 +110,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{a.scenes} scenes ({total['refused']} refused by the simulator: a target reaching the sensor), "
           f"{total['frames']} processed frames: confident wrong {total['cw']}, confident false {total['cf']}; "
           f"ok {total['ok']}, no_target {total['no_target']}, rejected {total['rejected']}, "
-          f"missed truths {total['missed']}")
+          f"missed truths {total['missed']}; flagged points {total['flagged']} ({total['flagged_right']} of them "
+          f"right within {Z_WRONG:g} sigma)")
 
 
 if __name__ == "__main__":

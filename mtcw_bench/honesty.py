@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import math
 import os
 import statistics
@@ -80,6 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mtcw_core.calibrate import tone_amplitudes
 from mtcw_core.chain import get_profile, process_frame
 from mtcw_core.dsp.tones import fit_lines
 from mtcw_core.evaluate import Z_WRONG, FrameVerdict, judge_frame, phase_noise_bound, range_bound
@@ -687,25 +689,51 @@ def _first_target_efficiency(verdicts: list[FrameVerdict], lam_min: float) -> fl
 
 def tally(counts: collections.Counter, v: FrameVerdict, tag: str | None = None) -> bool:
     """Count one judged frame in ``counts`` (the probes' books): ``frames``, ``cw`` (confident
-    wrong), ``cf`` (confident false), ``missed`` (truths no point answers), keyed ``(tag, name)``
-    when a tag is given; whether the frame was confidently wrong or false."""
+    wrong), ``cf`` (confident false), ``missed`` (truths no point answers), ``flagged`` (flagged
+    points) and ``flagged_right`` (flagged points answering a truth within ``Z_WRONG``: what a
+    flag cost), keyed ``(tag, name)`` when a tag is given; whether the frame was confidently
+    wrong or false."""
     key = (lambda name: (tag, name)) if tag is not None else (lambda name: name)
     counts[key("frames")] += 1
     counts[key("cw")] += int(v.confident_wrong)
     counts[key("cf")] += int(v.confident_false)
     counts[key("missed")] += len(v.missed)
+    counts[key("flagged")] += v.flagged_points
+    counts[key("flagged_right")] += sum(p.flagged and p.truth_index is not None and not p.wrong(v.z_wrong)
+                                        for p in v.points)
     return v.confident_wrong or v.confident_false
 
 
 def declared(scene: Scene) -> dict:
     """What the bench tells the chain of itself (``ChainSettings`` fields): its digitizer's timing
-    jitter (issue 12 case 7: it enters the range sigma) and its laser (the LO x echo carrier beat is
-    no line beyond coherence: case 4, speed unknown, not 0; the square stage ranges there). Not
-    its synthesizers' drift (``tone_phase_sigma_rad``): the map's scenes have none, and a
-    simulated drift is a random walk whose rms grows with the frame index (a bench declares its
-    drift since calibration)."""
+    jitter (issue 12 case 7: it enters the range sigma), its laser (the LO x echo carrier beat is
+    no line beyond coherence: case 4, speed unknown, not 0; the square stage ranges there) and its
+    tone amplitudes, as a calibration on a reflector measures them (:func:`reference_amplitudes`:
+    the static point's lines are checked against them). Not its synthesizers' drift
+    (``tone_phase_sigma_rad``): the map's scenes have none, and a simulated drift is a random walk
+    whose rms grows with the frame index (a bench declares its drift since calibration)."""
     return {"timing_jitter_s": scene.noise.trigger_jitter_s, "laser_linewidth_hz": scene.laser.linewidth_hz,
-            "lo_path_difference_m": scene.paths.lo_path_difference_m}
+            "lo_path_difference_m": scene.paths.lo_path_difference_m,
+            "tone_amplitudes": reference_amplitudes(reflector_scene(scene).model_dump_json())}
+
+
+def reflector_scene(scene: Scene) -> Scene:
+    """The bench of ``scene`` looking at one still reflector (its first target's range), with no
+    noise, an ideal laser and float volts: what a calibration of its tone amplitudes sees."""
+    d = scene.model_dump()
+    d["targets"] = [dict(d["targets"][0], velocity_mps=0.0, loss_db=60.0)]
+    d["noise"] = {}
+    d["laser"]["linewidth_hz"] = 0.0
+    d["digitizer"].update(adc_bits=None, full_scale_v=None)
+    return scene_from_dict(d, origin=f"reflector of {scene.name}")
+
+
+@functools.lru_cache(maxsize=64)
+def reference_amplitudes(reflector_json: str) -> tuple[float, ...]:
+    """The tone amplitudes the reflector scene (JSON, :func:`reflector_scene`) shows the chain
+    (:func:`~mtcw_core.calibrate.tone_amplitudes`, one frame), cached per bench."""
+    sc = Scene.model_validate_json(reflector_json)
+    return tone_amplitudes(Simulator(sc, 0).frames(1))
 
 
 def run_group(g: Group, profiles: tuple[str, ...], z_wrong: float = Z_WRONG) -> dict:

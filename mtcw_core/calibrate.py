@@ -16,6 +16,7 @@ import numpy as np
 
 from .calibration import Calibration, CalibrationError
 from .chain import run_stages
+from .dsp.extract import LineFamily
 from .frame import Frame
 from .phase import C, wrap_pi
 from .profiles import ChainSettings, get_profile
@@ -27,11 +28,13 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
 
     Per frame and line family, ``z_i*conj(z_0)`` referred to the record's start and to the
     known range gives ``phi_i_eff - phi_0_eff``; products are summed over frames and families.
+    The lines' sizes relative to their mean (:func:`relative_amplitudes`), averaged over the
+    frames, are the tone amplitudes the chain checks a static point's lines against.
     """
     settings = settings or get_profile("accurate")
     acc = None
     tones = None
-    per_frame = []
+    per_frame, amps = [], []
     n_frames = 0
     for fr in frames:
         fams = run_stages(fr, settings, None, until="extract").families  # raises Rejected
@@ -42,6 +45,7 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         elif not np.array_equal(t, tones):
             raise CalibrationError(f"frame seq {fr.seq}: tone plan differs from the first frame")
         frame_sum = np.zeros(t.size, complex)
+        amps.append(relative_amplitudes(fams))
         for fam in (f for f in fams if f.target == 0):  # the static reflector's lines
             d = t - t[0]
             tau = 2 * known_range_m / C
@@ -64,5 +68,28 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         tones_hz=tuple(float(f) for f in tones), tone_phases_rad=tuple(float(p) for p in resid), tau0_s=tau0,
         known_range_m=float(known_range_m), frames_used=n_frames,
         phase_std_rad=tuple(float(s) for s in np.std(spread, axis=0)), source=source,
+        tone_amplitudes=tuple(float(a) for a in np.mean(amps, axis=0)),
+        tone_amplitude_std=tuple(float(a) for a in np.std(amps, axis=0)),
         created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     )
+
+
+def relative_amplitudes(fams: list[LineFamily]) -> np.ndarray:
+    """The static lines' sizes (rms over the segments) relative to their mean, shape (T,): what a
+    reflector's frame says of the tone amplitudes (the modulation depths and the front end's
+    response at each tone; ``ChainSettings.tone_amplitudes``)."""
+    fam = next(f for f in fams if f.target == 0)
+    a = np.sqrt(np.mean(np.abs(fam.z) ** 2, axis=0))
+    if not np.all(np.isfinite(a)) or np.min(a) <= 0:
+        raise CalibrationError("a tone's line is missing from the reflector's frame: no tone amplitudes")
+    return a / np.mean(a)
+
+
+def tone_amplitudes(frames: Iterable[Frame], settings: ChainSettings | None = None) -> tuple[float, ...]:
+    """One target's relative tone amplitudes (:func:`relative_amplitudes`) averaged over ``frames``
+    of a reflector (any range, no other echo), for ``ChainSettings.tone_amplitudes``."""
+    settings = settings or get_profile("accurate")
+    amps = [relative_amplitudes(run_stages(fr, settings, None, until="extract").families) for fr in frames]
+    if not amps:
+        raise CalibrationError("no frames to measure tone amplitudes from")
+    return tuple(float(a) for a in np.mean(amps, axis=0))

@@ -39,6 +39,10 @@ class Calibration(BaseModel):
     reference_powers_v2, reference_power_sigma_v2 : tuple of float, AB-MTCW only: the reference
         arm's tone line powers (V^2, per tone) from frames without the measurement arm, and
         their standard errors; empty otherwise
+    tone_amplitudes, tone_amplitude_std : tuple of float, the reflector's line amplitude at each
+        tone relative to their mean, and its relative standard deviation over the frames; the
+        chain checks the static point's lines against them (``ChainSettings.tone_amplitudes``);
+        empty in files written before they were measured
     version : the file format's version
     """
 
@@ -53,6 +57,8 @@ class Calibration(BaseModel):
     source: str = ""
     created: str = ""
     version: Literal[1] = FORMAT_VERSION
+    tone_amplitudes: tuple[float, ...] = ()
+    tone_amplitude_std: tuple[float, ...] = ()
     # AB-MTCW (mtcw_core.ranging.ab.derive_reference): a reference-only measurement's tone powers
     reference_powers_v2: tuple[float, ...] = ()
     reference_power_sigma_v2: tuple[float, ...] = ()
@@ -63,6 +69,15 @@ class Calibration(BaseModel):
         n = len(info.data.get("tones_hz", ()))
         if v and (len(v) != n or any(x < 0 for x in v)):
             raise ValueError(f"one non-negative value per tone ({n})")
+        return v
+
+    @field_validator("tone_amplitudes", "tone_amplitude_std")
+    @classmethod
+    def _amplitudes(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        n = len(info.data.get("tones_hz", ()))
+        positive = info.field_name == "tone_amplitudes"
+        if v and (len(v) != n or any(not (x > 0 if positive else x >= 0) for x in v)):
+            raise ValueError(f"one {'positive' if positive else 'non-negative'} value per tone ({n})")
         return v
 
     @model_validator(mode="after")

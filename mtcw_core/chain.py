@@ -82,11 +82,7 @@ class FrameState:
 
 def _validate(s: FrameState) -> None:
     s.x, s.result.clip_fraction = validate(s.frame, s.settings, s.calibration)
-    cal, f = s.calibration, s.frame
-    if cal is not None:
-        s.reference = Reference(dict(zip(cal.tones_hz, cal.tone_phases_rad)), cal.tau0_s)
-    else:
-        s.reference = Reference(dict(zip(f.tones_hz, f.tone_phases_rad or (0.0,) * len(f.tones_hz))), 0.0)
+    s.reference = Reference.of(s.frame, s.settings, s.calibration)
 
 
 def _gate(s: FrameState) -> None:

@@ -7,7 +7,7 @@ the trade). Sections follow the stage order of :data:`mtcw_core.chain.STAGES`.
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -91,6 +91,14 @@ class ChainSettings(BaseModel):
         "reported unknown, not zero. 0: assumed coherent at every range (one frame cannot tell)"))
     lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the "
                                                                          "echo's internal path (m)")
+    tone_amplitudes: tuple[Annotated[float, Field(gt=0)], ...] | None = Field(None, min_length=2, description=(
+        "one target's line amplitude at each tone, in the frame's tone order, any common scale (a calibration "
+        "holding them, `mtcw calibrate`, takes precedence): the static point's lines must keep these ratios, "
+        "or it is flagged blended (two echoes on one Doppler-0 line set can fit one wrong range by their "
+        "phases, not by their amplitudes). None: unknown, not checked"))
+    tone_amplitude_tolerance: float = Field(0.01, ge=0, le=1, description=(
+        "the relative rms error of tone_amplitudes (their drift since they were measured, the front end's): "
+        "it widens each line's amplitude sigma in that check"))
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "

@@ -212,6 +212,28 @@ def test_calibration_round_trip(tmp_path):
     assert ok.calibrated and abs(ok.targets[0].range_m - 2.345) < 1e-4
     raw = process_frame(fr, "balanced")
     assert abs(raw.targets[0].range_m - 2.345) > 1e-2  # without calibration the range is wrong
+    # the reflector's tone amplitudes, relative to their mean, and their spread over the frames
+    assert np.mean(loaded.tone_amplitudes) == pytest.approx(1.0)
+    assert len(loaded.tone_amplitude_std) == 3 and max(loaded.tone_amplitude_std) < 1e-2
+
+
+def test_tone_amplitudes_are_measured_and_pass_a_lone_echo():
+    """Three tones driven unequally: ``calibrate.tone_amplitudes`` on a reflector shows the drives;
+    a lone echo at another range and loss keeps those ratios on its lines (not flagged, right),
+    and a frame whose plan has another tone count than the amplitudes is refused by name. (Two
+    echoes on one line set: ``tests/test_honesty_cases.py``, the envelope probe's scenes.)"""
+    from mtcw_core.calibrate import tone_amplitudes
+
+    mod = {"tones": [{"frequency_hz": f, "modulation_index": m} for f, m in zip((500e6, 700e6, 950e6), (0.07, 0.05, 0.09))]}
+    kw = dict(modulator=mod, noise={"shot": True, "thermal": True}, digitizer={"samples": 2**16})
+    amps = tone_amplitudes(Simulator(make_scene(targets=[{"range_m": 1.0, "loss_db": 20.0}], **kw), 1).frames(2))
+    assert amps[1] < amps[0] < amps[2]  # the drives show
+    known = get_profile("balanced", tone_amplitudes=amps, tone_amplitude_tolerance=0.002)
+    for fr in Simulator(make_scene(targets=[{"range_m": 2.1, "loss_db": 35.0}], **kw), 3).frames(4):
+        p = process_frame(fr, known).targets[0]
+        assert not p.blended and abs(p.range_m - 2.1) < 5 * p.range_sigma_m
+    bad = process_frame(fr, get_profile("balanced", tone_amplitudes=(1.0, 1.0)))
+    assert bad.status == "rejected" and bad.reason.startswith("tone_plan") and "tone_amplitudes" in bad.reason
 
 
 def _frame(**kw) -> Frame:

@@ -707,3 +707,18 @@ def test_two_static_echoes_whose_phases_fit_one_range_improbably_are_flagged():
 
     counts, lines = judge_scene(4314, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene", [339, 943, 1426, 2101, 3927, 4510, 5004])
+def test_two_echoes_on_one_doppler_0_line_set_are_flagged_by_their_sizes(scene):
+    """The envelope probe's scenes where two echoes -- static, or moving less than a record bin --
+    share the Doppler-0 line set and their phases fit one wrong range within chance (3-4 tones;
+    every receiver; 6 mm to 12 m off, 6 to 3300 sigmas, unflagged). Their sums' sizes change from
+    tone to tone by 5-175 %, where one echo keeps the bench's tone amplitudes: with those declared
+    (``ChainSettings.tone_amplitudes``, as a calibration on one reflector measures them; the probe
+    measures them on the scene's bench) the point is flagged ``blended``: no frame confidently
+    wrong."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -75,6 +75,9 @@ GOOD = {"tones_hz": [5e8, 7e8], "tone_phases_rad": [0.1, 0.2], "tau0_s": 1e-9}
     ('{"tones_hz": [5e8, 7e8], "tone_phases_rad": [0.1, NaN], "tau0_s": 0}', "tone_phases_rad.1"),
     (json.dumps({**GOOD, "tones_hz": ["5e8", 7e8]}), "tones_hz.0"),
     (json.dumps({**GOOD, "version": 7}), "version"),
+    (json.dumps({**GOOD, "tone_amplitudes": [1.0]}), "tone_amplitudes"),
+    (json.dumps({**GOOD, "tone_amplitudes": [1.0, -0.5]}), "tone_amplitudes"),
+    (json.dumps({**GOOD, "tone_amplitude_std": [0.01, -0.01]}), "tone_amplitude_std"),
     ("{{{", "Invalid JSON"),
 ])
 def test_malformed_calibrations_name_the_field(tmp_path, text, field):

@@ -628,3 +628,77 @@ class TestIncoherentMover:
         # a mover at 3 m keeps 99.6 % of its carrier beat: it stays
         near = point(3.0, (28.4, 29.3, 25.7))
         assert near in select_targets([(0, static), (1, near)], declared)
+
+
+class TestToneAmplitudes:
+    """``amplitude_chi2``: a static point's line sizes against one target's (two echoes on one
+    Doppler-0 line set can fit one wrong range by their phases, not by their sizes)."""
+
+    G = np.array([1.0, 0.8, 1.3])  # the bench's line amplitudes, any scale
+
+    def lines(self, echoes, var, seed, segments=1):
+        """A static family of ``echoes`` [(amplitude, range_m)], each line ``G_i`` times their sum,
+        with complex noise of phase variance ``var`` at each line's own size."""
+        rng = np.random.default_rng(seed)
+        z = sum(a * self.G * fam(range_m=r).z[0] for a, r in echoes)
+        v = var * np.abs(z) ** 2  # each component's variance, whole record
+        noise = rng.normal(size=(segments, 3, 2)) @ np.array([1, 1j]) * np.sqrt(v * segments)
+        f = fam(var=var * np.ones(3))
+        return replace(f, z=z[None, :] + noise, seg_centre_s=np.full(segments, f.seg_centre_s[0]))
+
+    def ref(self, rel=0.0):
+        return {float(t): (float(g) * 7.0, rel) for t, g in zip(TONES, self.G)}  # any common scale
+
+    def test_one_echo_fits_at_its_noise(self):
+        """Over many noise draws the chi2 has its 2 degrees of freedom's mean, and p < 1e-4 (the
+        flag) stays as rare as chance -- one line set at a time and cut into segments alike."""
+        from mtcw_core.ranging.targets import amplitude_chi2
+        for segments in (1, 8):
+            c2 = [amplitude_chi2([self.lines([(1.0, 3.7)], 1e-3, s, segments)], self.ref(), 10.0)
+                  for s in range(2000)]
+            assert all(d == 2 for _, d in c2)
+            assert np.mean([c for c, _ in c2]) == pytest.approx(2.0, rel=0.15)
+            assert sum(c > 18.4 for c, _ in c2) <= 2  # chi2(2) exceeds 18.4 with p 1e-4
+
+    def test_two_echoes_on_one_line_set_do_not(self):
+        """A second echo 20 dB under the first, 3 m behind it: their phases fit one range (chi2/dof
+        5, p 0.02: the Birge ratio widens the sigma, no flag), but each tone's sum differs in size
+        by up to +-10 % (chi2 168 on 2 dof at 40 dB of line SNR): flagged ``blended`` where the
+        amplitudes are known."""
+        from mtcw_core.ranging.targets import amplitude_chi2
+        f = self.lines([(1.0, 3.7), (0.1, 6.7)], 1e-4, 0)
+        chi2, dof = amplitude_chi2([f], self.ref(), 10.0)
+        assert dof == 2 and chi2 > 100
+        obs = mix([f], PHI, 10.0)[0]
+        blind = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        known = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0, self.ref()), None)
+        assert known.blended and not blind.blended
+
+    def test_the_relative_sigma_widens_the_check(self):
+        """The amplitudes' own error (a calibration's spread, their drift since) enters each line's
+        sigma: a 3 % error passes at 5 % and fails at 0.1 %."""
+        from mtcw_core.ranging.targets import amplitude_chi2
+        f = self.lines([(1.0, 3.7)], 1e-8, 0)
+        f = replace(f, z=f.z * np.array([1.03, 1.0, 0.97]))
+        assert amplitude_chi2([f], self.ref(0.05), 10.0)[0] < 2.0
+        assert amplitude_chi2([f], self.ref(0.001), 10.0)[0] > 100
+
+    def test_no_amplitudes_or_too_few_lines_check_nothing(self):
+        from mtcw_core.ranging.targets import amplitude_chi2
+        f = self.lines([(1.0, 3.7), (0.5, 5.6)], 1e-4, 0)
+        assert amplitude_chi2([f], None, 10.0) == (0.0, 0)
+        weak = replace(f, phase_var=np.array([1e-4, 1.0, 1.0]))  # two lines under 10 dB
+        assert amplitude_chi2([weak], self.ref(), 10.0) == (0.0, 0)
+
+    def test_the_calibrations_amplitudes_come_before_the_settings(self):
+        from mtcw_core.calibration import Calibration
+        fr = frame()
+        st = ChainSettings(tone_amplitudes=(1.0, 2.0, 3.0), tone_amplitude_tolerance=0.02)
+        assert Reference.of(fr, st, None).tone_amplitudes == {100e6: (1.0, 0.02), 170e6: (2.0, 0.02),
+                                                             260e6: (3.0, 0.02)}
+        cal = Calibration(tones_hz=tuple(TONES), tone_phases_rad=(0.0,) * 3, tau0_s=0.0,
+                          tone_amplitudes=(0.9, 1.0, 1.1), tone_amplitude_std=(0.0, 0.03, 0.04))
+        amps = Reference.of(fr, st, cal).tone_amplitudes
+        assert amps[170e6] == (1.0, pytest.approx(math.hypot(0.03, 0.02)))
+        assert amps[100e6] == (0.9, pytest.approx(0.02))
+        assert Reference.of(fr, ChainSettings(), None).tone_amplitudes is None

@@ -171,6 +171,9 @@ def _check_plan(frame: Frame, settings: ChainSettings, calibration: Calibration 
                                     f"(their lines cannot be told apart)")
     if settings.expected_tones_hz is not None and tuple(tones) != tuple(settings.expected_tones_hz):
         raise Rejected("tone_plan", f"frame tones {list(tones)} != configured {list(settings.expected_tones_hz)}")
+    if settings.tone_amplitudes is not None and len(settings.tone_amplitudes) != len(tones):
+        raise Rejected("tone_plan", f"tone_amplitudes has {len(settings.tone_amplitudes)} values for the frame's "
+                                    f"{len(tones)} tones")
     if calibration is not None and tuple(calibration.tones_hz) != tuple(tones):
         raise Rejected("calibration_mismatch", f"calibration tones {list(calibration.tones_hz)} != frame {list(tones)}")
     phases = calibration.tone_phases_rad if calibration is not None else frame.tone_phases_rad

@@ -430,10 +430,7 @@ class Accumulator:
         self.resets[reason.split(":")[0]] = self.resets.get(reason.split(":")[0], 0) + 1
 
     def _reference(self, frame: Frame) -> Reference:
-        cal = self.calibration
-        if cal is not None:
-            return Reference(dict(zip(cal.tones_hz, cal.tone_phases_rad)), cal.tau0_s)
-        return Reference(dict(zip(frame.tones_hz, frame.tone_phases_rad or (0.0,) * len(frame.tones_hz))), 0.0)
+        return Reference.of(frame, self.chain, self.calibration)
 
     def _admit(self, key: tuple, entry: _Entry) -> None:
         """Start a new window or extend this one, after the change and drift tests."""
