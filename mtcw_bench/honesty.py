@@ -718,11 +718,13 @@ def declared(scene: Scene) -> dict:
 
 
 def reflector_scene(scene: Scene) -> Scene:
-    """The bench of ``scene`` looking at one still reflector (its first target's range), with no
-    noise, an ideal laser and float volts: what a calibration of its tone amplitudes sees."""
+    """The bench of ``scene`` looking at one still reflector (its first target's range), an ideal
+    laser, float volts and next to no noise (thermal noise of a front end at 1 mK: a noiseless
+    quasi-CW record's gaps sit at its extremes, which validate takes for clipping): what a
+    calibration of its tone amplitudes sees."""
     d = scene.model_dump()
     d["targets"] = [dict(d["targets"][0], velocity_mps=0.0, loss_db=60.0)]
-    d["noise"] = {}
+    d["noise"] = {"thermal": True, "temperature_k": 1e-3}
     d["laser"]["linewidth_hz"] = 0.0
     d["digitizer"].update(adc_bits=None, full_scale_v=None)
     return scene_from_dict(d, origin=f"reflector of {scene.name}")
