@@ -218,16 +218,22 @@ def test_calibration_round_trip(tmp_path):
 
 
 def test_tone_amplitudes_are_measured_and_pass_a_lone_echo():
-    """Three tones driven unequally: ``calibrate.tone_amplitudes`` on a reflector shows the drives;
-    a lone echo at another range and loss keeps those ratios on its lines (not flagged, right),
-    and a frame whose plan has another tone count than the amplitudes is refused by name. (Two
-    echoes on one line set: ``tests/test_honesty_cases.py``, the envelope probe's scenes.)"""
+    """Three tones driven unequally: ``calibrate.tone_amplitudes`` on a reflector gives what the
+    exact MZM puts on each tone's first sideband, ``J1(m_i)/J0(m_i)`` of its modulation index
+    (the other tones' ``J0`` common to all); a lone echo at another range and loss keeps those
+    ratios on its lines (not flagged, right), and a frame whose plan has another tone count than
+    the amplitudes is refused by name. (Two echoes on one line set: ``tests/test_honesty_cases.py``,
+    the envelope probe's scenes.)"""
+    from scipy.special import jv
+
     from mtcw_core.calibrate import tone_amplitudes
 
-    mod = {"tones": [{"frequency_hz": f, "modulation_index": m} for f, m in zip((500e6, 700e6, 950e6), (0.07, 0.05, 0.09))]}
+    m = np.array([0.07, 0.05, 0.09])
+    mod = {"tones": [{"frequency_hz": f, "modulation_index": mi} for f, mi in zip((500e6, 700e6, 950e6), m)]}
     kw = dict(modulator=mod, noise={"shot": True, "thermal": True}, digitizer={"samples": 2**16})
     amps = tone_amplitudes(Simulator(make_scene(targets=[{"range_m": 1.0, "loss_db": 20.0}], **kw), 1).frames(2))
-    assert amps[1] < amps[0] < amps[2]  # the drives show
+    bessel = jv(1, m) / jv(0, m)
+    np.testing.assert_allclose(amps, bessel / bessel.mean(), rtol=1e-3)
     known = get_profile("balanced", tone_amplitudes=amps, tone_amplitude_tolerance=0.002)
     for fr in Simulator(make_scene(targets=[{"range_m": 2.1, "loss_db": 35.0}], **kw), 3).frames(4):
         p = process_frame(fr, known).targets[0]

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mtcw_bench.honesty import (Config, MapSpec, case_scenes, check_targets, grid, must_find, plan, predicted_bound, run_map,
-                                self_beat_amplitude_v, summarise, with_targets)
+from mtcw_bench.honesty import (Config, MapSpec, case_scenes, check_targets, declared, grid, must_find, plan,
+                                predicted_bound, run_map, self_beat_amplitude_v, summarise, with_targets)
 from mtcw_bench.honesty_report import (monotonic_violations, write_honesty_report, z_band_probability,
                                        z_scatter_inconsistent)
 from mtcw_core.chain import process_frame
@@ -398,3 +398,14 @@ class TestZStatistics:
         hits = sum(z_scatter_inconsistent(16, float(z.mean()), float(z.std(ddof=1)))
                    for z in rng.standard_normal((4000, 16)))
         assert hits / 4000 == pytest.approx(0.01, abs=0.006)
+
+
+@pytest.mark.parametrize("name", ["cw-bench", "moving-target", "six-tone", "quasi-cw-long-range", "two-targets"])
+def test_the_bench_declares_its_tone_amplitudes_for_every_scene_of_the_map(name):
+    """``declared`` measures the tone amplitudes on a reflector of the scene's bench (equal drives:
+    equal amplitudes); the quasi-CW bench's record, noiseless, sat at its extremes between the
+    pulses and was refused as clipped (the map lost its 930 m rows)."""
+    sc = load_scene(name)
+    amps = declared(sc)["tone_amplitudes"]
+    assert len(amps) == len(sc.tones_hz)
+    np.testing.assert_allclose(amps, 1.0, atol=1e-3)
