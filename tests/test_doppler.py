@@ -1390,3 +1390,20 @@ def test_an_unmodelled_neighbour_pulls_a_record_long_fit_within_the_bound():
     assert np.all(np.array(pulls) <= np.array(bounds)) and max(pulls) > 0.5 * min(bounds), (pulls, bounds)
     quiet = np.cos(2 * np.pi * cyc(f0, n) + 0.4) + 1e-4 * rng.standard_normal(n)
     assert unmodelled_pull(power_spectrum(quiet, FS), f0, np.array([0.0, f0]), DF) == 0.0
+
+
+def test_a_scan_peak_under_a_stronger_lines_sidelobes_is_no_candidate():
+    """``_sidelobe``: a rectangular window's line puts ``|sinc(d)|^2 <= 1/(pi*d)^2`` of its power
+    d bins away; a scan's peak within 4x of that envelope of a stronger point is taken for its
+    sidelobe, one standing above it is not."""
+    from mtcw_core.dsp.doppler import SMALL_SIDELOBE_MARGIN, _sidelobe
+    dfr = 10.0
+    grid = np.arange(1.0, 12.0, 0.25) * dfr
+    d = np.abs(grid - 8.0 * dfr) / dfr
+    p = np.sinc(d) ** 2 * 1e4 + 1e-6  # a line at 8 bins, exactly on the grid
+    k = int(np.argmin(np.abs(grid - 3.5 * dfr)))  # a sidelobe peak 4.5 bins below it
+    assert _sidelobe(p, grid, k, dfr)
+    q = p.copy()
+    q[k] = 2 * SMALL_SIDELOBE_MARGIN * 1e4 / (np.pi * 4.5) ** 2  # a line of its own, above the envelope
+    assert not _sidelobe(q, grid, k, dfr)
+    assert not _sidelobe(p, grid, int(np.argmax(p)), dfr)  # the strongest point itself
