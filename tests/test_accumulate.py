@@ -97,6 +97,17 @@ def test_one_frame_reaches_60_db_where_the_chain_finds_nothing():
         assert not judge_frame(r, truth).confident_wrong
 
 
+def test_the_squared_lines_are_not_held_to_the_lo_beats_tone_amplitudes():
+    """Tone amplitudes describe the LO-beat lines; the squared record's are the echo's intensity
+    (``a_0*a_i`` and the tones' products on ``f_i``): amplitudes declared far from the squared
+    lines' own ratios flag no squared point."""
+    fr = next(iter(Simulator(low(40.0), 2).frames(1)))
+    plain = process_frame(fr, PROFILE)
+    odd = process_frame(fr, PROFILE.model_copy(update={"tone_amplitudes": (1.0, 3.0, 0.3)}))
+    assert plain.status == odd.status == "ok" and "square" in odd.stage_seconds
+    assert odd.targets[0].blended == plain.targets[0].blended is False
+
+
 def test_the_square_stage_is_skipped_where_the_declared_laser_is_coherent_over_the_whole_interval():
     tones = (500e6, 700e6, 950e6)  # 3 m unambiguous
     assert not square_can_range(get_profile("balanced"), tones)  # undeclared: coherent everywhere

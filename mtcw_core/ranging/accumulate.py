@@ -239,7 +239,9 @@ def range_from_lines(lines: SquaredLines, frame: Frame, settings: ChainSettings,
     v_max = fd_max(frame.tones_hz, settings) * frame.wavelength_m / 2
     static = DopplerEstimate(0.0, False, 0.0, 0.0, 0.0)
     l_unamb = float(unambiguous_range(obs.df_hz))
-    p = solve_target([fam], obs, static, frame, settings, ref, None, l_unamb)
+    # the tone amplitudes are the LO-beat lines': the squared record's lines are the echo's
+    # intensity, ``a_0*a_i`` plus the tones' products that fall on ``f_i`` (none checked against them)
+    p = solve_target([fam], obs, static, frame, settings, replace(ref, tone_amplitudes=None), None, l_unamb)
     # the squared lines carry no Doppler: any speed up to the search's limit fits them
     return replace(p, velocity_mps=0.0, velocity_sigma_mps=v_max, direction="unknown", speed_min_mps=v_max), l_unamb
 
