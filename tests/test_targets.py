@@ -689,6 +689,10 @@ class TestToneAmplitudes:
         assert amplitude_chi2([f], None, 10.0) == (0.0, 0)
         weak = replace(f, phase_var=np.array([1e-4, 1.0, 1.0]))  # two lines under 10 dB
         assert amplitude_chi2([weak], self.ref(), 10.0) == (0.0, 0)
+        # segments whose noise is most of their power (400 quasi-CW windows at 5 dB each): the size
+        # left after its share is taken out carries the floor's own error
+        noisy = self.lines([(1.0, 3.7), (0.5, 5.6)], 1e-3, 0, segments=400)
+        assert amplitude_chi2([noisy], self.ref(), 10.0) == (0.0, 0)
 
     def test_the_calibrations_amplitudes_come_before_the_settings(self):
         from mtcw_core.calibration import Calibration

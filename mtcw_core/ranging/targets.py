@@ -337,6 +337,11 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     )
 
 
+#: :func:`amplitude_chi2` uses a line whose segments' noise (``2*S*phase_var`` of its mean power)
+#: is at most this share of it
+AMPLITUDE_NOISE_SHARE = 0.2
+
+
 def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, float]] | None,
                    min_snr_db: float) -> tuple[float, int]:
     """The chi2 (and its degrees of freedom) of a candidate's line sizes against one target's
@@ -350,7 +355,11 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     record's two sidebands pooled: an echo's self-beat, real on I and on Q, adds to one and takes
     from the other, +5 / -4 % at a 20 MHz tone with the echo 13 dB under the LO) against
     ``alpha*g_i``, ``alpha`` fitted, each weighted by ``1/(v_i + (rel_i*alpha*g_i)^2)``, ``v_i``
-    the pooled amplitude's noise variance per component (``phase_var*|z|^2`` per line, V^2).
+    the pooled amplitude's noise variance (``phase_var*|z|^2`` per line and component, V^2, times
+    ``1 + S*phase_var``: the segments' noise squared). A line whose segments' noise is more than
+    :data:`AMPLITUDE_NOISE_SHARE` of its power is not used: taking that share out leaves the floor's
+    own error in the size (a quasi-CW record's 400 short windows at 5 dB each, 75 dB of loss: the
+    chi2 twice its degrees of freedom, a right point flagged in 3-5 of 16 frames).
 
     Returns
     -------
@@ -360,10 +369,11 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
         return 0.0, 0
     power: dict[float, list[tuple[float, float]]] = {}
     for f in fams:
-        use = (f.snr_db >= min_snr_db) & np.isfinite(f.phase_var)
+        segs = f.z.shape[0]
+        use = (f.snr_db >= min_snr_db) & (2 * segs * f.phase_var <= AMPLITUDE_NOISE_SHARE)
         amp2 = np.mean(np.abs(f.z) ** 2, axis=0)
         v = f.phase_var * amp2
-        for t, p, vi in zip(f.tone_hz[use], amp2[use] - 2 * f.z.shape[0] * v[use], v[use]):
+        for t, p, vi in zip(f.tone_hz[use], amp2[use] - 2 * segs * v[use], v[use] * (1.0 + segs * f.phase_var[use])):
             if float(t) in amplitudes:
                 power.setdefault(float(t), []).append((p, vi))
     if len(power) < 2:
