@@ -40,7 +40,7 @@ class Calibration(BaseModel):
         arm's tone line powers (V^2, per tone) from frames without the measurement arm, and
         their standard errors; empty otherwise
     tone_amplitudes, tone_amplitude_std : tuple of float, the reflector's line amplitude at each
-        tone relative to their mean, and its relative standard deviation over the frames; the
+        tone relative to their mean, averaged over the frames, and that mean's standard error; the
         chain checks the static point's lines against them (``ChainSettings.tone_amplitudes``);
         empty in files written before they were measured
     version : the file format's version
