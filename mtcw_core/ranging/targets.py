@@ -367,25 +367,29 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     """
     if not amplitudes:
         return 0.0, 0
-    power: dict[float, list[tuple[float, float]]] = {}
+    tones, power, var = [], [], []
     for f in fams:
         segs = f.z.shape[0]
         use = (f.snr_db >= min_snr_db) & (2 * segs * f.phase_var <= AMPLITUDE_NOISE_SHARE)
-        amp2 = np.mean(np.abs(f.z) ** 2, axis=0)
-        v = f.phase_var * amp2
-        for t, p, vi in zip(f.tone_hz[use], amp2[use] - 2 * segs * v[use], v[use] * (1.0 + segs * f.phase_var[use])):
-            if float(t) in amplitudes:
-                power.setdefault(float(t), []).append((p, vi))
-    if len(power) < 2:
+        amp2 = np.mean(np.abs(f.z[:, use]) ** 2, axis=0)
+        v = f.phase_var[use] * amp2
+        tones.append(f.tone_hz[use])
+        power.append(amp2 - 2 * segs * v)
+        var.append(v * (1.0 + segs * f.phase_var[use]))
+    t_all = np.concatenate(tones)
+    known = np.array([float(t) in amplitudes for t in t_all], dtype=bool)
+    uniq, inv = np.unique(t_all[known], return_inverse=True)
+    if uniq.size < 2:
         return 0.0, 0
-    g, rel = np.array([amplitudes[t] for t in power]).T
-    a = np.sqrt(np.maximum([np.mean([p for p, _ in pv]) for pv in power.values()], 0.0))
-    v = np.array([np.mean([vi for _, vi in pv]) / len(pv) for pv in power.values()])
+    count = np.bincount(inv, minlength=uniq.size)
+    a = np.sqrt(np.maximum(np.bincount(inv, np.concatenate(power)[known], uniq.size) / count, 0.0))
+    v = np.bincount(inv, np.concatenate(var)[known], uniq.size) / count**2  # the pooled mean's variance
+    g, rel = np.array([amplitudes[float(t)] for t in uniq]).T
     w = 1.0 / v
     for _ in range(3):  # alpha, then the weights with the relative sigma at that alpha
         alpha = float(np.sum(w * a * g) / np.sum(w * g * g))
         w = 1.0 / (v + (rel * alpha * g) ** 2)
-    return float(np.sum(w * (a - alpha * g) ** 2)), len(power) - 1
+    return float(np.sum(w * (a - alpha * g) ** 2)), int(uniq.size) - 1
 
 
 #: the static lines (one photodiode) are taken for a blend when the self-beats of Doppler lines no
