@@ -70,17 +70,20 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         known_range_m=float(known_range_m), frames_used=n_frames,
         phase_std_rad=tuple(float(s) for s in np.std(spread, axis=0)), source=source,
         tone_amplitudes=tuple(float(a) for a in np.mean(amps, axis=0)),
-        tone_amplitude_std=tuple(float(a) for a in np.std(amps, axis=0) / math.sqrt(n_frames)),
+        tone_amplitude_std=tuple(float(a) for a in np.std(amps, axis=0, ddof=min(1, n_frames - 1))
+                                 / math.sqrt(n_frames)),
         created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     )
 
 
 def relative_amplitudes(fams: list[LineFamily]) -> np.ndarray:
-    """The static lines' sizes (rms over the segments, an IQ record's two sidebands pooled, as
-    :func:`~mtcw_core.ranging.targets.amplitude_chi2` pools them) relative to their mean, shape
-    (T,): what a reflector's frame says of the tone amplitudes (the modulation depths and the front
-    end's response at each tone; ``ChainSettings.tone_amplitudes``)."""
-    a = np.sqrt(np.mean([np.mean(np.abs(f.z) ** 2, axis=0) for f in fams if f.target == 0], axis=0))
+    """The static lines' sizes (rms over the segments less the noise's share ``2*S*phase_var``, an
+    IQ record's two sidebands pooled, as :func:`~mtcw_core.ranging.targets.amplitude_chi2` takes
+    them) relative to their mean, shape (T,): what a reflector's frame says of the tone amplitudes
+    (the modulation depths and the front end's response at each tone;
+    ``ChainSettings.tone_amplitudes``)."""
+    p = [np.mean(np.abs(f.z) ** 2, axis=0) * (1.0 - 2 * f.z.shape[0] * f.phase_var) for f in fams if f.target == 0]
+    a = np.sqrt(np.maximum(np.mean(p, axis=0), 0.0))
     if not np.all(np.isfinite(a)) or np.min(a) <= 0:
         raise CalibrationError("a tone's line is missing from the reflector's frame: no tone amplitudes")
     return a / np.mean(a)

@@ -84,6 +84,8 @@ class Calibration(BaseModel):
     def _same_length(self) -> "Calibration":
         if len(self.tones_hz) != len(self.tone_phases_rad):
             raise ValueError("tones_hz and tone_phases_rad differ in length")
+        if self.tone_amplitude_std and not self.tone_amplitudes:
+            raise ValueError("tone_amplitude_std without tone_amplitudes")
         if any(f <= 0 for f in self.tones_hz) or len(set(self.tones_hz)) != len(self.tones_hz):
             raise ValueError("tones_hz must be positive and distinct")
         return self

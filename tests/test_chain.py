@@ -213,8 +213,8 @@ def test_calibration_round_trip(tmp_path):
     raw = process_frame(fr, "balanced")
     assert abs(raw.targets[0].range_m - 2.345) > 1e-2  # without calibration the range is wrong
     # the reflector's tone amplitudes, relative to their mean, and their spread over the frames
-    assert np.mean(loaded.tone_amplitudes) == pytest.approx(1.0)
-    assert len(loaded.tone_amplitude_std) == 3 and max(loaded.tone_amplitude_std) < 1e-2
+    np.testing.assert_allclose(loaded.tone_amplitudes, 1.0, atol=1e-2)  # equal drives
+    assert len(loaded.tone_amplitude_std) == 3 and max(loaded.tone_amplitude_std) < 1e-2  # noiseless frames
 
 
 def test_tone_amplitudes_are_measured_and_pass_a_lone_echo():

@@ -1407,3 +1407,8 @@ def test_a_scan_peak_under_a_stronger_lines_sidelobes_is_no_candidate():
     q[k] = 2 * SMALL_SIDELOBE_MARGIN * 1e4 / (np.pi * 4.5) ** 2  # a line of its own, above the envelope
     assert not _sidelobe(q, grid, k, dfr)
     assert not _sidelobe(p, grid, int(np.argmax(p)), dfr)  # the strongest point itself
+    # nearer than SMALL_SIDELOBE_FROM (3 bins), a peak may be the second line of a close pair
+    near = int(np.argmin(np.abs(grid - 6.0 * dfr)))  # 2 bins from the line, 20x under it
+    r = p.copy()
+    r[near] = 1e4 / 20
+    assert not _sidelobe(r, grid, near, dfr)

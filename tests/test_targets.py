@@ -694,6 +694,14 @@ class TestToneAmplitudes:
         noisy = self.lines([(1.0, 3.7), (0.5, 5.6)], 1e-3, 0, segments=400)
         assert amplitude_chi2([noisy], self.ref(), 10.0) == (0.0, 0)
 
+    def test_a_noiseless_line_weighs_most_and_still_flags_a_blend(self):
+        from mtcw_core.ranging.targets import amplitude_chi2
+        f = self.lines([(1.0, 3.7), (0.1, 6.7)], 1e-4, 0)
+        f = replace(f, phase_var=np.array([0.0, 1e-4, 1e-4]))
+        chi2, dof = amplitude_chi2([f], self.ref(), 10.0)
+        assert dof == 2 and np.isfinite(chi2) and chi2 > 100
+        assert amplitude_chi2([], self.ref(), 10.0) == (0.0, 0)
+
     def test_the_calibrations_amplitudes_come_before_the_settings(self):
         from mtcw_core.calibration import Calibration
         fr = frame()
@@ -704,5 +712,6 @@ class TestToneAmplitudes:
                           tone_amplitudes=(0.9, 1.0, 1.1), tone_amplitude_std=(0.0, 0.03, 0.04))
         amps = Reference.of(fr, st, cal).tone_amplitudes
         assert amps[170e6] == (1.0, pytest.approx(math.hypot(0.03, 0.02)))
+        assert amps[260e6] == (1.1, pytest.approx(math.hypot(0.04 / 1.1, 0.02)))  # relative to its amplitude
         assert amps[100e6] == (0.9, pytest.approx(0.02))
         assert Reference.of(fr, ChainSettings(), None).tone_amplitudes is None

@@ -1988,10 +1988,11 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     below a lobe search's band hid the one inside it) -- unless, at the lower edge, its fitted peak
     lies :data:`SMALL_EDGE_INSIDE` or more inside the band: that peak (Hz, off the grid) is then the
     scan's (at the upper edge, a guard short of movers found beyond it, a line is always taken
-    out). ``others``: the movers already found; the points near them and their beats are left out
-    (their beats only where the echoes beat with each other, ``beats``: one photodiode), and with
-    ``fit`` (its ``others`` the same) their baseband lines taken out first. ``contrast``: the peak
-    must stand this far above the scan's median power, else None."""
+    out). A peak inside the band is no candidate where it could be a stronger point's sidelobe
+    (:func:`_sidelobe`). ``others``: the movers already found; the points near them and their
+    beats are left out (their beats only where the echoes beat with each other, ``beats``: one
+    photodiode), and with ``fit`` (its ``others`` the same) their baseband lines taken out first.
+    ``contrast``: the peak must stand this far above the scan's median power, else None."""
     grid, xs = low.scan(lo, hi, SMALL_SCAN_STEP, iq)
     if grid.size < 3:
         return None
@@ -2041,13 +2042,15 @@ SMALL_SIDELOBE_FROM = 3.0
 
 
 def _sidelobe(p: np.ndarray, grid: np.ndarray, k: int, dfr: float) -> bool:
-    """Whether the scan's peak ``grid[k]`` could be a sidelobe of a stronger line in the scan: one it
-    keeps clear of, within :data:`SMALL_OTHER_BINS` of a mover found -- a second mover there, which
-    the fit does not take out. ``p``: the scan's power at every point (shape (G,)), lines taken out
-    as the scan took them. The envelope probe's scene 5854 (balanced, 2^18 samples): movers 4.1 and
-    6.1 record bins up, 9 dB apart; the weaker one, 2 bins from the stronger, was kept clear of, and
-    its sidelobe 4.6 bins below it (-23 dB) was taken for a mover at 1.5 bins, its speed 9 sigmas
-    off at its range."""
+    """Whether the scan's peak ``grid[k]`` could be a sidelobe of a stronger point of the scan,
+    :data:`SMALL_SIDELOBE_FROM` record bins or more away (every such point; the one that matters
+    lies where the scan keeps clear, within :data:`SMALL_OTHER_BINS` of a mover found -- a second
+    mover there, which the fit does not take out). ``p``: the scan's power at every point (shape
+    (G,)), lines taken out as the scan took them; distances along the grid (a real record's image
+    of a line, on the other side of 0 Hz, is not looked at). The envelope probe's scene 5854
+    (balanced, 2^18 samples): movers 4.1 and 6.1 record bins up, 9 dB apart; the weaker one, 2 bins
+    from the stronger, was kept clear of, and its sidelobe 4.6 bins below it (-23 dB) was taken for
+    a mover at 1.5 bins, its speed 9 sigmas off at its range."""
     d = np.abs(grid - grid[k]) / dfr
     stronger = (p > p[k]) & (d >= SMALL_SIDELOBE_FROM)
     return bool(np.any(p[k] < SMALL_SIDELOBE_MARGIN * p[stronger] / (np.pi * d[stronger]) ** 2))

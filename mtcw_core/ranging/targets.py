@@ -57,7 +57,7 @@ class Reference:
         amps = None
         if cal is not None and cal.tone_amplitudes:
             std = cal.tone_amplitude_std or (0.0,) * len(tones)
-            amps = {f: (a, math.hypot(s, tol)) for f, a, s in zip(cal.tones_hz, cal.tone_amplitudes, std)}
+            amps = {f: (a, math.hypot(s / a, tol)) for f, a, s in zip(cal.tones_hz, cal.tone_amplitudes, std)}
         elif settings.tone_amplitudes is not None and len(settings.tone_amplitudes) == len(tones):
             amps = {f: (a, tol) for f, a in zip(tones, settings.tone_amplitudes)}
         return cls(phases, tau0, amps)
@@ -331,7 +331,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         blended=bool((dof > 0 and (ratio > settings.blended_chi2 or p_fit < BLENDED_P))
                      or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous or unexplained > UNEXPLAINED_SIGMAS
-                     or (a_dof > 0 and chdtrc(a_dof, a_chi2) < BLENDED_P)),
+                     or (a_dof > 0 and not chdtrc(a_dof, a_chi2) >= BLENDED_P)),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
@@ -365,7 +365,7 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     -------
     (chi2, dof): 0, 0 where nothing is known or fewer than two tones are used
     """
-    if not amplitudes:
+    if not amplitudes or not fams:
         return 0.0, 0
     tones, power, var = [], [], []
     for f in fams:
@@ -385,6 +385,7 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     a = np.sqrt(np.maximum(np.bincount(inv, np.concatenate(power)[known], uniq.size) / count, 0.0))
     v = np.bincount(inv, np.concatenate(var)[known], uniq.size) / count**2  # the pooled mean's variance
     g, rel = np.array([amplitudes[float(t)] for t in uniq]).T
+    v = np.maximum(v, 1e-24 * np.maximum(a, 1e-150) ** 2)  # a noiseless line (phase_var 0) weighs most, finitely
     w = 1.0 / v
     for _ in range(3):  # alpha, then the weights with the relative sigma at that alpha
         alpha = float(np.sum(w * a * g) / np.sum(w * g * g))
