@@ -224,7 +224,13 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
         # a clean stop of the acquisition node: its end-of-run notice closes the books
         acq = stack.child("acquisition").proc
         acq.send_signal(signal.SIGTERM)
-        res.checks["acquisition_clean_stop"] = acq.wait(30) == 0
+        try:
+            res.checks["acquisition_clean_stop"] = acq.wait(30) == 0
+        except subprocess.TimeoutExpired:  # a stop that hangs is a failed check, and the soak's books still close
+            progress("soak: the acquisition node did not stop within 30 s of SIGTERM; killed")
+            res.checks["acquisition_clean_stop"] = False
+            acq.kill()
+            acq.wait(10)
         _ledger_runs(stack.state_file, runs)
         res.runs = list(runs.values())
         res.published = sum(int(r["frames"]) for r in res.runs)
