@@ -21,6 +21,7 @@ from .dsp.extract import LineFamily
 from .frame import Frame
 from .phase import C, wrap_pi
 from .profiles import ChainSettings, get_profile
+from .ranging.targets import line_powers
 
 
 def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: ChainSettings | None = None,
@@ -77,13 +78,14 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
 
 
 def relative_amplitudes(fams: list[LineFamily]) -> np.ndarray:
-    """The static lines' sizes (rms over the segments less the noise's share ``2*S*phase_var``, an
-    IQ record's two sidebands pooled, as :func:`~mtcw_core.ranging.targets.amplitude_chi2` takes
-    them) relative to their mean, shape (T,): what a reflector's frame says of the tone amplitudes
-    (the modulation depths and the front end's response at each tone;
+    """The static lines' sizes (:func:`~mtcw_core.ranging.targets.line_powers`, as the chain's check
+    takes them: less the noise's share, an IQ record's two sidebands pooled) relative to their
+    mean, shape (T,), in the frame's tone order: what a reflector's frame says of the tone
+    amplitudes (the modulation depths and the front end's response at each tone;
     ``ChainSettings.tone_amplitudes``)."""
-    p = [np.mean(np.abs(f.z) ** 2, axis=0) * (1.0 - 2 * f.z.shape[0] * f.phase_var) for f in fams if f.target == 0]
-    a = np.sqrt(np.maximum(np.mean(p, axis=0), 0.0))
+    static = [f for f in fams if f.target == 0]
+    tones, power, _ = line_powers(static)
+    a = np.sqrt(np.maximum(power, 0.0))[np.searchsorted(tones, static[0].tone_hz)]
     if not np.all(np.isfinite(a)) or np.min(a) <= 0:
         raise CalibrationError("a tone's line is missing from the reflector's frame: no tone amplitudes")
     return a / np.mean(a)

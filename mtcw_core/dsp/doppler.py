@@ -2006,7 +2006,8 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
     side = int(np.sum(grid > 0))
     edge = None
     for _ in range(SMALL_EDGE_LINES + 1):
-        p = np.where(mask, 0.0, np.abs(xs) ** 2)
+        power = np.abs(xs) ** 2
+        p = np.where(mask, 0.0, power)
         k = int(np.argmax(p))
         i, count = (k, side) if k < side else (k - side, grid.size - side)
         if not p[k] > 0:
@@ -2026,7 +2027,7 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
         return None
     if contrast is not None and not p[k] >= contrast * float(np.median(p)):
         return None
-    if edge is None and _sidelobe(np.abs(xs) ** 2, grid, k, dfr):
+    if edge is None and _sidelobe(power, grid, k, dfr):
         return None
     return float(grid[k]) if edge is None else float(fp if iq else math.copysign(fp, grid[k]))
 

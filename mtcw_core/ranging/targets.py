@@ -342,6 +342,36 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
 AMPLITUDE_NOISE_SHARE = 0.2
 
 
+def line_powers(fams: list[LineFamily], keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per tone, the power of its lines in ``fams`` (rms over the segments, squared, less the noise's
+    share ``2*S*v``, ``v = phase_var*|z|^2`` each component's noise variance) averaged over the
+    families that have it (an IQ record's two sidebands pooled), and that mean's variance as a
+    size (``v*(1 + S*phase_var)`` per line: the segments' noise squared too).
+
+    Parameters
+    ----------
+    fams : the line families (each ``z`` of shape (S, T))
+    keep : callable, ``keep(family)`` -> bool mask of shape (T,), the lines to take; all if None
+
+    Returns
+    -------
+    tones (U,) Hz sorted, power (U,) V^2, variance (U,) V^2
+    """
+    tones, power, var = [], [], []
+    for f in fams:
+        segs = f.z.shape[0]
+        use = np.ones(f.tone_hz.size, dtype=bool) if keep is None else keep(f)
+        amp2 = np.mean(np.abs(f.z[:, use]) ** 2, axis=0)
+        v = f.phase_var[use] * amp2
+        tones.append(f.tone_hz[use])
+        power.append(amp2 - 2 * segs * v)
+        var.append(v * (1.0 + segs * f.phase_var[use]))
+    uniq, inv = np.unique(np.concatenate(tones), return_inverse=True)
+    count = np.bincount(inv, minlength=uniq.size)
+    return (uniq, np.bincount(inv, np.concatenate(power), uniq.size) / count,
+            np.bincount(inv, np.concatenate(var), uniq.size) / count**2)
+
+
 def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, float]] | None,
                    min_snr_db: float) -> tuple[float, int]:
     """The chi2 (and its degrees of freedom) of a candidate's line sizes against one target's
@@ -367,23 +397,12 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     """
     if not amplitudes or not fams:
         return 0.0, 0
-    tones, power, var = [], [], []
-    for f in fams:
-        segs = f.z.shape[0]
-        use = (f.snr_db >= min_snr_db) & (2 * segs * f.phase_var <= AMPLITUDE_NOISE_SHARE)
-        amp2 = np.mean(np.abs(f.z[:, use]) ** 2, axis=0)
-        v = f.phase_var[use] * amp2
-        tones.append(f.tone_hz[use])
-        power.append(amp2 - 2 * segs * v)
-        var.append(v * (1.0 + segs * f.phase_var[use]))
-    t_all = np.concatenate(tones)
-    known = np.array([float(t) in amplitudes for t in t_all], dtype=bool)
-    uniq, inv = np.unique(t_all[known], return_inverse=True)
+    uniq, a2, v = line_powers(fams, lambda f: (f.snr_db >= min_snr_db)
+                              & (2 * f.z.shape[0] * f.phase_var <= AMPLITUDE_NOISE_SHARE)
+                              & np.array([float(t) in amplitudes for t in f.tone_hz], dtype=bool))
     if uniq.size < 2:
         return 0.0, 0
-    count = np.bincount(inv, minlength=uniq.size)
-    a = np.sqrt(np.maximum(np.bincount(inv, np.concatenate(power)[known], uniq.size) / count, 0.0))
-    v = np.bincount(inv, np.concatenate(var)[known], uniq.size) / count**2  # the pooled mean's variance
+    a = np.sqrt(np.maximum(a2, 0.0))
     g, rel = np.array([amplitudes[float(t)] for t in uniq]).T
     v = np.maximum(v, 1e-24 * np.maximum(a, 1e-150) ** 2)  # a noiseless line (phase_var 0) weighs most, finitely
     w = 1.0 / v
