@@ -42,7 +42,7 @@ from typing import Optional
 import httpx
 import numpy as np
 
-from services.supervisor import Child, Supervisor
+from services.supervisor import Child, Supervisor, dump_stacks
 
 from .stream import measure
 
@@ -227,8 +227,9 @@ def soak(recording: Path, seconds: float, kills: int, workers: int = 2, overload
         try:
             res.checks["acquisition_clean_stop"] = acq.wait(30) == 0
         except subprocess.TimeoutExpired:  # a stop that hangs is a failed check, and the soak's books still close
-            progress("soak: the acquisition node did not stop within 30 s of SIGTERM; killed")
+            progress("soak: the acquisition node did not stop within 30 s of SIGTERM; its stacks (stderr), then killed")
             res.checks["acquisition_clean_stop"] = False
+            dump_stacks(acq)
             acq.kill()
             acq.wait(10)
         _ledger_runs(stack.state_file, runs)

@@ -585,6 +585,18 @@ def _logging(verbose: bool = False) -> None:
     else:
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
+    _stacks_on_sigusr1()
+
+
+def _stacks_on_sigusr1() -> None:
+    """SIGUSR1 writes every thread's Python stack to stderr and the service goes on (the standard
+    library's faulthandler): a service that does not stop can be asked where it is before it is
+    killed (the supervisor and the soak do so)."""
+    import faulthandler
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
 
 
 def _service_settings(cls, **flags):

@@ -11,6 +11,7 @@ the children, and kills what does not stop.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import signal
@@ -24,6 +25,16 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from .sockets import wait_for_endpoints
+
+log = logging.getLogger(__name__)
+
+
+def dump_stacks(proc: subprocess.Popen, wait_s: float = 1.0) -> None:
+    """Ask a running service for its threads' Python stacks (SIGUSR1: every ``mtcw`` service
+    writes them to its stderr and goes on), and give it ``wait_s`` to write them."""
+    if proc.poll() is None and hasattr(signal, "SIGUSR1"):
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(wait_s)
 
 
 def free_ports(n: int) -> list[int]:
@@ -120,6 +131,9 @@ class Supervisor:
             try:
                 codes[c.name] = c.proc.wait(max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
+                log.error("supervisor: %s did not stop within %.0f s of SIGTERM; its stacks, then SIGKILL",
+                          c.name, self.stop_timeout_s)
+                dump_stacks(c.proc)
                 c.proc.kill()
                 codes[c.name] = c.proc.wait()
         return {c.name: codes[c.name] for c in self.children if c.name in codes}

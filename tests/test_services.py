@@ -347,6 +347,35 @@ def test_mtcw_run_serves_points_and_stops_cleanly_on_sigterm(tmp_path):
     assert left.returncode == 1 and left.stdout.strip() == "", left.stdout  # 1: no process matched
 
 
+def test_a_service_asked_for_its_stacks_writes_them_and_still_stops_cleanly(bench):
+    """SIGUSR1 (what the supervisor and the soak send a service that will not stop) writes every
+    thread's stack to the log; the service goes on, and SIGTERM still stops it with status 0."""
+    proc = bench.acquire(frames=5, rate=10.0)  # waits for a worker that never comes
+    proc.send_signal(signal.SIGUSR1)
+    Bench.wait(lambda: "wait_for_worker" in bench.log("acquisition"), "the stacks in the log", 10)
+    log = bench.log("acquisition")
+    assert "Current thread" in log and 'File "' in log
+    assert proc.poll() is None
+    assert bench.stop("acquisition") == 0
+
+
+def test_supervisor_asks_a_child_that_will_not_stop_for_its_stacks(tmp_path):
+    from services.supervisor import Supervisor
+
+    sup = Supervisor(env={}, stop_timeout_s=1.0)
+    sup.add("stuck", "acquire")
+    log = open(tmp_path / "stuck.log", "wb")
+    # a child that ignores SIGTERM but dumps its stacks on SIGUSR1, as a hung service would
+    code = ("import faulthandler, signal, sys, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+            "faulthandler.register(signal.SIGUSR1, all_threads=True); print('up', flush=True); time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=log, stderr=subprocess.STDOUT)
+    sup.children[0].proc = proc
+    Bench.wait(lambda: "up" in (tmp_path / "stuck.log").read_text(), "the child up", 20)
+    codes = sup.stop()
+    assert codes["stuck"] == -signal.SIGKILL
+    assert 'File "<string>", line 1 in <module>' in (tmp_path / "stuck.log").read_text()
+
+
 def test_bad_settings_name_the_field(tmp_path):
     r = subprocess.run([sys.executable, "-m", "services.cli", "worker", "--profile", "turbo"], cwd=ROOT,
                        capture_output=True, text=True, timeout=60)
