@@ -737,3 +737,47 @@ def test_a_sidelobe_of_a_mover_kept_clear_of_is_no_sub_guard_mover():
     counts, lines = judge_scene(5854, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["ok"] == 6 and counts["missed"] >= 3, counts  # the weaker mover missed (frame 1), not wrong
+
+
+def test_a_beat_of_two_echoes_above_the_lo_is_no_confident_mover():
+    """The envelope probe's scene 2680 (one photodiode, 12-bit ADC, the LO 1 % of the power): a mover
+    at 0 dB of loss, 20 dB above the LO, and a second at 78 dB whose own LO beat lies under the
+    threshold. Their beat (2R|E_a||E_b|, 20 dB above the weak one's LO beat) stood as a third
+    "mover" at 1.46 MHz: 4.55 m at 1.13 m/s, unflagged in ``fast``'s second frame. Where the
+    self-beats' prediction takes the LO for the smaller part of the record's mean and two movers or
+    more are found, no rule can tell a mover from such a beat: every mover is flagged ``blended``
+    (``LineFamily.echo_beats``)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(2680, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["flagged"] >= 6, counts  # flagged, not dropped
+
+
+def test_a_weak_neighbour_under_a_sub_guard_fits_resolution_is_stated():
+    """The envelope probe's scene 4019 in ``fast`` (one photodiode, an ideal laser, 2^18 samples): a
+    mover 8 record bins up, below ``fast``'s guard, fitted over the whole record; a moving echo 34
+    dB under it, 2.8 bins away and under the search's threshold, pulled it 39 Hz at a stated 2.3
+    Hz (speed z 17 and 6). The search spectrum, a quarter record's, cannot show a neighbour that
+    near; probes on the record itself now do (``doppler.fit_neighbour_pull``), and the pull is in
+    the speed sigma."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(4019, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["ok"] == 6, counts
+
+
+def test_a_far_stronger_mover_leaking_into_the_parts_does_not_bias_the_weak_one():
+    """The envelope probe's scene 5249 (one photodiode, 2^18 samples): a mover 41.5 dB under another,
+    36.5 record bins away. In a quarter record's Kaiser(8) parts the stronger one's lines lie 9 part
+    bins from the weaker's, past the separation rule, where the window's sidelobes still let -33 dB
+    of them through: the phase refinement read the weak mover 110-120 Hz off at a stated 24-81 Hz
+    in every frame (speed z 5). Lines into which a neighbour leaks more than their own phase noise
+    are now left out (``doppler.sidelobe_leak``), and with too few left the mover is reassigned over
+    the whole record: right within its sigma."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(5249, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["ok"] == 6 and counts["missed"] == 0, counts

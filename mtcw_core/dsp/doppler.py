@@ -697,6 +697,12 @@ PHASE_WINDOW_BETA = 8.0
 COMMON_MODE_MARGIN = 1.5
 #: lines closer than this (segment bins) to another line, or to their own image, are left out
 PHASE_SEPARATION_BINS = 4.0
+#: ... and so are lines into whose parts a stronger line leaks more than their own phase noise
+#: (:func:`sidelobe_leak`); where those hold more than half the lines' power, no part count is used
+LEAK_KEEP_POWER = 0.5
+#: ... but a leak under this (rad per part) is only stated, whatever the noise (a line far above
+#: it would otherwise lose every part count to leaks of 1e-6 rad)
+LEAK_FLOOR_RAD = 1e-3
 
 
 def _other_lines(tones, fd: float, others: list[float], iq: bool) -> np.ndarray:
@@ -713,6 +719,65 @@ def _separable(freqs: np.ndarray, own: np.ndarray, near: np.ndarray, sep_hz: flo
     ok = np.all(np.abs(np.asarray(near, dtype=float)[None, :] - f) > sep_hz, axis=1)
     ok &= np.sum(np.abs(np.asarray(own, dtype=float)[None, :] - f) < sep_hz, axis=1) == 1
     return ok if iq else ok & (2 * np.abs(f[:, 0]) > sep_hz)
+
+
+def _leak_bias(leak: np.ndarray, wt: np.ndarray, slope: np.ndarray, segments: int, part_s: float) -> float:
+    """What the kept lines' leaks (rad per part, shape (K,)) could still do to :func:`phase_advance`'s
+    combined Doppler (Hz; ``wt``, ``slope`` its weights and the lines' moves with it): each part's
+    phase off by up to ``leak``, the estimate -- its end parts' phase difference over the
+    ``segments - 1`` steps of ``part_s`` seconds -- by twice that."""
+    bias = 2 * leak / max(segments - 1, 1) / (2 * np.pi * part_s)
+    return float(np.sum(wt * np.abs(slope) * bias) / np.sum(wt))
+
+
+def _leak_keep(leak: np.ndarray, var_phi: np.ndarray, amp2: np.ndarray) -> np.ndarray | None:
+    """Which lines :func:`phase_advance` keeps, a far stronger line beside one leaking into its
+    parts through the window's sidelobes (``leak``, rad, :func:`sidelobe_leak`): those whose leak
+    is within their own phase noise per part (``var_phi``, rad^2) or :data:`LEAK_FLOOR_RAD`; None
+    where they hold under :data:`LEAK_KEEP_POWER` of the lines' power (``amp2``): parts are then no
+    way to measure them, and the caller reassigns over the whole record."""
+    keep = leak <= np.maximum(np.sqrt(var_phi), LEAK_FLOOR_RAD)
+    return keep if np.sum(amp2[keep]) >= LEAK_KEEP_POWER * np.sum(amp2) else None
+
+
+def sidelobe_leak(spec: Spectrum, freqs: np.ndarray, others: np.ndarray, length: int, fs: float,
+                  iq: bool) -> np.ndarray:
+    """The most (rad) the lines ``others`` (Hz) -- and, on a real record, each line's own image --
+    can turn the phase of each line of ``freqs`` (Hz) measured on a part of ``length`` samples
+    through the Kaiser(:data:`PHASE_WINDOW_BETA`) window: the sum over them of their amplitude over
+    the line's, read in the search spectrum ``spec``, times the window's sidelobe envelope at their
+    distance ``x`` part bins, ``beta/sinh(beta)/sqrt((pi*x)^2 - beta^2)`` (the continuous Kaiser
+    window's transform; 1 inside the main lobe). 0 Hz is none (each part's mean is removed).
+
+    The separation rule (:data:`PHASE_SEPARATION_BINS`) alone lets a far stronger neighbour through:
+    the envelope probe's scene 5249, a mover 41.5 dB under another 36.5 record bins away (9 bins of
+    a quarter record, where the envelope is -74 dB), had every line's phase turned by ~0.02 rad a
+    part and its Doppler 110-120 Hz off at a stated 24-81 Hz (speed z 5), in every frame.
+
+    Returns
+    -------
+    ndarray, shape (K,): the bound per line (rad)
+    """
+    f = np.asarray(freqs, dtype=float)
+    o = np.asarray(others, dtype=float)
+    o = o[np.abs(o) > 0.5 * fs / length]
+    where = (lambda v: v) if spec.complex_input else np.abs
+
+    def amp(v: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.asarray(spec.power[np.clip(spec.bin_of(where(v)), 0, spec.power.size - 1)],
+                                  dtype=np.float64))
+
+    a_f = np.maximum(amp(f), 1e-300)
+    dist = np.abs(o[None, :] - f[:, None])
+    ratio = amp(o)[None, :] / a_f[:, None]
+    if not iq:  # each line's image at -f, as strong as itself
+        dist, ratio = np.hstack([dist, 2 * np.abs(f)[:, None]]), np.hstack([ratio, np.ones((f.size, 1))])
+    beta = PHASE_WINDOW_BETA
+    arg = (np.pi * dist * length / fs) ** 2 - beta**2
+    env = np.where(arg > 0, beta / math.sinh(beta) / np.sqrt(np.maximum(arg, 1e-300)), 1.0)
+    # a line itself among ``others`` (its own lines, a static line it sits on) is no neighbour
+    env = np.where(dist < 0.5 * fs / length, 0.0, np.minimum(env, 1.0))
+    return np.sum(ratio * env, axis=1)
 
 
 def _part_steps(parts_dft: PartDFTs, parts: int, freqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -779,8 +844,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # common phase's), as long as the lines stay near those it read
     parts_dft = PartDFTs(x, fs, PHASE_WINDOW_BETA, max(parts, COMMON_MODE_MAX_PARTS))
     if parts == segments:
-        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft, pedestal)
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft, pedestal=False)
+        return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft, pedestal) or est
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft, pedestal=False, leaks=False)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -789,6 +854,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
     out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, parts_dft, pedestal)
+    if out is None:  # a far stronger line leaks into the quarters: the first step stands unchecked
+        return est
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
@@ -799,7 +866,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
                   spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                  parts_dft: PartDFTs | None = None, pedestal: bool = False) -> DopplerEstimate:
+                  parts_dft: PartDFTs | None = None, pedestal: bool = False, leaks: bool = True
+                  ) -> DopplerEstimate | None:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
     Each line of the target (baseband, U, L) is measured on every part (windowed exact DFT of the
@@ -826,6 +894,8 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         pedestal there, and at ~90 dB the window's own skirt would pass for one); not in a first
         step from a start that may be bins off, whose ring about the line's frequency would hold
         the line itself (and whose error decides whether the quarters' answer slipped a cycle)
+    leaks : lines into which a far stronger one leaks are left out (:func:`_leak_keep`; None where
+        too few are left), the rest's leaks stated; not in a first step (a start bins off misreads)
     """
     fs = frame.fs_hz
     if parts_dft is None:
@@ -835,6 +905,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if length < 64:
         return est
     freqs, slope = target_lines(frame.tones_hz, fd, iq)
+    all_freqs = freqs
     shift = modulation_doppler(frame.tones_hz, fd, iq, frame.wavelength_m)
     near = _other_lines(frame.tones_hz, fd, others, iq)
     use = _separable(freqs, freqs, near, PHASE_SEPARATION_BINS * fs / length, iq)
@@ -850,14 +921,21 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     d_line = np.angle(prod.sum(axis=0)) / (2 * np.pi * length / fs)  # Hz, per line
     # white-noise error per line: phase variance s2*sum(w^2)/(2|Z|^2) per part; the estimate is
     # about (phi_last - phi_first)/(S - 1), so twice that over (S - 1)^2
-    exclude = list(freqs) + list(near)
-    s2 = spec.noise_variances(freqs, exclude)
+    s2 = spec.noise_variances(freqs, list(freqs) + list(near))
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
     wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
+    leak = (sidelobe_leak(spec, freqs, np.concatenate([near, all_freqs]), length, fs, iq) if leaks
+            else np.zeros(freqs.size))
+    keep = _leak_keep(leak, var_phi, amp2)
+    if keep is None:
+        return None
+    freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, leak = (
+        a[..., keep] for a in (freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, leak))
     var_line = step_sum_phase_variance(var_phi, segments) / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2, sign = _combine_lines(wt, slope, d_line, var_line, shift, iq)
+    spread = math.hypot(spread, _leak_bias(leak, wt, slope, segments, length / fs))
     # each line's amplitude across the parts: one mover's stays (a laser's phase noise moves its
     # phase only); two movers the search could not resolve beat, and every line's amplitude with
     # them -- equally strong ones a bin apart even agree in their phase steps (each line's phase is
@@ -867,7 +945,6 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         amp_chi2 = float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(s2 * wp / 2, 1e-300)))
         lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
     if segments >= 3:
-        all_freqs, _ = target_lines(frame.tones_hz, fd, iq)
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
         spread = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2, segments,
                                     all_freqs, near, iq, delta, moved)
@@ -2359,7 +2436,12 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     _, slope = target_lines(fit.tones, fd, fit.iq)
     delta, err, chi2, _ = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
     if spec is not None:
+        # a line the fit does not model: beyond the search's guard about the line, and within it
+        # (1-6 record bins), probed on the record itself
+        line = float(fm[0] + d_line[0])
+        known = np.concatenate([np.delete(held_f, fit.static.size), [] if fit.iq else [0.0, -line]])
         err = math.hypot(err, unmodelled_pull(spec, float(fm[0]), held_f, dfr),
+                         fit_neighbour_pull(fit.x, line, fit.fs, float(s2[0]), known),
                          _static_offset_gap(fit, float(fm[0]), held_f, held_d, float(d_line[0]), float(s2[0])))
     return delta, err, chi2
 
@@ -2458,12 +2540,25 @@ def neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz
     it stands :data:`UNMODELLED_BUMP` times above the white floor (``s2``, V^2 per sample) and,
     with 6 probes or more, their median (a laser's pedestal), gives a neighbour's size ``q`` over
     the line's; the pull is at most
-    :data:`NEIGHBOUR_PULL_PER_PROBE` times ``q`` record bins. 0 where fewer than 2 probes are left.
+    :data:`NEIGHBOUR_PULL_PER_PROBE` times ``q`` record bins (:func:`_neighbour_probe`). 0 where fewer
+    than 2 probes are left.
     The envelope probe's scene 4019: an ideal laser, a mover 34 dB under another 2.8 bins away,
     under the search's threshold, pulled its line by 52 Hz at a stated 3.7 Hz (0.15 bins per unit
     of its amplitude ratio, as measured here). One Hann-windowed pass and 13 exact DFTs over the
     record (and one per known line near), for a reassigned line only (none on the benchmark's
     scenes at 1e6 samples)."""
+    probe = _neighbour_probe(x, line_hz, fs, s2, known_hz)
+    if probe is None:
+        return 0.0
+    q, dist = probe
+    return NEIGHBOUR_PULL_PER_PROBE[min(dist, len(NEIGHBOUR_PULL_PER_PROBE)) - 1] * q * fs / x.size
+
+
+def _neighbour_probe(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray
+                     ) -> tuple[float, int] | None:
+    """The largest residual probe beside ``line_hz`` (:func:`neighbour_pull` says how it is read): a
+    neighbour's amplitude over the line's, ``q``, and the probe's distance (whole record bins, 1 to
+    :data:`NEIGHBOUR_PROBE_BINS`); None where no probe stands out, or fewer than 2 are left."""
     n = x.size
     dfr = fs / n
     k = np.arange(-NEIGHBOUR_PROBE_BINS, NEIGHBOUR_PROBE_BINS + 1)
@@ -2474,7 +2569,7 @@ def neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz
     xk = exact_dft(windowed_record(x, "hann"), np.concatenate([probes, near]), fs)
     centre = xk[NEIGHBOUR_PROBE_BINS]
     if not abs(centre) > 0:
-        return 0.0
+        return None
     # the line's and the known lines' amplitudes together (each one's DFT holds the others' leakage)
     lines = np.concatenate([[line_hz], near])
     at = np.concatenate([[centre], xk[k.size:]])
@@ -2485,16 +2580,41 @@ def neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz
     if known.size:
         keep &= np.min(np.abs(probes[:, None] - known[None, :]), axis=1) > 3 * dfr
     if keep.sum() < 2:
-        return 0.0
+        return None
     r2, dist = r2[keep], np.abs(k[keep])
     floor = s2 * window_power("hann", n)
     if r2.size >= 6:
         floor = max(floor, float(np.median(r2)) / math.log(2))
     j = int(np.argmax(r2))
     if not r2[j] > UNMODELLED_BUMP * floor:
+        return None
+    return math.sqrt(r2[j] - floor) / abs(centre), int(dist[j])
+
+
+#: a Hann-windowed probe's amplitude response half a bin from a line (its scalloping: 1.42 dB)
+SCALLOP_HANN = 0.85
+
+
+def fit_neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray) -> float:
+    """The most (Hz) an unmodelled line 1-6 record bins away could pull a line that a record-long
+    least-squares fit measures (the sub-guard fit's): the residual probes of
+    :func:`neighbour_pull` (the neighbour's size ``q`` over the line's, read at the probe nearest it,
+    up to :data:`SCALLOP_HANN` low) with the fit's own pull law, :func:`unmodelled_pull`'s, at the
+    nearest the neighbour can lie, half a bin inside its probe (and at half a bin at the least,
+    where a neighbour pulls ~``q*delta``, under ``q`` bins).
+
+    :func:`unmodelled_pull` reads the search spectrum :data:`SMALL_NEAR_GUARD` of its bins clear of
+    the line: blind to a neighbour within 5 record bins, 20 in ``fast``'s spectrum of a quarter
+    record. The envelope probe's scene 4019 in ``fast``: a mover 8 record bins up fitted below
+    ``fast``'s guard, a moving echo 34 dB under it 2.8 bins away, under the search's threshold,
+    pulled it by 39 Hz at a stated 2.3 Hz (speed z 17). One Hann-windowed pass and 13 exact DFTs
+    over the record, for a sub-guard mover only."""
+    probe = _neighbour_probe(x, line_hz, fs, s2, known_hz)
+    if probe is None:
         return 0.0
-    q = math.sqrt(r2[j] - floor) / abs(centre)
-    return NEIGHBOUR_PULL_PER_PROBE[min(int(dist[j]), len(NEIGHBOUR_PULL_PER_PROBE)) - 1] * q * dfr
+    q, dist = probe
+    delta = max(dist - 0.5, 0.5)
+    return q / SCALLOP_HANN * 3 / (np.pi**2 * delta) * (1 + 1 / (np.pi * delta)) * fs / x.size
 
 
 #: a Kaiser(14) window's amplitude response half a bin from a line (its scalloping)

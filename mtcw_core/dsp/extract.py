@@ -61,6 +61,12 @@ class LineFamily:
         ... and the largest Doppler (record bins) that static echo could have, as its lines' width
         shows (:func:`~.spectrum.still_line_doppler_bins`): its beat lies that far from the mover's
         lines and pulls their frequency; None where not read (any Doppler up to the guard).
+    echo_beats : bool
+        A mover's lines on one photodiode where two movers or more were found and the echoes hold
+        more of the record's mean than the LO (their self-beats' prediction took the LO for the
+        smaller part): a Doppler line may then be the beat of a strong echo with an echo whose own
+        LO beat is too weak to be seen, which no rule can tell from a mover (the point is
+        ``blended``).
     """
 
     name: str
@@ -73,6 +79,7 @@ class LineFamily:
     unexplained_v: np.ndarray | None = None
     cross_v: np.ndarray | None = None
     cross_x: float | None = None
+    echo_beats: bool = False
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -238,12 +245,12 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
-    sb_bound, cross, still = None, {}, None
+    sb_bound, cross, still, over_lo = None, {}, None, False
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2], x,
-                                             s2_all[:first[1]])
+        sb_bound, cross, still, over_lo = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2],
+                                                      x, s2_all[:first[1]])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -253,7 +260,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
-                              still if target else None))
+                              still if target else None, bool(target and over_lo)))
     return out
 
 
@@ -275,7 +282,7 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
                 spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray,
-                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None]:
+                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None, bool]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
@@ -285,10 +292,13 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
     own (:func:`~.spectrum.still_line_doppler_bins`, the record ``x`` read about the strongest where
     the spectrum is of part of it; None where a mover's self-beat outweighs it there: a still
-    self-beat narrows the lines whatever the echo under it does). ``static_s2``: the static lines'
-    noise floors (V^2 per sample)."""
+    self-beat narrows the lines whatever the echo under it does), and whether two movers or more were
+    found with the echoes above the LO's power (:attr:`LineFamily.echo_beats`: the prediction with
+    the LO the smaller part of the mean left less; the envelope probe's scene 2680, a 0 dB echo 100x
+    the LO, and a "mover" at its beat with a 78 dB echo whose LO beat lay under the threshold).
+    ``static_s2``: the static lines' noise floors (V^2 per sample)."""
     found = [d.fd_hz for d in dops if d.detected]
-    cross, still = {}, None
+    cross, still, over_lo = {}, None, False
     if found:
         # the LO the larger part of the record's mean, or the echoes: whichever prediction leaves
         # less of the static lines (an echo above the LO's power had its self-beat predicted
@@ -302,7 +312,8 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             pred = _predicted_self_beats(zs, *carriers)
             rest = s - self_beat_scale(s, pred) * pred
             left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers))
-        _, _, zs[0, "S"], carriers = min(left, key=lambda t: t[:2])
+        _, lo_smaller, zs[0, "S"], carriers = min(left, key=lambda t: t[:2])
+        over_lo = lo_smaller and len(found) >= 2
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
         took = np.sqrt(np.mean(np.abs(s - zs[0, "S"]) ** 2, axis=0))
@@ -319,7 +330,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
-                                   found), cross, still
+                                   found), cross, still, over_lo
 
 
 #: a static line counts toward a static echo's beat with the movers (:func:`cross_beat_bound`) by

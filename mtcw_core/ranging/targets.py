@@ -323,14 +323,15 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         cycle_ambiguous=bool(ambiguous or p_slip > settings.cycle_slip_max), cycle_slip_prob=p_slip,
         # blended: the line phases fit no one range, or the Doppler line's own lines disagree (two
         # movers the search could not resolve: the range from their mixed phases is neither's), or
-        # the movers' beats come near their own lines (one photodiode, echoes near the LO's power), or
+        # the movers' beats come near their own lines (one photodiode, echoes near the LO's power, or
+        # above it with two movers or more: ``echo_beats``), or
         # (the static lines, one photodiode) Doppler lines no mover found explains could have put
         # their self-beats on them, as large as several of their sigmas, or the static lines' sizes
         # are not one target's; a Doppler line that hid a second mover (``dop.unresolved``) is
         # judged in resolve_targets, once the second is known
         blended=bool((dof > 0 and (ratio > settings.blended_chi2 or p_fit < BLENDED_P))
                      or dop.lines_chi2 > settings.blended_lines_chi2
-                     or dop.beat_ambiguous or unexplained > UNEXPLAINED_SIGMAS
+                     or dop.beat_ambiguous or any(f.echo_beats for f in fams) or unexplained > UNEXPLAINED_SIGMAS
                      or (a_dof > 0 and not chdtrc(a_dof, a_chi2) >= BLENDED_P)),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
