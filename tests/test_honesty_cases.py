@@ -781,3 +781,16 @@ def test_a_far_stronger_mover_leaking_into_the_parts_does_not_bias_the_weak_one(
     counts, lines = judge_scene(5249, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["ok"] == 6 and counts["missed"] == 0, counts
+
+
+def test_a_low_draw_of_the_measured_shared_phase_does_not_state_less_than_the_laser_makes():
+    """The envelope probe's scene 2816 (one photodiode, a 100 kHz laser at 1064 nm, 2^16 samples): a
+    mover at 6.15 m/s refined by phase advance, whose shared phase the quarters measure on 2 degrees
+    of freedom; the second frame's low draw stated 0.34 kHz (``fast``) and 0.60 kHz (``balanced``)
+    where the laser's phase noise over the echo delay makes 0.67 kHz, and it was 2.3 kHz off (speed
+    z 6.9 and 3.9). A declared laser's shared phase now floors the refinement's error
+    (``DopplerEstimate.measured_phase_gain``)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(2816, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

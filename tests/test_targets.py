@@ -102,6 +102,38 @@ class TestVelocity:
         s = velocity(d, frame(), [fam("U", 1, var=var), fam("L", 1, var=var)], False)[1]
         assert s == pytest.approx(30.0 * LAM / 2, rel=1e-12)
 
+    def test_a_phase_refinement_states_at_least_the_declared_lasers_shared_phase(self):
+        """A refinement by phase advance measures the shared phase on a few parts; a low draw of
+        that scatter must not state less than the declared laser makes of it through the
+        refinement's own gain (the envelope probe's scene 2816: 2.3 kHz off at a stated 0.34 kHz,
+        0.67 kHz expected); a larger measured error stands."""
+        from mtcw_core.dsp.doppler import part_phase_gain
+        gain = part_phase_gain(4, N // 4, FS)
+        psd = shared_phase_psd(ChainSettings(laser_linewidth_hz=1e5), 7.5)
+        floor = math.sqrt(gain * psd)
+        fams = [fam("U", 1, var=np.full(3, 1e-4))]
+        d = replace(dop(7.5e6, refine=0.3 * floor, method="phase"), measured_phase_gain=gain)
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(floor * LAM / 2, rel=1e-12)
+        d = replace(d, refine_error_hz=3 * floor)
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(3 * floor * LAM / 2, rel=1e-12)
+        assert velocity(replace(d, refine_error_hz=0.3 * floor), frame(), fams, False)[1] == pytest.approx(
+            0.3 * floor * LAM / 2, rel=1e-12)  # a laser declared coherent: no floor
+
+    def test_the_phase_gain_is_the_end_parts_windowed_mean_phase(self):
+        """``part_phase_gain`` against a simulation: a white phase of two-sided PSD ``p`` on the lines
+        moves the quarters' phase advance by ``sqrt(gain*p)`` Hz rms."""
+        from mtcw_core.dsp.doppler import PHASE_WINDOW_BETA, part_phase_gain
+        n, seg, fs, p = 2**14, 4, 1e9, 1e-11  # 0.01 rad^2 a sample: the linear regime
+        length = n // seg
+        w = np.kaiser(length, PHASE_WINDOW_BETA)
+        rng = np.random.default_rng(3)
+        est = []
+        for _ in range(400):
+            phi = rng.standard_normal(n) * math.sqrt(p * fs)  # white: variance PSD*fs per sample
+            z = np.exp(1j * phi).reshape(seg, length) @ w  # each part's windowed mean phasor
+            est.append(np.angle(np.sum(z[1:] * np.conj(z[:-1]))) / (2 * np.pi * length / fs))
+        assert np.std(est) == pytest.approx(math.sqrt(part_phase_gain(seg, length, fs) * p), rel=0.1)
+
     def test_a_reassigned_doppler_adds_the_shared_phase_and_the_wander(self):
         """Reassigned over one window: its white-noise error, the declared laser's phase noise over
         the echo delay (which it cannot see) through its gain, and the width's wander."""

@@ -67,6 +67,11 @@ class DopplerEstimate:
     #: var(fd) per unit two-sided PSD of a phase all the lines share (Hz^2 per rad^2/Hz), for a
     #: refinement that cannot measure that phase itself; 0 otherwise
     shared_phase_gain: float = 0.0
+    #: ... and for a refinement by phase advance, which measures that phase itself on a few parts
+    #: (its scatter on 2-14 degrees of freedom, so that a low draw states too little): the same
+    #: gain for its own estimate, through which a declared laser's PSD floors its error
+    #: (:func:`~mtcw_core.ranging.targets.velocity`); 0 otherwise
+    measured_phase_gain: float = 0.0
     #: chi2 per degree of freedom of the refined lines' own Doppler corrections about their mean
     #: (:func:`_combine_lines`): ~1 for the lines of one mover (up to ~90 with leakage and a laser's
     #: phase-noise pedestal); far above where the line the search found is two movers it could not
@@ -925,8 +930,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
     wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
-    leak = (sidelobe_leak(spec, freqs, np.concatenate([near, all_freqs]), length, fs, iq) if leaks
-            else np.zeros(freqs.size))
+    leak = sidelobe_leak(spec, freqs, np.concatenate([near, all_freqs]), length, fs, iq) if leaks else 0 * amp2
     keep = _leak_keep(leak, var_phi, amp2)
     if keep is None:
         return None
@@ -948,7 +952,8 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
         spread = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2, segments,
                                     all_freqs, near, iq, delta, moved)
-    return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign)
+    return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign,
+                   measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0)
 
 
 def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
@@ -987,13 +992,20 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
     out = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / cycle)
     if moved is None:
         return out
-    wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     sw = window_sum(("kaiser", PHASE_WINDOW_BETA), length)
     top = int(np.argmax(wt))
     ped = pedestal_phase_psd(spec, float(freqs[top] + slope[top] * delta), float(amp2[top]) / sw**2,
                              np.concatenate([all_freqs, moved, near]))
-    gain = 2 * fs * wp / sw**2 / ((segments - 1) * cycle) ** 2
-    return max(out, math.hypot(spread, math.sqrt(gain * ped)))
+    return max(out, math.hypot(spread, math.sqrt(part_phase_gain(segments, length, fs) * ped)))
+
+
+def part_phase_gain(segments: int, length: int, fs: float) -> float:
+    """var(fd) (Hz^2) per unit two-sided PSD (rad^2/Hz) of a white phase every line shares, for the
+    phase advance over ``segments`` Kaiser-windowed parts of ``length`` samples: the end parts'
+    windowed mean phases, ``2*fs*sum(w^2)/sum(w)^2 / ((S - 1)*2*pi*L/fs)^2``."""
+    wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
+    sw = window_sum(("kaiser", PHASE_WINDOW_BETA), length)
+    return 2 * fs * wp / sw**2 / ((segments - 1) * 2 * np.pi * length / fs) ** 2
 
 
 def step_sum_phase_variance(var_phi: np.ndarray, segments: int) -> np.ndarray:
@@ -1495,7 +1507,8 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
     again = dict(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq, [e.fd_hz for e in ests],
                                           spec, settings)))
     return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
-                    shared_phase_gain=again[i].shared_phase_gain, pedestal_psd=again[i].pedestal_psd,
+                    shared_phase_gain=again[i].shared_phase_gain, measured_phase_gain=again[i].measured_phase_gain,
+                    pedestal_psd=again[i].pedestal_psd,
                     lines_chi2=again[i].lines_chi2,
                     motion_sign=again[i].motion_sign) if i in again else m for i, m in enumerate(refined)]
 

@@ -186,8 +186,10 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
         # baseband line, far stronger than the sidebands, among them -- with their scatter and
         # the shared carrier phase measured across the record, which is the line's wander: the
         # sidebands' bound below would overstate it ~10x, the wander guessed from the line's width
-        # (noise widens a weak line) up to 100x
-        sig_f = dop.refine_error_hz
+        # (noise widens a weak line) up to 100x -- but not less than what a declared laser's shared
+        # phase makes of it: measured on a few parts, a low draw stated too little (the envelope
+        # probe's scene 2816, a 100 kHz laser: 2.3 kHz off at a stated 0.34 kHz, 0.67 kHz expected)
+        sig_f = max(dop.refine_error_hz, math.sqrt(dop.measured_phase_gain * phase_psd))
     else:
         inv_var = 0.0
         for fam in families:
