@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from mtcw_bench import envelope_probe as ep
 from mtcw_core.scene import load_scene, scene_variant
 
@@ -28,3 +30,30 @@ def test_a_weak_mover_known_modulo_a_shorter_period_is_not_confident():
     (range z ~600, unflagged, in every profile): now flagged ``cycle_ambiguous``."""
     counts, lines = ep.judge_scene(106, 1)
     assert counts["frames"] == 3 and counts["cw"] == 0 and not lines, lines
+
+
+def test_the_slips_the_chain_expects_are_its_unflagged_points_cycle_slip_probabilities(capsys):
+    """The summary's expected slips are the sum of ``cycle_slip_prob`` over the unflagged points,
+    each under the profile's ``cycle_slip_max``: scene 2838 (a weak fast mover behind an 8-bit ADC,
+    a 1 MHz laser), whose one unflagged range in ``fast``'s first frame slipped a cycle at a stated
+    7.8e-4."""
+    from mtcw_bench.honesty import declared
+    from mtcw_core.chain import process_frame
+    from mtcw_core.evaluate import Z_WRONG, judge_frame
+    from mtcw_core.profiles import get_profile
+    from mtcw_core.simulate import Simulator
+
+    counts, _ = ep.judge_scene(2838, 2)
+    sc = scene_variant(load_scene("moving-target"), **ep.draw(2838))
+    want = 0.0
+    for j, fr in enumerate(Simulator(sc, 2838).frames(2)):
+        for prof in ep.PROFILES:
+            st = get_profile(prof, tone_phase_sigma_rad=sc.noise.rf_phase_drift_rad * (j + 1) ** 0.5, **declared(sc))
+            res = process_frame(fr, st)
+            v = judge_frame(res, fr.truth, Z_WRONG)
+            unflagged = [t.cycle_slip_prob for t, q in zip(res.targets, v.points) if not q.flagged]
+            assert all(p <= st.cycle_slip_max for p in unflagged)
+            want += sum(unflagged)
+    assert want > 1e-4 and counts["slips_expected"] == pytest.approx(want, rel=1e-12)
+    ep.main(["--first", "2838", "--scenes", "1"])
+    assert f"(the sum of their cycle_slip_prob) {want:.2f}" in capsys.readouterr().out
