@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> None:
           f"{sum(total[(t, 'cw')] for t in tags)}, confident false {sum(total[(t, 'cf')] for t in tags)}")
     for t in tags:
         print(f"  {t}: frames {total[(t, 'frames')]}, confident wrong {total[(t, 'cw')]}, "
-              f"confident false {total[(t, 'cf')]}, missed truths {total[(t, 'missed')]}")
+              f"confident false {total[(t, 'cf')]}, missed truths {total[(t, 'missed')]}, flagged points "
+              f"{total[(t, 'flagged')]} ({total[(t, 'flagged_right')]} of them right within 5 sigma)")
 
 
 if __name__ == "__main__":

@@ -29,3 +29,16 @@ def test_an_echo_above_the_lo_gives_no_confident_frame():
     assert not lines, lines
     assert all(counts[(f"{p}/declared", "missed")] == 0 for p in sp.PROFILES), counts
     assert sum(v for (_, k), v in counts.items() if k == "frames") == 2 * len(sp.PROFILES)
+
+
+def test_the_summary_counts_flagged_points(capsys, monkeypatch):
+    """Each tag's line states its flagged points and how many of them were right (what a flag cost),
+    as the envelope probe's summary does: here the one 2^16 single-photodiode scene at 0 dB and 1 m/s."""
+    one = [(lab, sc) for lab, sc in sp.scenes((2**16,))
+           if sc.receiver.kind == "single" and sc.targets[0].loss_db == 0.0 and sc.targets[0].velocity_mps == 1.0]
+    monkeypatch.setattr(sp, "scenes", lambda samples: one)
+    sp.main(["--frames", "1", "--samples", "65536"])
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith("  ") and "frames 1," in ln]
+    assert len(lines) == 2 * len(sp.PROFILES), out
+    assert all("flagged points" in ln and "right within 5 sigma" in ln for ln in lines), out
