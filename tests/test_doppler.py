@@ -839,6 +839,15 @@ class TestSmallDoppler:
         assert abs(est.fd_hz - fd) <= 5 * est.refine_error_hz and est.refine_error_hz < 0.01 * DF
         assert est.min_detectable_hz == pytest.approx(DF)
 
+    def test_two_movers_under_one_fitted_line_carry_the_lines_disagreement(self):
+        """Two movers 4.0 and 4.8 bins up, one photodiode: fitted as one sub-guard line, whose lines
+        disagree in their phase steps; its ``lines_chi2`` must reach the estimate (the target stage
+        flags the point ``blended`` above ``blended_lines_chi2``). A field inserted before it in
+        ``DopplerEstimate`` once took it by position and left 0."""
+        est = self.estimate(real_record(((4.0 * DF, 1.0, 0.3), (4.8 * DF, 0.8, 0.25)), static=0.5))
+        assert est.detected and est.method == "fit"
+        assert est.lines_chi2 > get_profile("balanced").blended_lines_chi2 and est.measured_phase_gain == 0.0
+
     def test_iq_sub_guard_mover_keeps_its_sign(self):
         for fd in (-2.3 * DF, 3.1 * DF):
             est = self.estimate(iq_record(fd))

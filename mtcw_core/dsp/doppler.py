@@ -67,11 +67,6 @@ class DopplerEstimate:
     #: var(fd) per unit two-sided PSD of a phase all the lines share (Hz^2 per rad^2/Hz), for a
     #: refinement that cannot measure that phase itself; 0 otherwise
     shared_phase_gain: float = 0.0
-    #: ... and for a refinement by phase advance, which measures that phase itself on a few parts
-    #: (its scatter on 2-14 degrees of freedom, so that a low draw states too little): the same
-    #: gain for its own estimate, through which a declared laser's PSD floors its error
-    #: (:func:`~mtcw_core.ranging.targets.velocity`); 0 otherwise
-    measured_phase_gain: float = 0.0
     #: chi2 per degree of freedom of the refined lines' own Doppler corrections about their mean
     #: (:func:`_combine_lines`): ~1 for the lines of one mover (up to ~90 with leakage and a laser's
     #: phase-noise pedestal); far above where the line the search found is two movers it could not
@@ -97,6 +92,13 @@ class DopplerEstimate:
     #: error the declared laser cannot where the echo's delay is not known (a range known modulo the
     #: unambiguous range); 0 where not measured or no pedestal stands above the white floor
     pedestal_psd: float = 0.0
+    #: for a refinement by phase advance, which measures the phase all its lines share itself, on
+    #: a few parts (its scatter on 2-14 degrees of freedom, so that a low draw states too little):
+    #: var(fd) per unit two-sided PSD of that phase through the quarters' own estimate
+    #: (:func:`part_phase_gain`), through which a declared laser's PSD floors the error
+    #: (:func:`~mtcw_core.ranging.targets.velocity`); 0 otherwise. Last of the fields: the
+    #: constructors above pass the earlier ones by position
+    measured_phase_gain: float = 0.0
 
     @property
     def refined(self) -> bool:
@@ -1895,7 +1897,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
     # a coherent line (the width test): no wander of its own
     return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain,
-                           combined[2])
+                           lines_chi2=combined[2])
 
 
 def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray, others: tuple[float, ...],
