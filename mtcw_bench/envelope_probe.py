@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
           f"ok {total['ok']}, no_target {total['no_target']}, rejected {total['rejected']}, "
           f"missed truths {total['missed']}; flagged points {total['flagged']} ({total['flagged_right']} of them "
           f"right within {Z_WRONG:g} sigma); cycle slips the chain expects among its unflagged points "
-          f"(the sum of their cycle_slip_prob) {total['slips_expected']:.2f}")
+          f"(the sum of their cycle_slip_prob) {total['slips_expected']:.3g}")
 
 
 if __name__ == "__main__":

@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
     for t in tags:
         print(f"  {t}: frames {total[(t, 'frames')]}, confident wrong {total[(t, 'cw')]}, "
               f"confident false {total[(t, 'cf')]}, missed truths {total[(t, 'missed')]}, flagged points "
-              f"{total[(t, 'flagged')]} ({total[(t, 'flagged_right')]} of them right within 5 sigma)")
+              f"{total[(t, 'flagged')]} ({total[(t, 'flagged_right')]} of them right within {Z_WRONG:g} sigma)")
 
 
 if __name__ == "__main__":

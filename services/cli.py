@@ -596,7 +596,10 @@ def _stacks_on_sigusr1() -> None:
     import signal
 
     if hasattr(signal, "SIGUSR1"):
-        faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
+        try:
+            faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
+        except (AttributeError, OSError, RuntimeError, ValueError):
+            pass  # no stderr with a file descriptor (embedded use, Typer's CliRunner): no stacks
 
 
 def _service_settings(cls, **flags):

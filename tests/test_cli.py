@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 
 import pytest
 from typer.testing import CliRunner
@@ -237,3 +238,16 @@ def test_simulate_stops_cleanly_where_a_target_reaches_the_sensor(tmp_path):
     r = CliRunner().invoke(app, ["simulate", str(scene), "-o", str(tmp_path / "rec"), "-n", "5"])
     assert r.exit_code != 0 and "targets.0.range_m" in r.output and "frame 2" in r.output, r.output
     assert "Traceback" not in r.output
+
+
+def test_asking_for_stacks_on_sigusr1_never_breaks_a_service_without_a_real_stderr(monkeypatch):
+    """Every service registers faulthandler on SIGUSR1 when it sets up its logging; where stderr has
+    no file descriptor (embedded use, Typer's CliRunner) that is skipped, not an exception."""
+    import io
+
+    from services import cli
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    cli._stacks_on_sigusr1()
+    monkeypatch.setattr(sys, "stderr", None)
+    cli._stacks_on_sigusr1()

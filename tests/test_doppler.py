@@ -1428,38 +1428,45 @@ def test_a_scan_peak_under_a_stronger_lines_sidelobes_is_no_candidate():
 
 
 class TestSidelobeLeak:
-    """``sidelobe_leak``: the bound on how far a stronger line turns a weaker one's phase on a
-    Kaiser(8)-windowed part, against the turn measured on such parts."""
+    """``sidelobe_leak``: the bound on how far a stronger line moves a weaker one's phase-advance
+    estimate over Kaiser(8)-windowed quarters, against that estimate's move measured."""
 
     @staticmethod
-    def part_phase(x: np.ndarray, f: float, length: int) -> float:
-        part = x[:length] - x[:length].mean()
+    def advance_hz(x: np.ndarray, f: float, segments: int) -> float:
+        """The phase advance's Doppler correction of a line at ``f``: each part's windowed DFT with
+        its mean removed, referred to the part's centre; the steps less the expected advance."""
+        length = x.size // segments
         w = np.kaiser(length, 8.0)
-        t = np.arange(length)
-        return float(np.angle(np.sum(part * w * np.exp(-2j * np.pi * f * t / FS))))
+        t = np.arange(length) - (length - 1) / 2
+        parts = x[:segments * length].reshape(segments, length)
+        z = ((parts - parts.mean(axis=1, keepdims=True)) * w) @ np.exp(-2j * np.pi * f * t / FS)
+        prod = z[1:] * np.conj(z[:-1]) * np.exp(-2j * np.pi * f * length / FS)
+        return float(np.angle(prod.sum()) / (2 * np.pi * length / FS))
 
-    def test_the_bound_holds_and_is_near_the_sidelobe_peaks(self):
+    def test_the_bound_holds_and_is_tight_between_whole_part_bins(self):
         from mtcw_core.dsp.doppler import sidelobe_leak
-        length = N // 4
+        seg, length = 4, N // 4
         f_w, a_w, a_s = 5.3e6 + 0.37 * DF, 1e-2, 1.0  # the strong line 40 dB above
         t = np.arange(N)
         weak = a_w * np.cos(2 * np.pi * f_w * t / FS + 0.3)
-        turns, bounds = [], []
-        for d_part in np.linspace(6.0, 12.0, 25):  # part bins
+        moves, bounds = [], []
+        for d_part in np.linspace(6.0, 12.0, 49):  # part bins, whole ones among them
             f_s = f_w + d_part * FS / length
             x = weak + a_s * np.cos(2 * np.pi * f_s * t / FS + 1.1)
-            turn = abs(np.angle(np.exp(1j * (self.part_phase(x, f_w, length) - self.part_phase(weak, f_w, length)))))
-            bound = sidelobe_leak(power_spectrum(x, FS), np.array([f_w]), np.array([f_s]), length, FS, False)[0]
-            turns.append(turn)
-            bounds.append(bound)
-        turns, bounds = np.array(turns), np.array(bounds)
-        assert np.all(turns <= bounds * 1.05), (turns, bounds)
-        assert np.max(turns / bounds) > 0.3  # an envelope, not a loose guess
-        assert np.max(bounds) < 0.2  # 40 dB: a sidelobe at -70 dB lets ~3e-2 through
+            move = abs(self.advance_hz(x, f_w, seg) - self.advance_hz(weak, f_w, seg))
+            leak = sidelobe_leak(power_spectrum(x, FS), np.array([f_w]), np.array([f_s]), length, FS, False, seg)[0]
+            moves.append(move)
+            bounds.append(2 * leak / (seg - 1) / (2 * np.pi * length / FS))
+        moves, bounds = np.array(moves), np.array(bounds)
+        assert np.all(moves <= bounds * 1.05 + 1e-6 * DF), np.c_[moves, bounds]
+        assert np.max(moves / np.maximum(bounds, 1e-300)) > 0.3  # an envelope, not a loose guess
+        # a whole number of part bins away the neighbour turns every part alike and moves nothing:
+        # what is left there is its image's (at -f_s, 49-55 part bins off), bounded as small
+        whole = np.isclose(np.linspace(6.0, 12.0, 49) % 1, 0)
+        assert np.all(moves[whole] < 0.15 * np.max(moves)) and np.all(bounds[whole] < 0.2 * np.max(bounds))
 
     def test_no_neighbour_no_leak_but_the_image(self):
         from mtcw_core.dsp.doppler import sidelobe_leak
         x = real_record(((5.3e6 + 0.37 * DF, 1.0, 0.3),), static=0.0, noise=1e-6)
-        leak = sidelobe_leak(power_spectrum(x, FS), np.array([5.3e6]), np.empty(0), N // 4, FS, False)
+        leak = sidelobe_leak(power_spectrum(x, FS), np.array([5.3e6]), np.empty(0), N // 4, FS, False, 4)
         assert 0 < leak[0] < 1e-3  # its own image 2f away: 43 part bins
-        assert sidelobe_leak(power_spectrum(x, FS), np.array([5.3e6]), np.empty(0), N // 4, FS, True)[0] == 0

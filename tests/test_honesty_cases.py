@@ -794,3 +794,4 @@ def test_a_low_draw_of_the_measured_shared_phase_does_not_state_less_than_the_la
 
     counts, lines = judge_scene(2816, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["ok"] == 6, counts  # measured, not refused

@@ -96,8 +96,9 @@ class DopplerEstimate:
     #: a few parts (its scatter on 2-14 degrees of freedom, so that a low draw states too little):
     #: var(fd) per unit two-sided PSD of that phase through the quarters' own estimate
     #: (:func:`part_phase_gain`), through which a declared laser's PSD floors the error
-    #: (:func:`~mtcw_core.ranging.targets.velocity`); 0 otherwise. Last of the fields: the
-    #: constructors above pass the earlier ones by position
+    #: (:func:`~mtcw_core.ranging.targets.velocity`; :func:`refine_exact` keeps the quarters' error
+    #: and gain, an upper bound for its whole-record maximum); 0 otherwise. Last of the fields: the
+    #: constructors pass the earlier ones by position
     measured_phase_gain: float = 0.0
 
     @property
@@ -737,24 +738,35 @@ def _leak_bias(leak: np.ndarray, wt: np.ndarray, slope: np.ndarray, segments: in
     return float(np.sum(wt * np.abs(slope) * bias) / np.sum(wt))
 
 
-def _leak_keep(leak: np.ndarray, var_phi: np.ndarray, amp2: np.ndarray) -> np.ndarray | None:
-    """Which lines :func:`phase_advance` keeps, a far stronger line beside one leaking into its
-    parts through the window's sidelobes (``leak``, rad, :func:`sidelobe_leak`): those whose leak
-    is within their own phase noise per part (``var_phi``, rad^2) or :data:`LEAK_FLOOR_RAD`; None
-    where they hold under :data:`LEAK_KEEP_POWER` of the lines' power (``amp2``): parts are then no
-    way to measure them, and the caller reassigns over the whole record."""
-    keep = leak <= np.maximum(np.sqrt(var_phi), LEAK_FLOOR_RAD)
-    return keep if np.sum(amp2[keep]) >= LEAK_KEEP_POWER * np.sum(amp2) else None
+def _leak_kept(spec: Spectrum, lines: tuple, others: np.ndarray, length: int, fs: float, iq: bool,
+               segments: int) -> tuple | None:
+    """The lines :func:`phase_advance` keeps, a far stronger line beside one leaking into its parts
+    through the window's sidelobes (:func:`sidelobe_leak`): ``lines`` (its per-line arrays, the
+    frequencies first, the phase noise per part ``var_phi`` (rad^2) and the power ``amp2`` last)
+    where the leak is within their own phase noise or :data:`LEAK_FLOOR_RAD`, with their leaks
+    (rad) appended; None where they hold under :data:`LEAK_KEEP_POWER` of the lines' power: parts
+    are then no way to measure them, and the caller reassigns over the whole record."""
+    leak = sidelobe_leak(spec, lines[0], others, length, fs, iq, segments)
+    var_phi, amp2 = lines[-2], lines[-1]
+    keep = leak <= np.fmax(np.sqrt(var_phi), LEAK_FLOOR_RAD)  # a NaN noise estimate: the floor
+    if not np.sum(amp2[keep]) >= LEAK_KEEP_POWER * np.sum(amp2):
+        return None
+    return tuple(a[..., keep] for a in (*lines, leak))
 
 
 def sidelobe_leak(spec: Spectrum, freqs: np.ndarray, others: np.ndarray, length: int, fs: float,
-                  iq: bool) -> np.ndarray:
-    """The most (rad) the lines ``others`` (Hz) -- and, on a real record, each line's own image --
-    can turn the phase of each line of ``freqs`` (Hz) measured on a part of ``length`` samples
-    through the Kaiser(:data:`PHASE_WINDOW_BETA`) window: the sum over them of their amplitude over
-    the line's, read in the search spectrum ``spec``, times the window's sidelobe envelope at their
-    distance ``x`` part bins, ``beta/sinh(beta)/sqrt((pi*x)^2 - beta^2)`` (the continuous Kaiser
-    window's transform; 1 inside the main lobe). 0 Hz is none (each part's mean is removed).
+                  iq: bool, segments: int) -> np.ndarray:
+    """How far (rad) the lines ``others`` (Hz) -- and, on a real record, each line's own image -- can
+    move each line of ``freqs`` (Hz) in :func:`phase_advance` over ``segments`` parts of ``length``
+    samples, as half the most they move its end parts' phase difference.
+
+    A neighbour (on a real record its image at ``-f`` too) of amplitude ratio ``r`` (its amplitude
+    over the line's, both read in the search spectrum ``spec``) ``x`` part bins away turns each part's phase by up to ``r*E(x)`` through the
+    Kaiser(:data:`PHASE_WINDOW_BETA`) window's sidelobe envelope ``E(x) =
+    beta/sinh(beta)/sqrt((pi*x)^2 - beta^2)`` (the continuous Kaiser window's transform; 1 inside the
+    main lobe), a turn that rotates by ``2*pi*x`` from part to part: the end parts' difference is
+    at most ``2*r*E(x)*|sin(pi*x*(S - 1))|`` (0 for a neighbour a whole number of part bins away,
+    the same in every part). Summed over the neighbours. 0 Hz is none (each part's mean is removed).
 
     The separation rule (:data:`PHASE_SEPARATION_BINS`) alone lets a far stronger neighbour through:
     the envelope probe's scene 5249, a mover 41.5 dB under another 36.5 record bins away (9 bins of
@@ -774,17 +786,21 @@ def sidelobe_leak(spec: Spectrum, freqs: np.ndarray, others: np.ndarray, length:
         return np.sqrt(np.asarray(spec.power[np.clip(spec.bin_of(where(v)), 0, spec.power.size - 1)],
                                   dtype=np.float64))
 
-    a_f = np.maximum(amp(f), 1e-300)
+    a_f = amp(f)
+    if not iq:  # a real record: every line's image at -f too, the line's own among them
+        o = np.concatenate([o, -o])
     dist = np.abs(o[None, :] - f[:, None])
-    ratio = amp(o)[None, :] / a_f[:, None]
-    if not iq:  # each line's image at -f, as strong as itself
-        dist, ratio = np.hstack([dist, 2 * np.abs(f)[:, None]]), np.hstack([ratio, np.ones((f.size, 1))])
+    a_o = np.broadcast_to(amp(o)[None, :], dist.shape)
+    if not iq:
+        dist, a_o = np.hstack([dist, 2 * np.abs(f)[:, None]]), np.hstack([a_o, a_f[:, None]])
+    x = dist * length / fs  # part bins
     beta = PHASE_WINDOW_BETA
-    arg = (np.pi * dist * length / fs) ** 2 - beta**2
+    arg = (np.pi * x) ** 2 - beta**2
     env = np.where(arg > 0, beta / math.sinh(beta) / np.sqrt(np.maximum(arg, 1e-300)), 1.0)
     # a line itself among ``others`` (its own lines, a static line it sits on) is no neighbour
-    env = np.where(dist < 0.5 * fs / length, 0.0, np.minimum(env, 1.0))
-    return np.sum(ratio * env, axis=1)
+    env = np.where(x < 0.5, 0.0, np.minimum(env, 1.0)) * np.abs(np.sin(np.pi * x * (segments - 1)))
+    # a line of no power in the spectrum: any neighbour turns it wholly (inf), never NaN
+    return np.sum(a_o * env, axis=1) / np.maximum(a_f, 1e-300)
 
 
 def _part_steps(parts_dft: PartDFTs, parts: int, freqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -861,7 +877,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     # fraction of a bin from every line it has and leave none separable)
     others = [first.fd_hz if o == est.fd_hz else o for o in others]
     out = phase_advance(x, frame, first, iq, others, spec, max_lines, segments, parts_dft, pedestal)
-    if out is None:  # a far stronger line leaks into the quarters: the first step stands unchecked
+    if out is None:  # a far stronger line leaks into the quarters: the start is handed back (reassigned)
         return est
     if out is not first and abs(out.fd_hz - first.fd_hz) > WRAP_SIGMAS * first.refine_error_hz:
         # the quarters moved the first step's answer far beyond its stated error: its advance may
@@ -901,8 +917,9 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         pedestal there, and at ~90 dB the window's own skirt would pass for one); not in a first
         step from a start that may be bins off, whose ring about the line's frequency would hold
         the line itself (and whose error decides whether the quarters' answer slipped a cycle)
-    leaks : lines into which a far stronger one leaks are left out (:func:`_leak_keep`; None where
-        too few are left), the rest's leaks stated; not in a first step (a start bins off misreads)
+    leaks : lines into which a far stronger one leaks are left out (:func:`_leak_kept`), the rest's
+        leaks stated; not in a first step (a start bins off misreads the lines' sizes). Returns
+        ``est`` where nothing could be measured, None where the leaks leave too few lines.
     """
     fs = frame.fs_hz
     if parts_dft is None:
@@ -926,18 +943,17 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if not np.any(np.abs(prod) > 0):
         return est
     d_line = np.angle(prod.sum(axis=0)) / (2 * np.pi * length / fs)  # Hz, per line
-    # white-noise error per line: phase variance s2*sum(w^2)/(2|Z|^2) per part; the estimate is
-    # about (phi_last - phi_first)/(S - 1), so twice that over (S - 1)^2
+    # white noise per line: phase variance s2*sum(w^2)/(2|Z|^2) per part (step_sum_phase_variance)
     s2 = spec.noise_variances(freqs, list(freqs) + list(near))
     amp2 = np.mean(np.abs(z) ** 2, axis=0)
     wp = window_power(("kaiser", PHASE_WINDOW_BETA), length)
     var_phi = s2 * wp / (2 * np.maximum(amp2, 1e-300))
-    leak = sidelobe_leak(spec, freqs, np.concatenate([near, all_freqs]), length, fs, iq) if leaks else 0 * amp2
-    keep = _leak_keep(leak, var_phi, amp2)
-    if keep is None:
+    kept = _leak_kept(spec, (freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2),
+                      np.concatenate([near, all_freqs]), length, fs, iq, segments) if leaks else None
+    if leaks and kept is None:
         return None
-    freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, leak = (
-        a[..., keep] for a in (freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, leak))
+    freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, leak = kept or (
+        freqs, slope, shift, z, prod, d_line, s2, var_phi, amp2, np.zeros(freqs.size))
     var_line = step_sum_phase_variance(var_phi, segments) / (2 * np.pi * length / fs) ** 2
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2, sign = _combine_lines(wt, slope, d_line, var_line, shift, iq)
@@ -2628,8 +2644,15 @@ def fit_neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, know
     if probe is None:
         return 0.0
     q, dist = probe
-    delta = max(dist - 0.5, 0.5)
-    return q / SCALLOP_HANN * 3 / (np.pi**2 * delta) * (1 + 1 / (np.pi * delta)) * fs / x.size
+    return fit_pull_bins(q / SCALLOP_HANN, max(dist - 0.5, 0.5)) * fs / x.size
+
+
+def fit_pull_bins(ratio: float, delta: float) -> float:
+    """The most (record bins) an unmodelled line of ``ratio`` times a line's amplitude, ``delta``
+    record bins away, pulls that line's frequency as a record-long least-squares fit measures it:
+    ``ratio * 3/(pi^2*delta) * (1 + 1/(pi*delta))`` (the Dirichlet kernel's slope there over the
+    periodogram's curvature at the peak; :func:`unmodelled_pull`, :func:`fit_neighbour_pull`)."""
+    return ratio * 3 / (np.pi**2 * delta) * (1 + 1 / (np.pi * delta))
 
 
 #: a Kaiser(14) window's amplitude response half a bin from a line (its scalloping)
@@ -2680,5 +2703,4 @@ def unmodelled_pull(spec: Spectrum, line_hz: float, modelled_hz: np.ndarray, dfr
     if not peak > 0:
         return 0.0
     delta = abs(spec.f0_hz + idx[k] * spec.df_hz - line) / dfr
-    ratio = math.sqrt((top - floor) / peak) / SCALLOP_KAISER14
-    return ratio * 3 / (np.pi**2 * delta) * (1 + 1 / (np.pi * delta)) * dfr
+    return fit_pull_bins(math.sqrt((top - floor) / peak) / SCALLOP_KAISER14, delta) * dfr

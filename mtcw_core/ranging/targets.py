@@ -158,7 +158,9 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     refinement's own error (which includes the carrier phase all lines share: the laser's phase
     noise over the echo delay) and the line's wander (incoherent laser), with a floor of
     :data:`SPEED_FLOOR_BINS`. A Doppler refined by phase advance carries its whole error itself,
-    the shared carrier phase's wander measured by the refinement; one reassigned over the whole
+    the shared carrier phase's wander measured by the refinement -- but not less than what a
+    declared laser's shared phase makes of it through the refinement's own gain
+    (``dop.measured_phase_gain``: a few parts' scatter can draw low); one reassigned over the whole
     record -- or fitted on it below the search's guard (``fit``) -- adds what the shared phase's
     PSD ``phase_psd`` (:func:`phase_psd`) does to it, and the wander.
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
