@@ -2348,6 +2348,12 @@ class _SmallFit:
         self.d_static = _record_dft(x, self.static, fs)
 
     @cached_property
+    def hann_x(self) -> np.ndarray:
+        """The record less its mean through a Hann window (:func:`fit_neighbour_pull`'s probes), made
+        once for every measurement of the fit's movers."""
+        return windowed_record(self.x, "hann")
+
+    @cached_property
     def held_amps(self) -> np.ndarray:
         """Every held line's amplitude (V, at the record's centre), fitted together; shape
         (len(static),), empty with no mover held."""
@@ -2472,7 +2478,7 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
         line = float(fm[0] + d_line[0])
         known = np.concatenate([np.delete(held_f, fit.static.size), [] if fit.iq else [0.0, -line]])
         err = math.hypot(err, unmodelled_pull(spec, float(fm[0]), held_f, dfr),
-                         fit_neighbour_pull(fit.x, line, fit.fs, float(s2[0]), known),
+                         fit_neighbour_pull(fit.x, line, fit.fs, float(s2[0]), known, fit.hann_x),
                          _static_offset_gap(fit, float(fm[0]), held_f, held_d, float(d_line[0]), float(s2[0])))
     return delta, err, chi2
 
@@ -2585,11 +2591,12 @@ def neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz
     return NEIGHBOUR_PULL_PER_PROBE[min(dist, len(NEIGHBOUR_PULL_PER_PROBE)) - 1] * q * fs / x.size
 
 
-def _neighbour_probe(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray
-                     ) -> tuple[float, int] | None:
+def _neighbour_probe(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray,
+                     xw: np.ndarray | None = None) -> tuple[float, int] | None:
     """The largest residual probe beside ``line_hz`` (:func:`neighbour_pull` says how it is read): a
     neighbour's amplitude over the line's, ``q``, and the probe's distance (whole record bins, 1 to
-    :data:`NEIGHBOUR_PROBE_BINS`); None where no probe stands out, or fewer than 2 are left."""
+    :data:`NEIGHBOUR_PROBE_BINS`); None where no probe stands out, or fewer than 2 are left. ``xw``:
+    the record's Hann-windowed copy, where the caller keeps one."""
     n = x.size
     dfr = fs / n
     k = np.arange(-NEIGHBOUR_PROBE_BINS, NEIGHBOUR_PROBE_BINS + 1)
@@ -2597,7 +2604,7 @@ def _neighbour_probe(x: np.ndarray, line_hz: float, fs: float, s2: float, known_
     known = np.atleast_1d(np.asarray(known_hz, dtype=float))
     near = np.unique(known[(np.abs(known - line_hz) <= 32 * dfr) & (np.abs(known - line_hz) > 0.5 * dfr)])
     near = near[np.concatenate([[True], np.diff(near) > 0.5 * dfr])] if near.size else near
-    xk = exact_dft(windowed_record(x, "hann"), np.concatenate([probes, near]), fs)
+    xk = exact_dft(windowed_record(x, "hann") if xw is None else xw, np.concatenate([probes, near]), fs)
     centre = xk[NEIGHBOUR_PROBE_BINS]
     if not abs(centre) > 0:
         return None
@@ -2626,7 +2633,8 @@ def _neighbour_probe(x: np.ndarray, line_hz: float, fs: float, s2: float, known_
 SCALLOP_HANN = 0.85
 
 
-def fit_neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray) -> float:
+def fit_neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, known_hz: np.ndarray,
+                       xw: np.ndarray | None = None) -> float:
     """The most (Hz) an unmodelled line 1-6 record bins away could pull a line that a record-long
     least-squares fit measures (the sub-guard fit's): the residual probes of
     :func:`neighbour_pull` (the neighbour's size ``q`` over the line's, read at the probe nearest it,
@@ -2639,8 +2647,9 @@ def fit_neighbour_pull(x: np.ndarray, line_hz: float, fs: float, s2: float, know
     record. The envelope probe's scene 4019 in ``fast``: a mover 8 record bins up fitted below
     ``fast``'s guard, a moving echo 34 dB under it 2.8 bins away, under the search's threshold,
     pulled it by 39 Hz at a stated 2.3 Hz (speed z 17). One Hann-windowed pass and 13 exact DFTs
-    over the record, for a sub-guard mover only."""
-    probe = _neighbour_probe(x, line_hz, fs, s2, known_hz)
+    over the record, for a sub-guard mover only (``xw``: the record's Hann-windowed copy, kept by
+    the fit for all its measurements)."""
+    probe = _neighbour_probe(x, line_hz, fs, s2, known_hz, xw)
     if probe is None:
         return 0.0
     q, dist = probe
