@@ -78,14 +78,14 @@ class Calibration(BaseModel):
         positive = info.field_name == "tone_amplitudes"
         if v and (len(v) != n or any(not (x > 0 if positive else x >= 0) for x in v)):
             raise ValueError(f"one {'positive' if positive else 'non-negative'} value per tone ({n})")
+        if v and not positive and not info.data.get("tone_amplitudes"):  # declared before it: validated first
+            raise ValueError("given without (valid) tone_amplitudes")
         return v
 
     @model_validator(mode="after")
     def _same_length(self) -> "Calibration":
         if len(self.tones_hz) != len(self.tone_phases_rad):
             raise ValueError("tones_hz and tone_phases_rad differ in length")
-        if self.tone_amplitude_std and not self.tone_amplitudes:
-            raise ValueError("tone_amplitude_std without tone_amplitudes")
         if any(f <= 0 for f in self.tones_hz) or len(set(self.tones_hz)) != len(self.tones_hz):
             raise ValueError("tones_hz must be positive and distinct")
         return self

@@ -420,6 +420,20 @@ class TestRefine:
         out = refine_reassigned(x, frame_of(x), e, False, [e.fd_hz], spec, False)
         assert abs(out.fd_hz - self.FD) < 5 * out.refine_error_hz
 
+    def test_a_slipped_first_step_read_on_a_coarse_spectrum_states_one_cycle(self):
+        """The same start on ``fast``'s coarse search spectrum (an eighth of the record): a line 8
+        record bins off still reads strong there, the quarters measure where the slipped first step
+        put them, move its answer far beyond its stated error, and state one cycle of the first
+        step (8 bins): the answer is 8 bins off and says so."""
+        from dataclasses import replace as dc_replace
+        x = real_record(((self.FD, 1.0, 0.3),), noise=1e-3)
+        spec = dc_replace(power_spectrum(x, FS, n=N // 8), record_n=N)
+        e = DopplerEstimate(self.FD + 5.0 * DF, True, 100.0, 56.0, 4 * DF, 0.8 * DF)
+        out = refine_by_phase(x, frame_of(x), e, False, [e.fd_hz], spec)
+        assert abs(out.fd_hz - self.FD) > DF  # it did slip ...
+        assert abs(out.fd_hz - self.FD) < 5 * out.refine_error_hz  # ... and its sigma covers it
+        assert out.refine_error_hz == pytest.approx(8 * DF)
+
     def test_refine_by_phase_iq_negative(self):
         fd = -self.FD
         x = iq_record(fd, noise=0.0)
