@@ -520,14 +520,23 @@ def plan_tones_cmd(
         raise typer.Exit(1)
 
 
+#: a service still running this long (s) after its stop signal writes every thread's stack to
+#: stderr (once; it goes on stopping): by design the acquisition node stops within ~10 s (its
+#: end-of-run notice's poll and LINGER), a worker within its points' LINGER
+STOP_STACKS_AFTER_S = 20.0
+
+
 def _stop_on_signals():
     """A threading.Event set by SIGINT/SIGTERM (a service's clean stop).
 
     Once stopping, further SIGINT/SIGTERM are ignored: Ctrl-C reaches every process of the
     terminal's group and ``mtcw run`` then sends SIGTERM too, which would otherwise land during
     interpreter shutdown and end a clean stop as "killed by signal" (a stuck service is still
-    SIGKILLed by the supervisor after its timeout).
+    SIGKILLed by the supervisor after its timeout). A stop still under way
+    :data:`STOP_STACKS_AFTER_S` later writes the threads' stacks to stderr (faulthandler), whoever
+    sent the signal: a hung stop shows where it hangs under any process manager.
     """
+    import faulthandler
     import signal
     import threading
 
@@ -537,6 +546,10 @@ def _stop_on_signals():
         stop.set()
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, signal.SIG_IGN)
+        try:
+            faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False, file=sys.stderr)
+        except (AttributeError, OSError, RuntimeError, ValueError):
+            pass  # no stderr with a file descriptor
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, handler)

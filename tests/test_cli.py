@@ -251,3 +251,27 @@ def test_asking_for_stacks_on_sigusr1_never_breaks_a_service_without_a_real_stde
     cli._stacks_on_sigusr1()
     monkeypatch.setattr(sys, "stderr", None)
     cli._stacks_on_sigusr1()
+
+
+def test_a_stop_signal_arms_a_stack_dump_in_case_the_stop_hangs(monkeypatch):
+    """SIGTERM to a service sets its stop event, ignores further stop signals and arms faulthandler to
+    write every thread's stack to stderr if the process is still there ``STOP_STACKS_AFTER_S`` later
+    (the acquisition node's intermittent stop hang of 2026-11-27, undiagnosed)."""
+    import faulthandler
+    import os
+    import signal
+
+    from services import cli
+
+    armed = []
+    monkeypatch.setattr(faulthandler, "dump_traceback_later", lambda t, **kw: armed.append((t, kw)))
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop = cli._stop_on_signals()
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.wait(5)
+        assert armed and armed[0][0] == cli.STOP_STACKS_AFTER_S and armed[0][1]["exit"] is False
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
