@@ -546,10 +546,7 @@ def _stop_on_signals():
         stop.set()
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, signal.SIG_IGN)
-        try:
-            faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S, exit=False, file=sys.stderr)
-        except (AttributeError, OSError, RuntimeError, ValueError):
-            pass  # no stderr with a file descriptor
+        _stacks_to_stderr(faulthandler.dump_traceback_later, STOP_STACKS_AFTER_S, exit=False)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, handler)
@@ -609,10 +606,16 @@ def _stacks_on_sigusr1() -> None:
     import signal
 
     if hasattr(signal, "SIGUSR1"):
-        try:
-            faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
-        except (AttributeError, OSError, RuntimeError, ValueError):
-            pass  # no stderr with a file descriptor (embedded use, Typer's CliRunner): no stacks
+        _stacks_to_stderr(faulthandler.register, signal.SIGUSR1, all_threads=True)
+
+
+def _stacks_to_stderr(call, *args, **kwargs) -> None:
+    """A faulthandler ``call`` whose stacks go to stderr; skipped where stderr has no file
+    descriptor (embedded use, Typer's CliRunner): a service never fails for want of its stacks."""
+    try:
+        call(*args, file=sys.stderr, **kwargs)
+    except (AttributeError, OSError, RuntimeError, ValueError):
+        pass
 
 
 def _service_settings(cls, **flags):

@@ -780,11 +780,8 @@ def sidelobe_leak(spec: Spectrum, freqs: np.ndarray, others: np.ndarray, length:
     f = np.asarray(freqs, dtype=float)
     o = np.asarray(others, dtype=float)
     o = o[np.abs(o) > 0.5 * fs / length]
-    where = (lambda v: v) if spec.complex_input else np.abs
-
     def amp(v: np.ndarray) -> np.ndarray:
-        return np.sqrt(np.asarray(spec.power[np.clip(spec.bin_of(where(v)), 0, spec.power.size - 1)],
-                                  dtype=np.float64))
+        return np.sqrt(spec.power_at(v if spec.complex_input else np.abs(v)).astype(np.float64))
 
     a_f = amp(f)
     if not iq:  # a real record: every line's image at -f too, the line's own among them
@@ -937,7 +934,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
         return est
     freqs, slope, shift = freqs[use], slope[use], shift[use]
     if max_lines is not None and freqs.size > max_lines:
-        top = np.argsort(spec.power[np.clip(spec.bin_of(freqs), 0, spec.power.size - 1)])[::-1][:max_lines]
+        top = np.argsort(spec.power_at(freqs))[::-1][:max_lines]
         freqs, slope, shift = freqs[top], slope[top], shift[top]
     z, prod = _part_steps(parts_dft, segments, freqs)
     if not np.any(np.abs(prod) > 0):

@@ -157,6 +157,11 @@ class Spectrum:
     def bin_of(self, f_hz: float | np.ndarray) -> np.ndarray:
         return np.rint((np.asarray(f_hz) - self.f0_hz) / self.df_hz).astype(np.int64)
 
+    def power_at(self, f_hz: np.ndarray) -> np.ndarray:
+        """The power in the bin nearest each frequency (Hz, as the spectrum holds them: signed for a
+        complex record's), clipped to the spectrum's ends; shape of ``f_hz``."""
+        return np.asarray(self.power[np.clip(self.bin_of(f_hz), 0, self.power.size - 1)])
+
     def line_floor_guard(self) -> int:
         """The bins (of this spectrum) an extracted line's noise floor keeps clear of every line:
         :data:`LINE_FLOOR_GUARD_RECORD_BINS` bins of the whole record, at least
