@@ -97,9 +97,16 @@ class DopplerEstimate:
     #: var(fd) per unit two-sided PSD of that phase through the quarters' own estimate
     #: (:func:`part_phase_gain`), through which a declared laser's PSD floors the error
     #: (:func:`~mtcw_core.ranging.targets.velocity`; :func:`refine_exact` keeps the quarters' error
-    #: and gain, an upper bound for its whole-record maximum); 0 otherwise. Last of the fields: the
-    #: constructors pass the earlier ones by position
+    #: and gain, an upper bound for its whole-record maximum); 0 otherwise
     measured_phase_gain: float = 0.0
+    #: for a line reassigned over the whole record with a laser declared partly coherent, the part
+    #: of ``refine_error_hz**2`` (Hz^2) that the laser's phase-noise pedestal in the lines' local
+    #: floors added as if it were white noise (:func:`refine_reassigned`): the target stage states
+    #: that shared phase itself, from the declared laser (``shared_phase_gain``), and takes this out
+    #: there (:func:`~mtcw_core.ranging.targets.velocity`: counted twice, the speed's z std was
+    #: 0.36-0.77 on the honesty map's 100 kHz rows); 0 otherwise. Last of the fields: the
+    #: constructors pass the earlier ones by position
+    shared_overlap_var_hz2: float = 0.0
 
     @property
     def refined(self) -> bool:
@@ -1523,7 +1530,7 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
                                           spec, settings)))
     return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
                     shared_phase_gain=again[i].shared_phase_gain, measured_phase_gain=again[i].measured_phase_gain,
-                    pedestal_psd=again[i].pedestal_psd,
+                    pedestal_psd=again[i].pedestal_psd, shared_overlap_var_hz2=again[i].shared_overlap_var_hz2,
                     lines_chi2=again[i].lines_chi2,
                     motion_sign=again[i].motion_sign) if i in again else m for i, m in enumerate(refined)]
 
@@ -1664,9 +1671,32 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     line = float(freqs[use][top] + d_line[top])  # where the last step read it
     known = np.concatenate([near, freqs[np.arange(freqs.size) != np.flatnonzero(use)[top]]]
                            + ([] if iq else [[0.0, -line]]))
-    spread = math.hypot(spread, neighbour_pull(x, line, fs, float(s2[top]), known))
-    return replace(est, fd_hz=fd, refine_error_hz=spread, method="reassigned", shared_phase_gain=gain,
-                   pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign)
+    pull = neighbour_pull(x, line, fs, float(s2[top]), known)
+    overlap = _pedestal_overlap(spec, (freqs, near), (wt, slope[use], d_line, shift), s2, spread,
+                                (fs / (2 * np.pi)) ** 2 * sdw2 / (2 * wt), iq) if pedestal else 0.0
+    return replace(est, fd_hz=fd, refine_error_hz=math.hypot(spread, pull), method="reassigned",
+                   shared_phase_gain=gain, pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign,
+                   shared_overlap_var_hz2=overlap)
+
+
+def _pedestal_overlap(spec: Spectrum, lines: tuple[np.ndarray, np.ndarray], combine: tuple, s2: np.ndarray,
+                      spread: float, var_per_s2: np.ndarray, iq: bool) -> float:
+    """What a laser's phase-noise pedestal added to :func:`refine_reassigned`'s error (Hz^2): its
+    lines' local floors ``s2`` (V^2, shape (K,)) hold the pedestal as if it were white noise, and the
+    target stage states the shared phase itself (``shared_phase_gain`` times the declared laser's
+    PSD): the error ``spread`` (Hz) less the same combination (:func:`_combine_lines`; ``combine``:
+    its weights, slopes, corrections and shifts) with every floor at most the spectrum's white one
+    (:func:`white_floor`; ``lines``: the target's lines and every other line, Hz). The honesty map's
+    100 kHz rows (one mover a few bins up, 2^16-2^20 samples) had the two counted together: speed z
+    std 0.6-0.77, the error stated ~1.4x. ``var_per_s2``: each line's variance (Hz^2) per unit
+    floor, shape (K,)."""
+    white = white_floor(spec, np.concatenate(lines))[0]
+    s2w = np.minimum(s2, white)
+    if not (math.isfinite(white) and np.any(s2w < s2)):
+        return 0.0
+    wt, slope, d_line, shift = combine
+    alone = _combine_lines(wt, slope, d_line, var_per_s2 * s2w, shift, iq)[1]
+    return max(spread**2 - alone**2, 0.0)
 
 
 #: the pedestal about a line counts where its near floor exceeds the white floor by this many

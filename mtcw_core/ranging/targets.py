@@ -181,8 +181,14 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     if dop.method in ("reassigned", "fit"):
         # one window over the whole record: its own white-noise error and scatter, plus what the
         # phase the lines share (laser phase noise over the echo delay) does to it, from physics
-        # (it cannot be measured there), and the wander the lines' width shows
-        sig_f = math.sqrt(dop.refine_error_hz**2 + dop.shared_phase_gain * phase_psd + dop.wander_hz**2)
+        # (it cannot be measured there), and the wander the lines' width shows; where the lines'
+        # local floors held that phase's pedestal, their error from the white floor with it, but
+        # never less than theirs
+        shared = dop.shared_phase_gain * phase_psd
+        alone2 = dop.refine_error_hz**2 - dop.shared_overlap_var_hz2
+        own = max(dop.refine_error_hz**2, alone2 + shared) if dop.shared_overlap_var_hz2 > 0 else \
+            dop.refine_error_hz**2 + shared
+        sig_f = math.sqrt(own + dop.wander_hz**2)
     elif dop.refined:
         # the refinement states the white-noise error of every line it used -- the carrier's
         # baseband line, far stronger than the sidebands, among them -- with their scatter and
