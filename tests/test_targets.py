@@ -119,6 +119,23 @@ class TestVelocity:
         assert velocity(replace(d, refine_error_hz=0.3 * floor), frame(), fams, False)[1] == pytest.approx(
             0.3 * floor * LAM / 2, rel=1e-12)  # a laser declared coherent: no floor
 
+    def test_a_reassigned_error_holding_the_pedestal_meets_the_lasers_term_once(self):
+        """A reassigned line's local floors held the declared laser's pedestal
+        (``shared_overlap_var_hz2``, the error less its white-floor twin): the sigma is the white
+        error with the laser's term, never less than the local floors' error; with no overlap stated
+        (or the laser declared coherent) the two add as before."""
+        fams = [fam("U", 1, var=np.full(3, 1e-4))]
+        gain, psd = 2e13, 1e-9  # the laser's term: sqrt(2e4) = 141 Hz
+        d = replace(dop(7.5e6, refine=100.0, method="reassigned"), shared_phase_gain=gain)
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(
+            math.sqrt(100.0**2 + gain * psd) * LAM / 2, rel=1e-12)
+        d = replace(d, shared_overlap_var_hz2=100.0**2 - 10.0**2)  # a 10 Hz white error
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(
+            math.sqrt(10.0**2 + gain * psd) * LAM / 2, rel=1e-12)
+        assert velocity(d, frame(), fams, False, phase_psd=0.1 * psd)[1] == pytest.approx(
+            100.0 * LAM / 2, rel=1e-12)  # the local floors' error stands where it is the larger
+        assert velocity(d, frame(), fams, False)[1] == pytest.approx(100.0 * LAM / 2, rel=1e-12)
+
     def test_the_phase_gain_is_the_end_parts_windowed_mean_phase(self):
         """``part_phase_gain`` against a simulation: a white phase of two-sided PSD ``p`` on the lines
         moves the quarters' phase advance by ``sqrt(gain*p)`` Hz rms."""

@@ -162,7 +162,9 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     declared laser's shared phase makes of it through the refinement's own gain
     (``dop.measured_phase_gain``: a few parts' scatter can draw low); one reassigned over the whole
     record -- or fitted on it below the search's guard (``fit``) -- adds what the shared phase's
-    PSD ``phase_psd`` (:func:`phase_psd`) does to it, and the wander.
+    PSD ``phase_psd`` (:func:`phase_psd`) does to it, and the wander (once: where the lines' local
+    floors held that phase's pedestal, ``dop.shared_overlap_var_hz2``, the error from the white
+    floor carries it, and the local floors' error is the least stated).
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
     :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
