@@ -99,13 +99,15 @@ class DopplerEstimate:
     #: (:func:`~mtcw_core.ranging.targets.velocity`; :func:`refine_exact` keeps the quarters' error
     #: and gain, an upper bound for its whole-record maximum); 0 otherwise
     measured_phase_gain: float = 0.0
-    #: for a line reassigned over the whole record with a laser declared partly coherent, the part
-    #: of ``refine_error_hz**2`` (Hz^2) that the laser's phase-noise pedestal in the lines' local
-    #: floors added as if it were white noise (:func:`refine_reassigned`): the target stage states
-    #: that shared phase itself, from the declared laser (``shared_phase_gain``), and takes this out
-    #: there (:func:`~mtcw_core.ranging.targets.velocity`: counted twice, the speed's z std was
-    #: 0.36-0.77 on the honesty map's 100 kHz rows); 0 otherwise. Last of the fields: the
-    #: constructors pass the earlier ones by position
+    #: with a laser declared partly coherent, the part of ``refine_error_hz**2`` (Hz^2) that the
+    #: target stage's own term for the phase the lines share (the declared laser's PSD, or the
+    #: pedestal's where more) stands for (:func:`~mtcw_core.ranging.targets.velocity` takes it out
+    #: there): for a line reassigned over the whole record, what the laser's phase-noise pedestal in
+    #: the lines' local floors added as if it were white noise (:func:`refine_reassigned`: counted
+    #: twice, the speed's z std was 0.36-0.77 on the honesty map's 100 kHz rows); for a phase
+    #: advance, what :func:`common_mode_margin` added to the measured shared phase against a low
+    #: draw of its few degrees of freedom, which that term guards against too. 0 otherwise. Last of
+    #: the fields: the constructors pass the earlier ones by position
     shared_overlap_var_hz2: float = 0.0
 
     @property
@@ -887,7 +889,8 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
         # the quarters moved the first step's answer far beyond its stated error: its advance may
         # have slipped a cycle (a start further off than the parabola said), so the answer is
         # known to one cycle of it
-        return replace(out, refine_error_hz=max(out.refine_error_hz, fs * parts / n))
+        cycle = fs * parts / n
+        return out if out.refine_error_hz >= cycle else replace(out, refine_error_hz=cycle, shared_overlap_var_hz2=0.0)
     return out
 
 
@@ -970,20 +973,25 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if segments > 1:
         amp_chi2 = float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(s2 * wp / 2, 1e-300)))
         lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
+    overlap = ped = 0.0
     if segments >= 3:
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
-        spread = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2, segments,
-                                    all_freqs, near, iq, delta, moved)
+        spread, overlap, ped = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2,
+                                                  segments, all_freqs, near, iq, delta, moved)
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign,
-                   measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0)
+                   measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0,
+                   shared_overlap_var_hz2=overlap, pedestal_psd=ped)
 
 
 def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
                        var_phi: np.ndarray, amp2: np.ndarray, segments: int, all_freqs: np.ndarray,
-                       near: np.ndarray, iq: bool, delta: float, moved: np.ndarray | None) -> float:
+                       near: np.ndarray, iq: bool, delta: float, moved: np.ndarray | None
+                       ) -> tuple[float, float, float]:
     """:func:`phase_advance`'s error ``spread`` (Hz, its lines' white noise and scatter) with what
     every line shares: the laser's phase noise over the echo delay moves the carrier phase of all
-    of them alike, and their agreement cannot show it.
+    of them alike, and their agreement cannot show it. Returns that error (Hz), the variance (Hz^2)
+    :func:`common_mode_margin` added to it (0 where it was not used) and the pedestal's PSD
+    (:attr:`DopplerEstimate.pedestal_psd`; 0 without ``moved``).
 
     The common phase's wander across the record shows it (:func:`common_mode_error`). Where no
     part count leaves a line separable, the refinement's own parts must: ``segments - 2`` degrees
@@ -1005,20 +1013,19 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
     """
     freqs, slope, wt = lines
     fs, length = parts_dft.fs, parts_dft.x.size // segments
+    top = int(np.argmax(wt))
+    ped = 0.0 if moved is None else pedestal_phase_psd(
+        spec, float(freqs[top] + slope[top] * delta), float(amp2[top]) / window_sum(("kaiser", PHASE_WINDOW_BETA),
+                                                                                    length) ** 2,
+        np.concatenate([all_freqs, moved, near]))
     fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
     if fine is not None:
-        return math.hypot(spread, fine)
+        return math.hypot(spread, fine[0]), fine[1], ped
     cycle = 2 * np.pi * length / fs
     res = _common_residual(np.angle(prod), slope, wt)
     var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
     out = max(spread, COMMON_MODE_MARGIN * math.sqrt(var_slope) / cycle)
-    if moved is None:
-        return out
-    sw = window_sum(("kaiser", PHASE_WINDOW_BETA), length)
-    top = int(np.argmax(wt))
-    ped = pedestal_phase_psd(spec, float(freqs[top] + slope[top] * delta), float(amp2[top]) / sw**2,
-                             np.concatenate([all_freqs, moved, near]))
-    return max(out, math.hypot(spread, math.sqrt(part_phase_gain(segments, length, fs) * ped)))
+    return max(out, math.hypot(spread, math.sqrt(part_phase_gain(segments, length, fs) * ped))), 0.0, ped
 
 
 def part_phase_gain(segments: int, length: int, fs: float) -> float:
@@ -1152,7 +1159,7 @@ def common_mode_margin(dof: int) -> float:
 
 def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray, wt: np.ndarray,
                       var_phi: np.ndarray, segments: int, length: int, all_freqs: np.ndarray, near: np.ndarray,
-                      iq: bool) -> float | None:
+                      iq: bool) -> tuple[float, float] | None:
     """The Doppler error (Hz) of :func:`refine_by_phase` from the phase all its lines share.
 
     The laser's phase noise over the echo delay moves the carrier phase of every line alike; the
@@ -1181,7 +1188,9 @@ def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray,
 
     Returns
     -------
-    float (Hz, 0 when the scatter is what white noise leaves), or None when no line allows
+    (error, margin_var): the error (Hz, 0 when the scatter is what white noise leaves) and the
+    variance (Hz^2) the margin added to it (``(m**2 - 1)*var``:
+    :attr:`DopplerEstimate.shared_overlap_var_hz2`), or None when no line allows
     :data:`COMMON_MODE_MIN_PARTS` parts
     """
     choice = None
@@ -1208,7 +1217,8 @@ def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray,
     significant = scatter > white * _chi2_quantile(1 - COMMON_MODE_SIGNIFICANCE, dof) / dof
     per_segment = max(scatter - white, 0.0) * lc / length  # a segment averages length/lc parts' phase noise
     var_hz = 2.0 * per_segment / (segments - 1) ** 2 / (2 * np.pi * length / fs) ** 2
-    return (common_mode_margin(dof) if significant else 1.0) * math.sqrt(var_hz)
+    margin = common_mode_margin(dof) if significant else 1.0
+    return margin * math.sqrt(var_hz), (margin**2 - 1.0) * var_hz
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],

@@ -149,6 +149,11 @@ def phase_psd(settings: ChainSettings, range_m: float, dop: DopplerEstimate, iq:
     return max(shared_phase_psd(settings, range_m), dop.pedestal_psd / (1.0 if iq else 1.5))
 
 
+#: a phase advance's measured shared phase counts as the one its floor states (its low-draw margin
+#: then left to the floor, :func:`velocity`) when at most this many times that floor
+SHARED_FLOOR_AGREES = 2.0
+
+
 def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq: bool, coherence: float = 1.0,
              fd_max_hz: float | None = None, phase_psd: float = 0.0, sideband_direction: bool = False
              ) -> tuple[float, float, str, float]:
@@ -199,7 +204,14 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
         # (noise widens a weak line) up to 100x -- but not less than what a declared laser's shared
         # phase makes of it: measured on a few parts, a low draw stated too little (the envelope
         # probe's scene 2816, a 100 kHz laser: 2.3 kHz off at a stated 0.34 kHz, 0.67 kHz expected)
-        sig_f = max(dop.refine_error_hz, math.sqrt(dop.measured_phase_gain * phase_psd))
+        floor = math.sqrt(dop.measured_phase_gain * phase_psd)
+        # the measured shared phase's margin against a low draw of its few degrees of freedom is the
+        # floor's job where that floor -- the declared laser, or the pedestal about the lines where
+        # it shows more (many bins: no low draw) -- explains what was measured (within
+        # SHARED_FLOOR_AGREES); a measured phase far above it keeps its margin
+        alone = math.sqrt(max(dop.refine_error_hz**2 - dop.shared_overlap_var_hz2, 0.0))
+        sig_f = max(alone if dop.shared_overlap_var_hz2 > 0 and alone <= SHARED_FLOOR_AGREES * floor
+                    else dop.refine_error_hz, floor)
     else:
         inv_var = 0.0
         for fam in families:
