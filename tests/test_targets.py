@@ -136,6 +136,23 @@ class TestVelocity:
             100.0 * LAM / 2, rel=1e-12)  # the local floors' error stands where it is the larger
         assert velocity(d, frame(), fams, False)[1] == pytest.approx(100.0 * LAM / 2, rel=1e-12)
 
+    def test_a_phase_refinements_margin_is_left_to_a_floor_that_explains_the_measured_phase(self):
+        """The common-mode margin's excess (``shared_overlap_var_hz2``) comes off where the floor (the
+        laser's, or the pedestal's, through the refinement's gain) is at least half the error
+        without it; a measured phase far above the floor keeps its margin, and no floor keeps it."""
+        from mtcw_core.ranging.targets import SHARED_FLOOR_AGREES
+        gain, psd = 1e12, 1e-9  # floor sqrt(1e3) = 31.6 Hz
+        floor = math.sqrt(gain * psd)
+        fams = [fam("U", 1, var=np.full(3, 1e-4))]
+        d = replace(dop(7.5e6, refine=50.0, method="phase"), measured_phase_gain=gain,
+                    shared_overlap_var_hz2=50.0**2 - 40.0**2)  # 40 Hz without the margin
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(40.0 * LAM / 2, rel=1e-12)
+        low = 30.0 / SHARED_FLOOR_AGREES / floor  # a floor under half the 40 Hz: the margin stays
+        assert velocity(d, frame(), fams, False, phase_psd=psd * low**2)[1] == pytest.approx(50.0 * LAM / 2, rel=1e-12)
+        assert velocity(d, frame(), fams, False)[1] == pytest.approx(50.0 * LAM / 2, rel=1e-12)
+        d = replace(d, shared_overlap_var_hz2=50.0**2 - 20.0**2)  # 20 Hz without it: the floor stands
+        assert velocity(d, frame(), fams, False, phase_psd=psd)[1] == pytest.approx(floor * LAM / 2, rel=1e-12)
+
     def test_the_phase_gain_is_the_end_parts_windowed_mean_phase(self):
         """``part_phase_gain`` against a simulation: a white phase of two-sided PSD ``p`` on the lines
         moves the quarters' phase advance by ``sqrt(gain*p)`` Hz rms."""

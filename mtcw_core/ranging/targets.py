@@ -164,8 +164,10 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     noise over the echo delay) and the line's wander (incoherent laser), with a floor of
     :data:`SPEED_FLOOR_BINS`. A Doppler refined by phase advance carries its whole error itself,
     the shared carrier phase's wander measured by the refinement -- but not less than what a
-    declared laser's shared phase makes of it through the refinement's own gain
-    (``dop.measured_phase_gain``: a few parts' scatter can draw low); one reassigned over the whole
+    declared laser's shared phase -- or the pedestal about its lines, where that shows more -- makes
+    of it through the refinement's own gain (``dop.measured_phase_gain``: a few parts' scatter can
+    draw low; where this floor explains what they measured, within :data:`SHARED_FLOOR_AGREES`,
+    the margin their scatter carried against such a draw is left to it); one reassigned over the whole
     record -- or fitted on it below the search's guard (``fit``) -- adds what the shared phase's
     PSD ``phase_psd`` (:func:`phase_psd`) does to it, and the wander (once: where the lines' local
     floors held that phase's pedestal, ``dop.shared_overlap_var_hz2``, the error from the white
