@@ -728,7 +728,7 @@ class TestCommonMode:
         err, stated = [], []
         for seed in range(40):
             x = self.pn_record(fd, lag=40, linewidth_hz=1e5, seed=seed, noise=1e-4)
-            out = phase_advance(x, frame_of(x), est, False, [], power_spectrum(x, FS), pedestal=True)
+            out = phase_advance(x, frame_of(x), est, False, [], power_spectrum(x, FS), pedestal=1e5)
             err.append(out.fd_hz - fd)
             stated.append(out.refine_error_hz)
         err, stated = np.array(err), np.array(stated)

@@ -848,7 +848,7 @@ MAX_FIRST_PARTS = 32
 
 def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
                     spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                    pedestal: bool = False) -> DopplerEstimate:
+                    pedestal: float = 0.0) -> DopplerEstimate:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts
     (:func:`phase_advance`), starting close enough for the advance not to wrap.
 
@@ -874,7 +874,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     parts_dft = PartDFTs(x, fs, PHASE_WINDOW_BETA, max(parts, COMMON_MODE_MAX_PARTS))
     if parts == segments:
         return phase_advance(x, frame, est, iq, others, spec, max_lines, segments, parts_dft, pedestal) or est
-    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft, pedestal=False, leaks=False)
+    first = phase_advance(x, frame, est, iq, others, spec, max_lines, parts, parts_dft, pedestal=0.0, leaks=False)
     if first is est:
         return est
     if WRAP_SIGMAS * (first.refine_error_hz + first.wander_hz) > fs * segments / (2 * n):
@@ -896,7 +896,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
 
 def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
                   spec: Spectrum, max_lines: int | None = None, segments: int = 4,
-                  parts_dft: PartDFTs | None = None, pedestal: bool = False, leaks: bool = True
+                  parts_dft: PartDFTs | None = None, pedestal: float = 0.0, leaks: bool = True
                   ) -> DopplerEstimate | None:
     """The Doppler line's frequency from the phase advance of its lines across ``segments`` parts.
 
@@ -919,8 +919,9 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     x : ndarray, shape (N,), float64 or complex128, V
     others : the Doppler lines of the other targets (Hz)
     parts_dft : the record's :class:`PartDFTs` (one for every refinement of one target)
-    pedestal : the pedestal about the strongest line witnesses the shared phase too
-        (:func:`_with_shared_phase`): for a laser declared partly coherent (a coherent one puts no
+    pedestal : the declared laser's linewidth (Hz; 0 for none): the pedestal about the strongest
+        line witnesses the shared phase too (:func:`_with_shared_phase`): for a laser declared
+        partly coherent (a coherent one puts no
         pedestal there, and at ~90 dB the window's own skirt would pass for one); not in a first
         step from a start that may be bins off, whose ring about the line's frequency would hold
         the line itself (and whose error decides whether the quarters' answer slipped a cycle)
@@ -977,7 +978,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     if segments >= 3:
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
         spread, overlap, ped = _with_shared_phase(spread, spec, parts_dft, prod, (freqs, slope, wt), var_phi, amp2,
-                                                  segments, all_freqs, near, iq, delta, moved)
+                                                  segments, all_freqs, near, iq, delta, moved, pedestal)
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign,
                    measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0,
                    shared_overlap_var_hz2=overlap, pedestal_psd=ped)
@@ -985,13 +986,15 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
 
 def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
                        var_phi: np.ndarray, amp2: np.ndarray, segments: int, all_freqs: np.ndarray,
-                       near: np.ndarray, iq: bool, delta: float, moved: np.ndarray | None
-                       ) -> tuple[float, float, float]:
+                       near: np.ndarray, iq: bool, delta: float, moved: np.ndarray | None,
+                       linewidth: float = 0.0) -> tuple[float, float, float]:
     """:func:`phase_advance`'s error ``spread`` (Hz, its lines' white noise and scatter) with what
     every line shares: the laser's phase noise over the echo delay moves the carrier phase of all
     of them alike, and their agreement cannot show it. Returns that error (Hz), the variance (Hz^2)
-    :func:`common_mode_margin` added to it (0 where it was not used) and the pedestal's PSD
-    (:attr:`DopplerEstimate.pedestal_psd`; 0 without ``moved``).
+    :func:`common_mode_margin` added to it (0 where it was not used, or where the pedestal does not
+    pin the shared phase's low-frequency PSD: :func:`pedestal_is_flat`) and the pedestal's PSD
+    (:attr:`DopplerEstimate.pedestal_psd`; 0 without ``moved``). ``linewidth``: the declared
+    laser's (Hz).
 
     The common phase's wander across the record shows it (:func:`common_mode_error`). Where no
     part count leaves a line separable, the refinement's own parts must: ``segments - 2`` degrees
@@ -1020,7 +1023,7 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
         np.concatenate([all_freqs, moved, near]))
     fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
     if fine is not None:
-        return math.hypot(spread, fine[0]), fine[1], ped
+        return math.hypot(spread, fine[0]), fine[1] if pedestal_is_flat(ped, linewidth, spec.df_hz) else 0.0, ped
     cycle = 2 * np.pi * length / fs
     res = _common_residual(np.angle(prod), slope, wt)
     var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
@@ -1222,7 +1225,7 @@ def common_mode_error(parts_dft: PartDFTs, freqs: np.ndarray, slope: np.ndarray,
 
 
 def refine_exact(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                 spec: Spectrum, pedestal: bool = False) -> DopplerEstimate:
+                 spec: Spectrum, pedestal: float = 0.0) -> DopplerEstimate:
     """The Doppler that maximises the exact windowed power of the target's lines.
 
     Starts from :func:`refine_by_phase` (whose error it keeps as its stated error, an upper bound:
@@ -1475,7 +1478,7 @@ def _refine_found(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate], iq: 
     # a laser declared partly coherent: the pedestal about the lines witnesses the phase they share
     # (where the refinement's own parts must measure it, or one window cannot); a coherent one puts
     # none there, and the target stage would not read it
-    ped = settings.laser_linewidth_hz > 0
+    ped = settings.laser_linewidth_hz
     if settings.doppler_refine == "phase":
         out = [refine_by_phase(x, frame, est, iq, others, spec, settings.doppler_phase_lines, pedestal=ped)
                for est in ests]
@@ -1610,7 +1613,7 @@ def _above_threshold(snr: np.ndarray) -> np.ndarray:
 
 
 def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, others: list[float],
-                      spec: Spectrum, pedestal: bool = False) -> DopplerEstimate:
+                      spec: Spectrum, pedestal: float = 0.0) -> DopplerEstimate:
     """The Doppler line's frequency by reassignment over the whole record, for lines too close to
     each other for :func:`phase_advance`'s parts (a mover a few bins from the static lines).
 
@@ -1707,6 +1710,26 @@ def _pedestal_overlap(spec: Spectrum, lines: tuple[np.ndarray, np.ndarray], comb
     wt, slope, d_line, shift = combine
     alone = _combine_lines(wt, slope, d_line, var_per_s2 * s2w, shift, iq)[1]
     return max(spread**2 - alone**2, 0.0)
+
+
+def pedestal_is_flat(psd: float, linewidth_hz: float, df_hz: float) -> bool:
+    """Whether a pedestal's PSD (rad^2/Hz, :func:`pedestal_phase_psd`) read on the ring of
+    ``SMALL_NEAR_GUARD``-``SMALL_NEAR_HALF_WIDTH`` bins of ``df_hz`` about a line is the shared
+    phase's low-frequency PSD, for a laser of ``linewidth_hz``: the delayed self-heterodyne phase's
+    ``S(f) = 2*linewidth*sin^2(pi*f*dtau)/(pi*f^2)`` is flat at ``2*pi*linewidth*dtau^2`` only up
+    to ``f ~ 1/(pi*dtau)``, beyond which it falls to ``~linewidth/(pi*f^2)``, whatever the delay. A
+    reading under half that far level at the ring's outer edge puts ``pi*f*dtau`` there below 0.5
+    (the pedestal within 8 % of its flat level); above it, the delay -- and the PSD at the low
+    frequencies the refinement feels -- may be any larger (the honesty map's mover at 47.9 m/s, 68 m
+    away by its 15th frame behind a 3 m unambiguous range: the ring read a quarter of the flat
+    level, and a speed came out 4.4 of its sigmas off). True for no pedestal (0)."""
+    edge = SMALL_NEAR_HALF_WIDTH * df_hz
+    return psd <= 0.0 or psd <= PEDESTAL_FLAT * linewidth_hz / (np.pi * edge**2)
+
+
+#: :func:`pedestal_is_flat`: a pedestal pins the low-frequency PSD when at most this part of the
+#: far level ``linewidth/(pi*f^2)`` at the ring's outer edge
+PEDESTAL_FLAT = 0.5
 
 
 #: the pedestal about a line counts where its near floor exceeds the white floor by this many
