@@ -1484,3 +1484,21 @@ class TestSidelobeLeak:
         x = real_record(((5.3e6 + 0.37 * DF, 1.0, 0.3),), static=0.0, noise=1e-6)
         leak = sidelobe_leak(power_spectrum(x, FS), np.array([5.3e6]), np.empty(0), N // 4, FS, False, 4)
         assert 0 < leak[0] < 1e-3  # its own image 2f away: 43 part bins
+
+
+@pytest.mark.parametrize("dtau_s", [10e-9, 50e-9, 100e-9, 150e-9, 300e-9, 1e-6])
+def test_a_pedestal_pins_the_low_frequency_psd_only_where_it_is_flat_on_its_ring(dtau_s):
+    """The delayed self-heterodyne phase's PSD, ``2*lw*sin^2(pi*f*dtau)/(pi*f^2)``, read as the
+    median over the pedestal ring (5-32 bins of 76 kHz): where :func:`pedestal_is_flat` says flat,
+    that reading is within 10 % of the low-frequency level ``2*pi*lw*dtau^2`` the refinement feels;
+    where the delay is long enough that the ring reads under 70 % of it, it says not flat."""
+    from mtcw_core.dsp.doppler import SMALL_NEAR_GUARD, SMALL_NEAR_HALF_WIDTH, pedestal_is_flat
+    lw, df = 1e5, 5e9 / 2**16
+    f = np.arange(SMALL_NEAR_GUARD, SMALL_NEAR_HALF_WIDTH + 1) * df
+    ring = float(np.median(2 * lw * np.sin(np.pi * f * dtau_s) ** 2 / (np.pi * f**2)))
+    low = 2 * np.pi * lw * dtau_s**2
+    if pedestal_is_flat(ring, lw, df):
+        assert ring == pytest.approx(low, rel=0.1)
+    if ring < 0.7 * low:
+        assert not pedestal_is_flat(ring, lw, df)
+    assert pedestal_is_flat(0.0, lw, df)

@@ -90,7 +90,8 @@ class DopplerEstimate:
     #: strongest line shows it (:func:`pedestal_phase_psd`; a real record's low line counts its
     #: image's pedestal too: up to twice the phase's own); with ``shared_phase_gain`` it gives the
     #: error the declared laser cannot where the echo's delay is not known (a range known modulo the
-    #: unambiguous range); 0 where not measured or no pedestal stands above the white floor
+    #: unambiguous range), and with ``measured_phase_gain`` a phase advance's floor; 0 where not
+    #: measured or no pedestal stands above the white floor
     pedestal_psd: float = 0.0
     #: for a refinement by phase advance, which measures the phase all its lines share itself, on
     #: a few parts (its scatter on 2-14 degrees of freedom, so that a low draw states too little):
@@ -1685,8 +1686,11 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     known = np.concatenate([near, freqs[np.arange(freqs.size) != np.flatnonzero(use)[top]]]
                            + ([] if iq else [[0.0, -line]]))
     pull = neighbour_pull(x, line, fs, float(s2[top]), known)
+    # (where the pedestal pins the shared phase's PSD: a delay longer than the range says, behind an
+    # unambiguous range, leaves the laser's term short, and the local floors' error counts too)
     overlap = _pedestal_overlap(spec, (freqs, near), (wt, slope[use], d_line, shift), s2, spread,
-                                (fs / (2 * np.pi)) ** 2 * sdw2 / (2 * wt), iq) if pedestal else 0.0
+                                (fs / (2 * np.pi)) ** 2 * sdw2 / (2 * wt), iq) \
+        if pedestal and pedestal_is_flat(ped, pedestal, spec.df_hz) else 0.0
     return replace(est, fd_hz=fd, refine_error_hz=math.hypot(spread, pull), method="reassigned",
                    shared_phase_gain=gain, pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign,
                    shared_overlap_var_hz2=overlap)
@@ -1718,18 +1722,20 @@ def pedestal_is_flat(psd: float, linewidth_hz: float, df_hz: float) -> bool:
     phase's low-frequency PSD, for a laser of ``linewidth_hz``: the delayed self-heterodyne phase's
     ``S(f) = 2*linewidth*sin^2(pi*f*dtau)/(pi*f^2)`` is flat at ``2*pi*linewidth*dtau^2`` only up
     to ``f ~ 1/(pi*dtau)``, beyond which it falls to ``~linewidth/(pi*f^2)``, whatever the delay. A
-    reading under half that far level at the ring's outer edge puts ``pi*f*dtau`` there below 0.5
-    (the pedestal within 8 % of its flat level); above it, the delay -- and the PSD at the low
-    frequencies the refinement feels -- may be any larger (the honesty map's mover at 47.9 m/s, 68 m
-    away by its 15th frame behind a 3 m unambiguous range: the ring read a quarter of the flat
-    level, and a speed came out 4.4 of its sigmas off). True for no pedestal (0)."""
+    reading under :data:`PEDESTAL_FLAT` times that far level at the ring's outer edge puts
+    ``pi*f*dtau`` there below 0.87 (the ring's median within ~8 % of the flat level; a reading 20 %
+    low passes up to ~11 %); above it, the delay -- and the PSD at the low frequencies the
+    refinement feels -- may be any larger (the honesty map's mover at 47.9 m/s, 68 m away by its
+    15th frame behind a 3 m unambiguous range: the ring read a quarter of the flat level, and a
+    speed came out 4.4 of its sigmas off; a mover at 15 m, 100 ns, reads within 6 %). True for no
+    pedestal (0)."""
     edge = SMALL_NEAR_HALF_WIDTH * df_hz
     return psd <= 0.0 or psd <= PEDESTAL_FLAT * linewidth_hz / (np.pi * edge**2)
 
 
-#: :func:`pedestal_is_flat`: a pedestal pins the low-frequency PSD when at most this part of the
+#: :func:`pedestal_is_flat`: a pedestal pins the low-frequency PSD when at most this many times the
 #: far level ``linewidth/(pi*f^2)`` at the ring's outer edge
-PEDESTAL_FLAT = 0.5
+PEDESTAL_FLAT = 1.5
 
 
 #: the pedestal about a line counts where its near floor exceeds the white floor by this many
