@@ -839,3 +839,17 @@ def test_a_phase_advance_movers_speed_sigma_is_floored_by_the_pedestal_not_widen
             z += [p.speed_z for p in v.points if not p.flagged and p.speed_z is not None]
     assert len(z) >= 40 and max(np.abs(z)) < 5
 
+
+
+def test_a_mover_beaten_by_a_static_echo_whose_lines_fit_its_range_is_not_confident():
+    """The envelope probe's scene 725 (one photodiode, the LO a tenth of the power, a 1 MHz laser;
+    a mover at 16.5 m and a static echo at 10.9 m, 10-12 dB of loss each): in the first frame the
+    static lines and the mover's, both corrupted by the echoes' beat with each other, fit one
+    range, neither echo's, and the rule that flags a mover a static echo could beat stood aside --
+    at the mover's own range the static lines may be its self-beat left over. They were not: they
+    stood 2.3x (power) above what the self-beat's prediction took out of them
+    (``LineFamily.static_echo``). The mover, 722 sigmas off in every profile, is now ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(725, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

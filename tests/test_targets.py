@@ -580,6 +580,13 @@ class TestCrossBeaten:
         twin = replace(mover, range_m=1.98 + 1e-5)
         assert not _cross_beaten([(0, static), (1, twin)], self.fams(0.01), st)[1][1].blended
         assert not _cross_beaten([(1, mover)], self.fams(0.01), st)[0][1].blended  # no static point
+        # ... unless the static lines stood mostly above what the self-beat's prediction took out:
+        # a static echo's own lines (LineFamily.static_echo), whatever range they fit
+        echo = fam("S", 0, var=(1e-6,) * 3)
+        echo = replace(echo, static_echo=True)
+        assert _cross_beaten([(0, static), (1, twin)], self.fams(0.01) + [echo], st)[1][1].blended
+        assert not _cross_beaten([(0, static), (1, twin)], self.fams(0.01) + [replace(echo, static_echo=False)],
+                                 st)[1][1].blended
 
 
     def test_the_static_echos_beat_pulls_the_movers_doppler_within_the_stated_bound(self):

@@ -67,6 +67,10 @@ class LineFamily:
         smaller part): a Doppler line may then be the beat of a strong echo with an echo whose own
         LO beat is too weak to be seen, which no rule can tell from a mover (the point is
         ``blended``).
+    static_echo : bool
+        The static lines on one photodiode beside found movers: they stood mostly above what the
+        movers' self-beats' prediction took out of them -- a static echo's own lines, not a
+        self-beat left over (:func:`_self_beats`' ``mostly_self``), whatever range they fit.
     """
 
     name: str
@@ -80,6 +84,7 @@ class LineFamily:
     cross_v: np.ndarray | None = None
     cross_x: float | None = None
     echo_beats: bool = False
+    static_echo: bool = False
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -245,12 +250,12 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
-    sb_bound, cross, still, over_lo = None, {}, None, False
+    sb_bound, cross, still, over_lo, own = None, {}, None, False, False
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still, over_lo = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings, fams[0][2],
-                                                      x, s2_all[:first[1]])
+        sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
+                                                           fams[0][2], x, s2_all[:first[1]])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -260,7 +265,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         var[bad] = np.inf
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
-                              still if target else None, bool(target and over_lo)))
+                              still if target else None, bool(target and over_lo), bool(not target and own)))
     return out
 
 
@@ -282,7 +287,7 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
                 spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray,
-                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None, bool]:
+                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None, bool, bool]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
@@ -295,10 +300,12 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     self-beat narrows the lines whatever the echo under it does), and whether two movers or more were
     found with the echoes above the LO's power (:attr:`LineFamily.echo_beats`: the prediction with
     the LO the smaller part of the mean left less; the envelope probe's scene 2680, a 0 dB echo 100x
-    the LO, and a "mover" at its beat with a 78 dB echo whose LO beat lay under the threshold).
-    ``static_s2``: the static lines' noise floors (V^2 per sample)."""
+    the LO, and a "mover" at its beat with a 78 dB echo whose LO beat lay under the threshold), and
+    whether movers were found and the static lines stood mostly above what their prediction took
+    out (:attr:`LineFamily.static_echo`). ``static_s2``: the static lines' noise floors (V^2 per
+    sample)."""
     found = [d.fd_hz for d in dops if d.detected]
-    cross, still, over_lo = {}, None, False
+    cross, still, over_lo, mostly_self = {}, None, False, True
     if found:
         # the LO the larger part of the record's mean, or the echoes: whichever prediction leaves
         # less of the static lines (an echo above the LO's power had its self-beat predicted
@@ -330,7 +337,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
-                                   found), cross, still, over_lo
+                                   found), cross, still, over_lo, bool(found) and not mostly_self
 
 
 #: a static line counts toward a static echo's beat with the movers (:func:`cross_beat_bound`) by

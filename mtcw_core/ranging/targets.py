@@ -569,13 +569,18 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     """Movers whose lines a static echo's beat with them could turn by more than
     :data:`UNEXPLAINED_SIGMAS` of their phase sigmas (:attr:`LineFamily.cross_v`, one photodiode),
     flagged ``blended`` -- where the static point lies at another range than the mover's (at its
-    range the static lines are the mover's own self-beat, left over where its prediction missed:
+    range the static lines may be the mover's own self-beat, left over where its prediction missed:
     no second echo; the envelope probe's scenes 725, 1385 and 1937, static echoes at 0-10 dB loss
-    with the LO a tenth of the power, had their movers ranged 200-1000 sigmas off, unflagged)."""
+    with the LO a tenth of the power, had their movers ranged 200-1000 sigmas off, unflagged), or
+    at the same range where the static lines stood mostly above what the movers' self-beats'
+    prediction took out (:attr:`LineFamily.static_echo`: a static echo's own, no leftover; 725's
+    first frame: two echoes at 10-12 dB under a 1 MHz laser whose corrupted lines fit one range,
+    neither's, the mover 722 sigmas off)."""
     static = next((p for k, p in points if k == 0), None)
     if static is None:
         return points
-    return [(k, replace(p, blended=True)) if k and not p.blended and not _same_range(p, static) and unexplained_sigmas(
+    echo = any(f.static_echo for f in families if f.target == 0)
+    return [(k, replace(p, blended=True)) if k and not p.blended and (echo or not _same_range(p, static)) and unexplained_sigmas(
         [f for f in families if f.target == k], settings.min_line_snr_db, "cross_v") > UNEXPLAINED_SIGMAS
         else (k, p) for k, p in points]
 
