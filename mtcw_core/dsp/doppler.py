@@ -967,14 +967,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2, sign = _combine_lines(wt, slope, d_line, var_line, shift, iq)
     spread = math.hypot(spread, _leak_bias(leak, wt, slope, segments, length / fs))
-    # each line's amplitude across the parts: one mover's stays (a laser's phase noise moves its
-    # phase only); two movers the search could not resolve beat, and every line's amplitude with
-    # them -- equally strong ones a bin apart even agree in their phase steps (each line's phase is
-    # the mean of the two echoes'), and only this shows them. Radial noise per part: s2*wp/2
-    mag = np.abs(z)
-    if segments > 1:
-        amp_chi2 = float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(s2 * wp / 2, 1e-300)))
-        lines_chi2 = max(lines_chi2, amp_chi2 / (mag.size - freqs.size))
+    lines_chi2 = max(lines_chi2, _amplitude_chi2(z, s2 * wp / 2))
     overlap = ped = 0.0
     if segments >= 3:
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
@@ -983,6 +976,19 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign,
                    measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0,
                    shared_overlap_var_hz2=overlap, pedestal_psd=ped)
+
+
+def _amplitude_chi2(z: np.ndarray, radial_var: np.ndarray) -> float:
+    """chi2 per degree of freedom of each line's amplitude across the parts about its mean (``z``:
+    the parts' line phasors, shape (S, K); ``radial_var``: each line's radial noise variance per
+    part, shape (K,), ``s2*sum(w^2)/2``); 0 for one part. One mover's amplitude stays (a laser's
+    phase noise moves its phase only); two movers the search could not resolve beat, and every
+    line's amplitude with them -- equally strong ones a bin apart even agree in their phase steps
+    (each line's phase is the mean of the two echoes'), and only this shows them."""
+    mag = np.abs(z)
+    if mag.shape[0] < 2:
+        return 0.0
+    return float(np.sum((mag - mag.mean(axis=0)) ** 2 / np.maximum(radial_var, 1e-300))) / (mag.size - mag.shape[1])
 
 
 def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod: np.ndarray, lines: tuple,
