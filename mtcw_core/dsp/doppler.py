@@ -1684,8 +1684,9 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     gain = (1.0 if iq else 1.5) * fs**3 * sdw2 / (4 * np.pi**2 * sw**2)
     # the shared phase's PSD as its pedestal shows it, for an echo delay the range cannot tell
     top = int(np.argmax(wt))
+    white = white_floor(spec, np.concatenate([freqs, near])) if pedestal else None
     ped = pedestal_phase_psd(spec, float(freqs[use][top]), float(wt[top]) / sw**2,
-                             np.concatenate([freqs, near])) if pedestal else 0.0
+                             np.concatenate([freqs, near]), white) if pedestal else 0.0
     # a line under the search's threshold within the window's main lobe pulls the strongest line
     # beyond its white-noise error (the envelope probe's scene 4019): probed beside it
     line = float(freqs[use][top] + d_line[top])  # where the last step read it
@@ -1694,7 +1695,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     pull = neighbour_pull(x, line, fs, float(s2[top]), known)
     # (where the pedestal pins the shared phase's PSD: a delay longer than the range says, behind an
     # unambiguous range, leaves the laser's term short, and the local floors' error counts too)
-    overlap = _pedestal_overlap(spec, (freqs, near), (wt, slope[use], d_line, shift), s2, spread,
+    overlap = _pedestal_overlap(white[0], (wt, slope[use], d_line, shift), s2, spread,
                                 (fs / (2 * np.pi)) ** 2 * sdw2 / (2 * wt), iq) \
         if pedestal and pedestal_is_flat(ped, pedestal, spec.df_hz) else 0.0
     return replace(est, fd_hz=fd, refine_error_hz=math.hypot(spread, pull), method="reassigned",
@@ -1702,18 +1703,17 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
                    shared_overlap_var_hz2=overlap)
 
 
-def _pedestal_overlap(spec: Spectrum, lines: tuple[np.ndarray, np.ndarray], combine: tuple, s2: np.ndarray,
-                      spread: float, var_per_s2: np.ndarray, iq: bool) -> float:
+def _pedestal_overlap(white: float, combine: tuple, s2: np.ndarray, spread: float, var_per_s2: np.ndarray,
+                      iq: bool) -> float:
     """What a laser's phase-noise pedestal added to :func:`refine_reassigned`'s error (Hz^2): its
     lines' local floors ``s2`` (V^2, shape (K,)) hold the pedestal as if it were white noise, and the
     target stage states the shared phase itself (``shared_phase_gain`` times the declared laser's
     PSD): the error ``spread`` (Hz) less the same combination (:func:`_combine_lines`; ``combine``:
     its weights, slopes, corrections and shifts) with every floor at most the spectrum's white one
-    (:func:`white_floor`; ``lines``: the target's lines and every other line, Hz). The honesty map's
+    ``white`` (V^2 per sample, :func:`white_floor` between the frame's lines). The honesty map's
     100 kHz rows (one mover a few bins up, 2^16-2^20 samples) had the two counted together: speed z
     std 0.6-0.77, the error stated ~1.4x. ``var_per_s2``: each line's variance (Hz^2) per unit
     floor, shape (K,)."""
-    white = white_floor(spec, np.concatenate(lines))[0]
     s2w = np.minimum(s2, white)
     if not (math.isfinite(white) and np.any(s2w < s2)):
         return 0.0
@@ -1781,7 +1781,8 @@ def white_floor(spec: Spectrum, lines_hz: np.ndarray) -> tuple[float, float]:
     return float(floors[low]), float(_median_error(count[low]))
 
 
-def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, lines_hz: np.ndarray) -> float:
+def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, lines_hz: np.ndarray,
+                       white: tuple[float, float] | None = None) -> float:
     """The low-frequency two-sided PSD (rad^2/Hz) of a line's phase, from the pedestal about it.
 
     A laser partly coherent over the echo's delay puts the delayed self-heterodyne phase's spectrum
@@ -1798,11 +1799,12 @@ def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, line
     line_hz : the line's frequency (Hz)
     line_density : its amplitude squared per side (V^2: ``|X_w|^2/sum(w)^2`` of a window ``w``)
     lines_hz : ndarray, shape (M,), every line the frame may have (Hz), kept out of both floors
+    white : :func:`white_floor` of ``spec`` between ``lines_hz``, where the caller has it already
     """
     near, count = spec.noise_variances([line_hz], lines_hz, half_width=SMALL_NEAR_HALF_WIDTH,
                                        guard=SMALL_NEAR_GUARD, counts=True)
     near = float(near[0])
-    white, white_err = white_floor(spec, lines_hz)
+    white, white_err = white_floor(spec, lines_hz) if white is None else white
     if not (math.isfinite(near) and math.isfinite(white)) or line_density <= 0:
         return 0.0
     # under no pedestal the near floor is the white one, with its own median's error
