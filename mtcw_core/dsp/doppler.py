@@ -862,7 +862,7 @@ def refine_by_phase(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool,
     the advance would be a confident error of ``fs/L``); when the quarters then move the first
     step's answer by more than :data:`WRAP_SIGMAS` of its error, the first step may have slipped
     (its start further off than the parabola said), and the error is one cycle of its advance.
-    ``pedestal``: the pedestal about the lines witnesses the phase they share
+    ``pedestal``: the declared laser's linewidth (Hz; 0 for none); the pedestal about the lines then witnesses the phase they share
     (:func:`phase_advance`; a laser declared partly coherent), not in the first step.
     """
     fs, n = frame.fs_hz, x.size
@@ -1030,7 +1030,10 @@ def _with_shared_phase(spread: float, spec: Spectrum, parts_dft: PartDFTs, prod:
         np.concatenate([all_freqs, moved, near]))
     fine = common_mode_error(parts_dft, freqs, slope, wt, var_phi, segments, length, all_freqs, near, iq)
     if fine is not None:
-        return math.hypot(spread, fine[0]), fine[1] if pedestal_is_flat(ped, linewidth, spec.df_hz) else 0.0, ped
+        # the margin's part only where a pedestal was read and pins the PSD (else the floor is the
+        # declared laser's at the reported range alone, short behind an unambiguous range)
+        pinned = moved is not None and ped > 0 and pedestal_is_flat(ped, linewidth, spec.df_hz)
+        return math.hypot(spread, fine[0]), fine[1] if pinned else 0.0, ped
     cycle = 2 * np.pi * length / fs
     res = _common_residual(np.angle(prod), slope, wt)
     var_slope = float(np.sum(res**2)) / (segments - 2) * 12 / (segments * (segments**2 - 1))
@@ -1636,7 +1639,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
     moves them alike and one window cannot see it: ``shared_phase_gain`` =
     ``fs^3*sum(w'^2)/(4*pi^2*sum(w)^2)`` (x1.5 for a real record: the line's image carries the
     same phase, whose flat PSD reaches across ``2f``) turns its low-frequency PSD into var(fd) for
-    the target stage, which knows the delay. With ``pedestal`` (a laser declared partly coherent)
+    the target stage, which knows the delay. With ``pedestal`` (the declared laser's linewidth, Hz; 0 for none)
     the pedestal about the strongest line is read too (``pedestal_psd``, :func:`pedestal_phase_psd`:
     the delay the range cannot tell). Returns ``est`` unchanged when no line is separable.
 
