@@ -193,10 +193,9 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
         # (it cannot be measured there), and the wander the lines' width shows; where the lines'
         # local floors held that phase's pedestal, their error from the white floor with it, but
         # never less than theirs
-        shared = dop.shared_phase_gain * phase_psd
-        alone2 = dop.refine_error_hz**2 - dop.shared_overlap_var_hz2
-        own = max(dop.refine_error_hz**2, alone2 + shared) if dop.shared_overlap_var_hz2 > 0 else \
-            dop.refine_error_hz**2 + shared
+        # (with no overlap stated the two simply add)
+        own = max(dop.refine_error_hz**2,
+                  dop.refine_error_hz**2 - dop.shared_overlap_var_hz2 + dop.shared_phase_gain * phase_psd)
         sig_f = math.sqrt(own + dop.wander_hz**2)
     elif dop.refined:
         # the refinement states the white-noise error of every line it used -- the carrier's
@@ -212,8 +211,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
         # it shows more (many bins: no low draw) -- explains what was measured (within
         # SHARED_FLOOR_AGREES); a measured phase far above it keeps its margin
         alone = math.sqrt(max(dop.refine_error_hz**2 - dop.shared_overlap_var_hz2, 0.0))
-        sig_f = max(alone if dop.shared_overlap_var_hz2 > 0 and alone <= SHARED_FLOOR_AGREES * floor
-                    else dop.refine_error_hz, floor)
+        sig_f = max(alone if alone <= SHARED_FLOOR_AGREES * floor else dop.refine_error_hz, floor)
     else:
         inv_var = 0.0
         for fam in families:
