@@ -924,6 +924,47 @@ class TestSmallDoppler:
         assert not est.detected
 
 
+class TestSmallMayPeak:
+    """The joint fit at the scan's peak before the peak's own search (three passes of three trial
+    line sets each, ~20 ms a 1e6-sample frame): moving-target at 2^16 finds its 0.1 m/s mover
+    below the guard, then scans beside it, where the scan's lone line holds the mover's other lines
+    and the fit at the peak is far under :data:`SMALL_MIN_SNR`."""
+
+    def test_a_peak_the_fit_rejects_is_not_searched_and_would_not_be_kept(self, monkeypatch):
+        from mtcw_bench.grid import _scene_variant
+        from mtcw_core.chain import process_frame
+        from mtcw_core.dsp import doppler
+        from mtcw_core.simulate import Simulator
+
+        asked, searched = [], []
+        may, peak = doppler._small_may_peak, doppler._small_peak
+
+        def spy_may(fit, spec, fd0):
+            asked.append((fit, spec, fd0, may(fit, spec, fd0)))
+            return asked[-1][-1]
+
+        def spy_peak(fit, spec, fd0, lo, hi):
+            searched.append(fd0)
+            return peak(fit, spec, fd0, lo, hi)
+
+        monkeypatch.setattr(doppler, "_small_may_peak", spy_may)
+        monkeypatch.setattr(doppler, "_small_peak", spy_peak)
+        sc = _scene_variant("moving-target", 20.0, 2**16)
+        fr = next(iter(Simulator(sc, seed=0).frames(1)))
+        res = process_frame(fr, get_profile("balanced"))
+        truth = fr.truth[0]
+        (p,) = res.targets
+        assert abs(p.velocity_mps - truth.velocity_mps) < 3 * p.velocity_sigma_mps
+        kept = [a for a in asked if a[-1]]
+        dropped = [a for a in asked if not a[-1]]
+        assert kept and dropped  # the mover's own peak, and one beside it
+        assert searched == [a[2] for a in kept]  # only the kept peak's maximum was searched
+        for fit, spec, fd0, _ in dropped:
+            # the search it was spared would have rejected it: its maximum far under the SNR kept
+            snr = peak(fit, spec, fd0, 0.0, np.inf)[5]
+            assert snr[0] < doppler.SMALL_MIN_SNR / doppler.SMALL_SCAN_MARGIN
+
+
 class TestSmallDopplerSimulated:
     """The sub-guard fit on the simulator's records: case 6's scene (1550 nm, 3 tones, 0.65536 GS/s,
     2^16 samples: 10 kHz bins), a 100 kHz laser whose phase noise over the echo delay is the
