@@ -853,33 +853,6 @@ class TestSmallDoppler:
         assert abs(est.fd_hz - fd) <= 5 * est.refine_error_hz and est.refine_error_hz < 0.01 * DF
         assert est.min_detectable_hz == pytest.approx(DF)
 
-    def test_a_white_floor_counts_once(self):
-        """A sub-guard mover in white noise alone (4.3 bins up, 40 seeds): its lines' floors are the
-        white floor, which moves a line's frequency half as much as a phase-noise pedestal would
-        (that lies wholly in the phase quadrature). Counted as a pedestal, the stated error was
-        1.5x the real one (z rms 0.67); counted once where it is the spectrum's white floor, 0.84
-        (what is left: the floor's ring near 0 Hz reads up to 3x the white level in some draws).
-        The rule itself: the floor's part above the white floor counts twice, the rest once."""
-        from mtcw_core.dsp.doppler import PEDESTAL_FACTOR, _line_frequency_var
-
-        fd = 4.3 * DF
-        z = []
-        for seed in range(40):
-            est = self.estimate(real_record(((fd, 1.0, 0.3),), static=0.5, noise=0.03, seed=seed))
-            assert est.detected and est.method == "fit"
-            z.append((est.fd_hz - fd) / est.refine_error_hz)
-        assert 0.75 < np.sqrt(np.mean(np.square(z))) < 1.25 and np.max(np.abs(z)) < 4, z
-
-        class Fit:
-            iq = False
-        s2, curv = np.array([1.0, 1.0, 1.0]), np.array([-2.0, -2.0, -2.0])
-        alone = 2.0 * s2 / -curv  # white noise of a real record: 2*s2/(-E'')
-        np.testing.assert_allclose(_line_frequency_var(Fit, s2, curv), PEDESTAL_FACTOR * alone)
-        np.testing.assert_allclose(_line_frequency_var(Fit, s2, curv, 1.0), alone)
-        np.testing.assert_allclose(_line_frequency_var(Fit, s2, curv, 2.0), alone)  # under the white floor
-        # a quarter of the floor white, three quarters pedestal: 0.25 + 2 * 0.75
-        np.testing.assert_allclose(_line_frequency_var(Fit, s2, curv, 0.25), (0.25 + PEDESTAL_FACTOR * 0.75) * alone)
-
     def test_two_movers_under_one_fitted_line_carry_the_lines_disagreement(self):
         """Two movers 4.0 and 4.8 bins up, one photodiode: fitted as one sub-guard line, whose lines
         disagree in their phase steps; its ``lines_chi2`` must reach the estimate (the target stage

@@ -2569,8 +2569,7 @@ def _small_lines(fit: _SmallFit, fd: float, fm: np.ndarray, dm: np.ndarray, cm: 
     # white noise of per-sample variance s2 (real; total s2 for IQ): var(f) = (2 or 1)*s2/(-E'');
     # the local floor may be the line's own phase-noise pedestal (laser phase over the echo delay,
     # flat near the line), which lies wholly in the phase quadrature: twice white noise's effect
-    white = white_floor(spec, np.concatenate([held_f, [0.0]]))[0] if spec is not None else None
-    var_line = _line_frequency_var(fit, s2[use], curv[use], white)
+    var_line = _line_frequency_var(fit, s2[use], curv[use])
     _, slope = target_lines(fit.tones, fd, fit.iq)
     delta, err, chi2, _ = _combine_lines(np.abs(cm[use]) ** 2, slope[use], d_line[use], var_line)
     if spec is not None:
@@ -2595,20 +2594,11 @@ def _trial_gains(fit: _SmallFit, held_f: np.ndarray, held_d: np.ndarray, freqs: 
     return gains
 
 
-def _line_frequency_var(fit: _SmallFit, s2, curv, white: float | None = None):
+def _line_frequency_var(fit: _SmallFit, s2, curv):
     """A line's frequency variance (Hz^2) from white noise of per-sample variance ``s2`` (real; total
     for IQ) and the fit's energy curvature there (``curv`` < 0, V^2/Hz^2): ``(2 or 1)*s2/(-E'')``,
-    its floor's part above the spectrum's white floor ``white`` (:func:`white_floor`; V^2 per
-    sample) counted :data:`PEDESTAL_FACTOR` times (a pedestal lies wholly in the phase quadrature),
-    or all of it where ``white`` is not given. A floor that is white noise alone counts once: the
-    honesty map's lone mover 6 record bins up at 2^20 samples (a 100 kHz laser, its floor there
-    within the rings' scatter of the white one) stated 1.9x its error in ``fast`` (speed z std 0.53)."""
-    s2 = np.asarray(s2, dtype=float)
-    if white is None or not math.isfinite(white):
-        factor = PEDESTAL_FACTOR
-    else:
-        factor = 1.0 + (PEDESTAL_FACTOR - 1.0) * np.clip(1.0 - white / np.maximum(s2, 1e-300), 0.0, 1.0)
-    return (1.0 if fit.iq else 2.0) * factor * s2 / -curv
+    times :data:`PEDESTAL_FACTOR` (a pedestal's floor lies wholly in the phase quadrature)."""
+    return (1.0 if fit.iq else 2.0) * PEDESTAL_FACTOR * s2 / -curv
 
 
 #: the baseband line's frequency with the static lines let off their exact frequencies must move more
