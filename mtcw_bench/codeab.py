@@ -45,17 +45,21 @@ for _ in range(repeats):
         t0 = time.perf_counter()
         r = process_frame(fr, st)
         total.append((time.perf_counter() - t0) * 1e3)
-        doppler.append(r.stage_seconds.get("doppler", 0.0) * 1e3)
+        doppler.append(r.stage_seconds["doppler"] * 1e3)
 print(json.dumps({"total": total, "doppler": doppler}))
 """
 
 
 def run_tree(tree: Path, scene: str, profile: str, samples: int, frames: int, repeats: int) -> dict[str, list[float]]:
     """Per-frame times (ms) of the chain in ``tree`` (a checkout's root), in a child process."""
-    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     out = subprocess.run([sys.executable, "-c", _CHILD, scene, profile, str(samples), str(frames), str(repeats)],
-                         cwd=tree, env=env, capture_output=True, text=True, check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+                         cwd=tree, env=env, capture_output=True, text=True)
+    lines = out.stdout.strip().splitlines()
+    if out.returncode != 0 or not lines:
+        tail = "\n".join(out.stderr.strip().splitlines()[-8:])
+        raise RuntimeError(f"the chain in {tree} ({scene}, {profile}) failed (exit {out.returncode}):\n{tail}")
+    return json.loads(lines[-1])
 
 
 def summary(times: dict[str, list[float]]) -> str:
@@ -64,16 +68,20 @@ def summary(times: dict[str, list[float]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="python -m mtcw_bench.codeab", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--old", type=Path, required=True, help="root of the older checkout (e.g. a git worktree)")
     ap.add_argument("--new", type=Path, default=Path(__file__).resolve().parents[1], help="root of the newer one (this)")
     ap.add_argument("--scene", default="moving-target")
     ap.add_argument("--profiles", nargs="+", default=["balanced"])
     ap.add_argument("--samples", type=int, default=1_000_000)
-    ap.add_argument("--frames", type=int, default=8, help="frames per run (two more, untimed, warm it)")
+    ap.add_argument("--frames", type=int, default=8, help="frames per run (its first two, run once untimed, warm it)")
     ap.add_argument("--repeats", type=int, default=3, help="passes over the frames per run")
     ap.add_argument("--rounds", type=int, default=3, help="old/new alternations")
     args = ap.parse_args(argv)
+    for name in ("samples", "frames", "repeats", "rounds"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name}: must be at least 1 (got {getattr(args, name)})")
     for tree in (args.old, args.new):
         if not (tree / "mtcw_core" / "chain.py").is_file():
             ap.error(f"--old/--new: {tree} holds no mtcw_core/chain.py")
@@ -81,7 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     for rnd in range(args.rounds):
         for prof in args.profiles:
             for tag, tree in (("old", args.old), ("new", args.new)):
-                times = run_tree(tree, args.scene, prof, args.samples, args.frames, args.repeats)
+                try:
+                    times = run_tree(tree, args.scene, prof, args.samples, args.frames, args.repeats)
+                except RuntimeError as err:
+                    print(f"round {rnd + 1} {tag}: {err}", file=sys.stderr)
+                    return 1
                 print(f"round {rnd + 1} {tag} {args.scene} {prof}: {summary(times)}", flush=True)
     print(f"{time.monotonic() - t0:.0f} s")
     return 0

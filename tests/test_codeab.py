@@ -34,3 +34,18 @@ def test_a_tree_without_the_chain_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         codeab.main(["--old", str(tmp_path)])
     assert "holds no mtcw_core/chain.py" in capsys.readouterr().err
+
+
+def test_a_failing_chain_is_named_with_its_error(capsys):
+    """An unknown scene: the child's own error is shown, and the run exits 1."""
+    assert codeab.main(["--old", str(ROOT), "--scene", "no-such-scene", "--samples", "16384", "--frames", "2",
+                        "--repeats", "1", "--rounds", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "round 1 old" in err and "no-such-scene" in err and "failed" in err
+
+
+@pytest.mark.parametrize("flag", ["--frames", "--repeats", "--rounds", "--samples"])
+def test_counts_below_one_are_refused_by_name(flag, capsys):
+    with pytest.raises(SystemExit):
+        codeab.main(["--old", str(ROOT), flag, "0"])
+    assert f"{flag}: must be at least 1" in capsys.readouterr().err

@@ -1924,7 +1924,8 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     Doppler pairs there. Here the record's own lines are fitted instead, by least squares at their
     exact frequencies (rectangular window, no leakage between modelled lines): a scan of the
     baseband line ``|f_d|`` (``f_d`` for IQ) from :data:`SMALL_MIN_BINS` record bins up to one
-    search bin past the guard; at its peak (a local maximum inside the band), every line of the
+    search bin past the guard; at its peak (a local maximum inside the band, whose joint fit there
+    could keep a mover: :func:`_small_may_peak`), every line of the
     mover -- baseband, ``f_i + f_d``, ``|f_i - f_d|`` -- fitted jointly with the static lines (``f_i``,
     the DC; ``+-f_i`` and 0 Hz for IQ), first all at one trial ``f_d`` (the joint energy's
     maximum), then each line's own frequency with the others held (:func:`_parabola_peaks`). Each
