@@ -578,9 +578,14 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     if static is None:
         return points
     echo = any(f.static_echo for f in families if f.target == 0)
-    return [(k, replace(p, blended=True)) if k and not p.blended and (echo or not _same_range(p, static))
-            and unexplained_sigmas([f for f in families if f.target == k], settings.min_line_snr_db, "cross_v")
-            > UNEXPLAINED_SIGMAS else (k, p) for k, p in points]
+
+    def beaten(k: int, p: TargetPoint) -> bool:
+        if not k or p.blended or not (echo or not _same_range(p, static)):
+            return False
+        own = [f for f in families if f.target == k]
+        return unexplained_sigmas(own, settings.min_line_snr_db, "cross_v") > UNEXPLAINED_SIGMAS
+
+    return [(k, replace(p, blended=True)) if beaten(k, p) else (k, p) for k, p in points]
 
 
 def _same_range(a: TargetPoint, b: TargetPoint) -> bool:
