@@ -215,6 +215,22 @@ def test_exact_dft_is_the_direct_sum_for_any_length(n):
         np.testing.assert_allclose(exact_dft(x, f, 5e9), _direct_dft(x, f, 5e9), rtol=0, atol=1e-10 * np.sqrt(n))
 
 
+@pytest.mark.parametrize("n", [1000, 4097, 2**16 + 3])
+def test_one_line_is_the_direct_sum(n):
+    """A single line (one real record, one row of parts, several rows) takes matrix-vector products
+    instead of the two-column matrix product: the same sums."""
+    rng = np.random.default_rng(n)
+    x = rng.standard_normal(n)
+    for f in ([0.0], [123.4567e6], [-7.3e6]):
+        got = exact_dft(x, f, 5e9)
+        assert got.shape == (1,) and got.dtype == np.complex128
+        np.testing.assert_allclose(got, _direct_dft(x, f, 5e9), rtol=0, atol=1e-10 * np.sqrt(n))
+        rows = x[:3 * (n // 3)].reshape(3, n // 3)
+        np.testing.assert_allclose(exact_dft_parts(rows, f, 5e9)[:, 0],
+                                   [_direct_dft(r, f, 5e9)[0] for r in rows], rtol=0, atol=1e-10 * np.sqrt(n))
+        np.testing.assert_allclose(exact_dft_parts(x[None, :], f, 5e9)[0], got, rtol=1e-13)
+
+
 def test_exact_dft_parts_refers_each_row_to_its_own_centre():
     rng = np.random.default_rng(2)
     parts = rng.standard_normal((4, 2501))
@@ -433,6 +449,17 @@ class TestPartDFTs:
         got = pd(4, f)  # the third line was not read: a second pass, for it alone
         assert len(pd._passes) == 2 and pd._passes[1][0].size == 1
         np.testing.assert_array_less(np.abs(got - self.direct(x, 4, f, FS)) / np.abs(got), 1e-5)
+
+    def test_one_line(self):
+        """A single line's parts (their ends read by matrix-vector products) as the direct sums."""
+        from mtcw_core.dsp.tones import PartDFTs
+
+        x, f = self.record(False)
+        pd = PartDFTs(x, FS, 8.0, max_parts=16)
+        for parts in (4, 9):
+            got, ref = pd(parts, f[2:]), self.direct(x, parts, f[2:], FS)
+            assert got.shape == (parts, 1)
+            np.testing.assert_array_less(np.abs(got - ref) / np.abs(ref), 1e-5)
 
     def test_short_records_are_read_part_by_part(self):
         """Below blocks of PART_MIN_BLOCK samples the parts are summed exactly, one at a time."""
