@@ -305,13 +305,11 @@ def _shared_vars(dops: list[DopplerEstimate], uniq: np.ndarray, z_all: np.ndarra
                  kappa: float, iq: bool) -> dict[int, tuple[float, float, float]]:
     """Per mover (target index >= 1): :func:`shared_pedestal_var` at its carrier line (the baseband
     line ``|f_d|``, ``f_d`` for IQ, fitted with the lines), the white floor (V^2 per sample) and the
-    relative error of the carrier's floor; a mover whose carrier line was not fitted (it clashed with
-    another) is left out. One mover only: beside another, its carrier's ring may hold the other's
-    pedestal, no part of its own lines' (the map's rows of two and three movers, in the band before,
-    went from range z std 0.97-1.03 to 1.15-1.18 with it, largest |z| 2.5 -> 3.3)."""
+    relative error of the carrier's floor; movers whose carrier line was not fitted (it clashed with
+    another) are left out."""
     out: dict[int, tuple[float, float, float]] = {}
     found = [d for d in dops if d.detected]
-    if len(found) != 1:
+    if not found:
         return out
     white = None
     for k, d in enumerate(found, start=1):
