@@ -260,8 +260,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z[:, bad] = 0.0
         zs[target, name] = z
     # every family's local floors in one call (each row is its own line's statistic)
-    s2_all, counts = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
-                                          guard=spec.line_floor_guard(), counts=True)
+    s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
+                                  guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
     sb_bound, cross, still, over_lo, own = None, {}, None, False, False
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
@@ -278,8 +278,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         amp2 = np.maximum(np.mean(np.abs(z) ** 2, axis=0), 1e-300)
         var = kappa * s2_all[first[i]:first[i + 1]] / (n * amp2)
         var[bad] = np.inf
-        indep = _own_part(var, shared[target], counts[first[i]:first[i + 1]], kappa / (n * amp2)) \
-            if target in shared else None
+        # less the shared part, not below the white floor's
+        indep = np.maximum(var - shared[target][0], kappa * shared[target][1] / (n * amp2)) if target in shared else None
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
                               still if target else None, bool(target and over_lo), bool(not target and own),
@@ -287,27 +287,12 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     return out
 
 
-def _own_part(var: np.ndarray, shared: tuple[float, float, float], counts: np.ndarray, per_s2: np.ndarray
-              ) -> np.ndarray:
-    """A mover's lines' phase variances (rad^2, shape (T,)) less the part they share (``shared``:
-    :func:`_shared_vars`' variance, white floor and the carrier floor's relative error), but never
-    below the white floor's (``per_s2`` turns a floor in V^2 per sample into a phase variance) nor
-    below what the difference can resolve: the two floors' medians are each a few percent to 20 %
-    uncertain, so where the shared part is nearly all of a line's floor (100x the white noise: the
-    map's 50 m mover behind a 100 kHz laser), what is left of it is that uncertainty, not the white
-    floor (taken down to it, that mover's range z std went 0.2 -> 2.1)."""
-    c, white, err_c = shared
-    resolve = c * np.hypot(err_c, median_error(counts))
-    return np.maximum(var - c, np.maximum(white * per_s2, resolve))
-
-
 def _shared_vars(dops: list[DopplerEstimate], uniq: np.ndarray, z_all: np.ndarray, spec: Spectrum, n: int,
-                 kappa: float, iq: bool) -> dict[int, tuple[float, float, float]]:
+                 kappa: float, iq: bool) -> dict[int, tuple[float, float]]:
     """Per mover (target index >= 1): :func:`shared_pedestal_var` at its carrier line (the baseband
-    line ``|f_d|``, ``f_d`` for IQ, fitted with the lines), the white floor (V^2 per sample) and the
-    relative error of the carrier's floor; movers whose carrier line was not fitted (it clashed with
-    another) are left out."""
-    out: dict[int, tuple[float, float, float]] = {}
+    line ``|f_d|``, ``f_d`` for IQ, fitted with the lines), and the white floor (V^2 per sample);
+    movers whose carrier line was not fitted (it clashed with another) are left out."""
+    out: dict[int, tuple[float, float]] = {}
     found = [d for d in dops if d.detected]
     if not found:
         return out
@@ -319,14 +304,14 @@ def _shared_vars(dops: list[DopplerEstimate], uniq: np.ndarray, z_all: np.ndarra
             continue
         white = white or white_floor(spec, uniq)
         amp2 = float(np.mean(np.abs(z_all[:, j]) ** 2))
-        c, err = shared_pedestal_var(spec, carrier, amp2, uniq, n, kappa, white)
+        c = shared_pedestal_var(spec, carrier, amp2, uniq, n, kappa, white)
         if c > 0:
-            out[k] = (c, white[0], err)
+            out[k] = (c, white[0])
     return out
 
 
 def shared_pedestal_var(spec: Spectrum, carrier_hz: float, carrier_amp2: float, lines_hz: np.ndarray, n: int,
-                        kappa: float, white: tuple[float, float]) -> tuple[float, float]:
+                        kappa: float, white: tuple[float, float]) -> float:
     """The phase variance (rad^2) a mover's own carrier-phase noise puts into each of its lines'
     ``phase_var``, which every line shares and every pair product cancels.
 
@@ -348,18 +333,14 @@ def shared_pedestal_var(spec: Spectrum, carrier_hz: float, carrier_amp2: float, 
     lines_hz : ndarray, shape (M,), every line fitted (Hz), kept out of the rings
     kappa : 2 for a real record, 0.5 for IQ (:func:`extract_lines`' variance factor)
     white : :func:`~.doppler.white_floor` of ``spec`` between ``lines_hz``
-
-    Returns
-    -------
-    the variance (rad^2; 0 where no pedestal counts) and the relative error of the carrier's floor
     """
     near, count = spec.noise_variances([carrier_hz], lines_hz, guard=spec.line_floor_guard(), counts=True)
-    near, err = float(near[0]), float(median_error(count[0]))
+    near = float(near[0])
     if not (math.isfinite(near) and math.isfinite(white[0])) or carrier_amp2 <= 0:
-        return 0.0, err
-    if near - white[0] <= PEDESTAL_SIGNIFICANCE * white[0] * math.hypot(err, white[1]):
-        return 0.0, err
-    return kappa * (near - white[0]) / (n * carrier_amp2), err
+        return 0.0
+    if near - white[0] <= PEDESTAL_SIGNIFICANCE * white[0] * math.hypot(float(median_error(count[0])), white[1]):
+        return 0.0
+    return kappa * (near - white[0]) / (n * carrier_amp2)
 
 
 def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarray, strongest: int) -> float | None:
