@@ -1760,7 +1760,7 @@ PEDESTAL_RING_ENBW = 2.2
 WHITE_FLOOR_GAPS = 3
 
 
-def median_error(count: np.ndarray | int) -> np.ndarray:
+def _median_error(count: np.ndarray | int) -> np.ndarray:
     """The relative standard error of a median of ``count`` periodogram bins (Kaiser(14))."""
     return 1.44 / np.sqrt(np.maximum(np.asarray(count, dtype=float), 1.0) / PEDESTAL_RING_ENBW)
 
@@ -1781,7 +1781,7 @@ def white_floor(spec: Spectrum, lines_hz: np.ndarray) -> tuple[float, float]:
     floors, count = spec.noise_variances(edges[wide] + gaps[wide] / 2, edges, half_width=SMALL_NEAR_HALF_WIDTH,
                                          guard=SMALL_NEAR_GUARD, counts=True)
     low = int(np.argmin(floors))
-    return float(floors[low]), float(median_error(count[low]))
+    return float(floors[low]), float(_median_error(count[low]))
 
 
 def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, lines_hz: np.ndarray,
@@ -1811,7 +1811,7 @@ def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, line
     if not (math.isfinite(near) and math.isfinite(white)) or line_density <= 0:
         return 0.0
     # under no pedestal the near floor is the white one, with its own median's error
-    if near - white <= PEDESTAL_SIGNIFICANCE * white * math.hypot(float(median_error(count[0])), white_err):
+    if near - white <= PEDESTAL_SIGNIFICANCE * white * math.hypot(float(_median_error(count[0])), white_err):
         return 0.0
     return (near - white) / spec.fs_hz / line_density
 

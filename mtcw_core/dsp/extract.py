@@ -21,8 +21,7 @@ from scipy import signal as sps
 from ..frame import Frame
 from ..profiles import ChainSettings
 from ..results import Rejected
-from .doppler import (MIN_CARRIER_COHERENCE, PEDESTAL_SIGNIFICANCE, DopplerEstimate, doppler_families, fd_max,
-                      median_error, self_beat_bound, white_floor)
+from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
@@ -72,11 +71,6 @@ class LineFamily:
         The static lines on one photodiode beside found movers: they stood mostly above what the
         movers' self-beats' prediction took out of them -- a static echo's own lines, not a
         self-beat left over (:func:`_self_beats`' ``mostly_self``), whatever range they fit.
-    indep_var : ndarray, shape (T,), or None
-        A mover's lines: each line's phase variance (rad^2) less the part every line of the family
-        shares -- the carrier phase's noise, whose pedestal about each line lifts its local floor
-        and which the pair products cancel (:func:`shared_pedestal_var`); never below what the
-        spectrum's white floor gives. None where it is all the line's own (``phase_var``).
     """
 
     name: str
@@ -91,18 +85,11 @@ class LineFamily:
     cross_x: float | None = None
     echo_beats: bool = False
     static_echo: bool = False
-    indep_var: np.ndarray | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
         """Post-integration line SNR, ``1/phase_var`` in dB (``N*A^2/(2*sigma^2)`` for a real tone)."""
         return -10 * np.log10(self.phase_var)
-
-    @property
-    def range_var(self) -> np.ndarray:
-        """The lines' phase variances (rad^2, shape (T,)) for what their pair products give -- the
-        range: ``indep_var`` where measured, else ``phase_var``."""
-        return self.phase_var if self.indep_var is None else self.indep_var
 
 
 
@@ -269,78 +256,17 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                            fams[0][2], x, s2_all[:first[1]])
-    # a mover's own carrier-phase noise: every line of it shares it, the pair products cancel it
-    shared = _shared_vars(dops, uniq, z_all, spec, n, kappa, iq) if (
-        settings.laser_linewidth_hz > 0 and not segmented and settings.extraction != "filter") else {}
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
-        amp2 = np.maximum(np.mean(np.abs(z) ** 2, axis=0), 1e-300)
-        var = kappa * s2_all[first[i]:first[i + 1]] / (n * amp2)
+        amp2 = np.mean(np.abs(z) ** 2, axis=0)
+        s2 = s2_all[first[i]:first[i + 1]]
+        var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
-        # less the shared part, not below the white floor's
-        indep = np.maximum(var - shared[target][0], kappa * shared[target][1] / (n * amp2)) if target in shared else None
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
-                              still if target else None, bool(target and over_lo), bool(not target and own),
-                              indep))
+                              still if target else None, bool(target and over_lo), bool(not target and own)))
     return out
-
-
-def _shared_vars(dops: list[DopplerEstimate], uniq: np.ndarray, z_all: np.ndarray, spec: Spectrum, n: int,
-                 kappa: float, iq: bool) -> dict[int, tuple[float, float]]:
-    """Per mover (target index >= 1): :func:`shared_pedestal_var` at its carrier line (the baseband
-    line ``|f_d|``, ``f_d`` for IQ, fitted with the lines), and the white floor (V^2 per sample);
-    movers whose carrier line was not fitted (it clashed with another) are left out."""
-    out: dict[int, tuple[float, float]] = {}
-    found = [d for d in dops if d.detected]
-    if not found:
-        return out
-    white = None
-    for k, d in enumerate(found, start=1):
-        carrier = d.fd_hz if iq else abs(d.fd_hz)
-        j = int(np.argmin(np.abs(uniq - carrier)))
-        if abs(uniq[j] - carrier) > 1e-3:
-            continue
-        white = white or white_floor(spec, uniq)
-        amp2 = float(np.mean(np.abs(z_all[:, j]) ** 2))
-        c = shared_pedestal_var(spec, carrier, amp2, uniq, n, kappa, white)
-        if c > 0:
-            out[k] = (c, white[0])
-    return out
-
-
-def shared_pedestal_var(spec: Spectrum, carrier_hz: float, carrier_amp2: float, lines_hz: np.ndarray, n: int,
-                        kappa: float, white: tuple[float, float]) -> float:
-    """The phase variance (rad^2) a mover's own carrier-phase noise puts into each of its lines'
-    ``phase_var``, which every line shares and every pair product cancels.
-
-    The laser's phase noise over the echo's delay turns the phase of every line of a mover alike
-    (``+psi`` on ``f_i + f_d``, ``-psi`` on a real record's folded ``f_i - f_d``): a line's
-    least-squares fit takes the record's mean of ``psi`` into its phase, the same for each, and a
-    product of two lines (IF mixing: the range) loses it. But the pedestal it makes about each line,
-    at that line's power times the phase's PSD, lifts the local floor its ``phase_var`` is read
-    from as if it were the line's own noise: by the same amount for every line once expressed as a
-    phase variance (``kappa * pedestal / (n * |A|^2)``, the pedestal proportional to ``|A|^2``).
-    The carrier line -- the LO x echo beat at ``f_d``, 20-30 dB above the sidebands on one
-    photodiode -- shows it: its floor read on the lines' own ring (the same offsets) less the
-    white floor. Counted only where that stands :data:`~.doppler.PEDESTAL_SIGNIFICANCE` standard
-    errors above the white floor (0 otherwise).
-
-    Parameters
-    ----------
-    carrier_hz : the carrier line (Hz); carrier_amp2 : its fitted amplitude squared (V^2)
-    lines_hz : ndarray, shape (M,), every line fitted (Hz), kept out of the rings
-    kappa : 2 for a real record, 0.5 for IQ (:func:`extract_lines`' variance factor)
-    white : :func:`~.doppler.white_floor` of ``spec`` between ``lines_hz``
-    """
-    near, count = spec.noise_variances([carrier_hz], lines_hz, guard=spec.line_floor_guard(), counts=True)
-    near = float(near[0])
-    if not (math.isfinite(near) and math.isfinite(white[0])) or carrier_amp2 <= 0:
-        return 0.0
-    if near - white[0] <= PEDESTAL_SIGNIFICANCE * white[0] * math.hypot(float(median_error(count[0])), white[1]):
-        return 0.0
-    return kappa * (near - white[0]) / (n * carrier_amp2)
 
 
 def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarray, strongest: int) -> float | None:

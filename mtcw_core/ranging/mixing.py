@@ -63,7 +63,7 @@ def pair_observations(
         phase = np.angle(prod) - (rf[i] - rf[j])
         df.append(d)
         ph.append(wrap_pi(phase))
-        w.append(1.0 / (fam.range_var[i] * fam.range_var[j]))  # what each pair's phase carries
+        w.append(1.0 / (fam.phase_var[i] * fam.phase_var[j]))
     if not df:
         return Observations(np.empty(0), np.empty(0), np.empty(0))
     return Observations(np.concatenate(df).astype(float), np.concatenate(ph).astype(float),
@@ -101,7 +101,7 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
         rf = np.array([tone_phases_rad[f] for f in fam.tone_hz])
         model = -2 * np.pi * d * tau_s + (rf[others] - rf[r])
         res = np.angle(prod * np.exp(-1j * model))
-        v, vr = fam.range_var[others], float(fam.range_var[r])  # the shared part cancels in d_i
+        v, vr = fam.phase_var[others], float(fam.phase_var[r])
         if np.all(v > 0):
             # res' (diag(v) + vr*1 1')^-1 res in closed form (Sherman-Morrison): no solve per call
             u = res / v

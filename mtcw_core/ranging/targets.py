@@ -315,31 +315,21 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         sol = resolve_ml(obs, ref.tau0_s, (lo, hi), settings.points_per_cycle)
     ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
     used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
-    # each line's phase variance less what a mover's lines all share (their carrier's phase noise,
-    # which the pair products cancel: ``LineFamily.indep_var``)
-    freqs, variances = [f.tone_hz[m] for f, m in used], [f.range_var[m] for f, m in used]
+    freqs, variances = [f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used]
     sigma = fisher_sigma(freqs, variances)
     # do the line phases agree with one range within their noise, and the tones' declared drift?
-    # (Birge ratio) -- the flags and the cycle-slip odds from the whole variances, as they were read;
-    # the sigma's Birge ratio from those it rests on
+    # (Birge ratio)
     tone_var = settings.tone_phase_sigma_rad ** 2
-    shared = any(f.indep_var is not None for f in fams)
-    cfams = [replace(f, phase_var=f.phase_var + tone_var, indep_var=None) for f in fams] if tone_var or shared else fams
-    tau = ref.tau0_s + 2 * sol.range_m / C
-    chi2, dof = consistency(cfams, ref.tone_phases_rad, tau, settings.min_line_snr_db)
+    cfams = [replace(f, phase_var=f.phase_var + tone_var) for f in fams] if tone_var else fams
+    chi2, dof = consistency(cfams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
     ratio = chi2 / dof if dof > 0 else 1.0
-    chi2_own = chi2
-    if shared:
-        own = [replace(f, phase_var=f.phase_var + tone_var, indep_var=None if f.indep_var is None else f.indep_var + tone_var)
-               for f in fams]
-        chi2_own = consistency(own, ref.tone_phases_rad, tau, settings.min_line_snr_db)[0]
     # known drift of the tone phases since calibration: independent per tone, invisible in one frame
     # (the chi2 counts it: the Birge ratio scales both)
     sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, settings.tone_phase_sigma_rad))
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
     p_fit = chdtrc(dof, chi2) if dof > 0 else 1.0
-    if (chdtrc(dof, chi2_own) if dof > 0 else 1.0) < BIRGE_P:
-        sigma *= math.sqrt(chi2_own / dof)
+    if p_fit < BIRGE_P:
+        sigma *= math.sqrt(ratio)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
