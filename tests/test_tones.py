@@ -217,8 +217,9 @@ def test_exact_dft_is_the_direct_sum_for_any_length(n):
 
 @pytest.mark.parametrize("n", [1000, 4097, 2**16 + 3])
 def test_one_line_is_the_direct_sum(n):
-    """A single line (one real record, one row of parts, several rows) takes matrix-vector products
-    instead of the two-column matrix product: the same sums."""
+    """A single line on one real record (and one row of parts) takes matrix-vector products instead
+    of the two-column matrix product: the same sums as the direct ones, and as several rows' batched
+    product (the 2-D path of the parts' ends: ``TestPartDFTs.test_one_line``)."""
     rng = np.random.default_rng(n)
     x = rng.standard_normal(n)
     for f in ([0.0], [123.4567e6], [-7.3e6]):

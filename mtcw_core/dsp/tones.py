@@ -55,7 +55,9 @@ def phasors(offset: float, count: int, step: np.ndarray) -> np.ndarray:
 def _times_table(a: np.ndarray, table: np.ndarray) -> np.ndarray:
     """``a @ table`` for a complex ``table`` (M, K). A real ``a`` (..., M) meets the table's own
     memory read as real (M, 2K), cosine and sine columns interleaved: the product's rows are then
-    the complex sums themselves (no table copy, no complex copy of ``a``, no recombining)."""
+    the complex sums themselves (no table copy, no complex copy of ``a``, no recombining). One line
+    (K = 1) on a single matrix of rows (2-D ``a``, or 3-D with one batch) takes two matrix-vector
+    products instead: the same sums (to rounding), at memory speed."""
     if np.iscomplexobj(a):
         return a @ table
     real = table.view(np.float64)
