@@ -186,6 +186,9 @@ def test_store_settings_name_their_field(tmp_path):
         load(ApiSettings, store_path=str(tmp_path))
     with pytest.raises(ValueError, match="max_seq_jump: 100 is less than reorder_max"):
         load(ApiSettings, max_seq_jump=100)
+    # "~name" of no such user: pathlib raised RuntimeError (found by test_fuzz's settings fuzzing, "~0")
+    with pytest.raises(ValueError, match=r"store_path: '~no-such-user-0/h\.sqlite3': no home directory to expand"):
+        load(ApiSettings, store_path="~no-such-user-0/h.sqlite3")
     # reorder_max alone past the default jump: the error names reorder_max, the field given (found by
     # test_fuzz's settings fuzzing)
     with pytest.raises(ValueError, match=r"^reorder_max: 100001 is more than max_seq_jump"):
