@@ -265,8 +265,6 @@ class AcquisitionSettings(TransportSettings):
             found = v.exists() or v.with_suffix(".sigmf-meta").exists() or Path(str(v) + ".sigmf-meta").exists()
         except (OSError, ValueError) as err:  # a name too long for the file system, a NUL
             raise ValueError(f"cannot be a file name ({getattr(err, 'strerror', None) or err})") from None
-        except RuntimeError:  # "~name" of no such user (pathlib cannot find that home directory)
-            raise ValueError(f"{v!r}: no home directory to expand {v.split('/')[0]!r} to") from None
         if not found:
             raise ValueError(f"{v} does not exist")
         return v
