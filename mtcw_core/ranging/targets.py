@@ -580,7 +580,9 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     echo = any(f.static_echo for f in families if f.target == 0)
 
     def beaten(k: int, p: TargetPoint) -> bool:
-        if not k or p.blended or not (echo or not _same_range(p, static)):
+        # the static candidate, a point already flagged, and a mover at the static lines' own range
+        # where those lines may be its self-beat left over (no static echo's own lines there)
+        if not k or p.blended or (not echo and _same_range(p, static)):
             return False
         own = [f for f in families if f.target == k]
         return unexplained_sigmas(own, settings.min_line_snr_db, "cross_v") > UNEXPLAINED_SIGMAS
