@@ -305,6 +305,70 @@ class TestPackedRealFFT:
         np.testing.assert_allclose(sp.power, np.abs(np.fft.rfft(x - x.mean())) ** 2, rtol=1e-10)
 
 
+class TestComplexBins:
+    """The complex transform behind the power, referred to the centre of the samples, and the
+    lines' noise rings read from it (:meth:`Spectrum.complex_at`, :meth:`Spectrum.line_rings`)."""
+
+    @pytest.mark.parametrize("n, iq, single", [(2**16, False, False), (2**18, False, False), (2**16 + 1, False, False),
+                                               (2**16, False, True), (4096, True, False), (4097, True, False)])
+    def test_complex_at_is_the_centre_referred_transform(self, n, iq, single):
+        """Packed and unpacked at once (short), packed and lazy (long), odd (scipy's rfft), IQ."""
+        rng = np.random.default_rng(n)
+        x = rng.normal(size=n) + (1j * rng.normal(size=n) if iq else 0.0)
+        sp = power_spectrum(x, FS, single=single)
+        y = (x - x.mean()) * get_window(("kaiser", 14.0), n, fftbins=False)
+        X = np.fft.fftshift(np.fft.fft(y)) if iq else np.fft.rfft(y)
+        k = np.concatenate([[0, X.size - 1], rng.integers(0, X.size, 300)])
+        f = sp.f0_hz + k * sp.df_hz
+        want = X[k] * np.exp(2j * np.pi * f * (n - 1) / (2 * FS))
+        tol = (2e-6 if single else 1e-10) * np.abs(X).max()
+        np.testing.assert_allclose(sp.complex_at(k), want, rtol=0, atol=tol)
+        np.testing.assert_allclose(np.abs(sp.complex_at(k)) ** 2, np.asarray(sp.power)[k], rtol=0,
+                                   atol=tol * np.abs(X).max() * 4)
+
+    def test_a_lines_bin_holds_its_own_phase(self):
+        """Referred to the centre, the symmetric window's response is real: an off-bin line's bin
+        holds the line's phase at the centre of the record (not turned by its fractional bin)."""
+        n, f, p = 2**16, 123.4567e6, 0.7
+        t = np.arange(n) / FS
+        sp = power_spectrum(np.cos(2 * np.pi * f * t + p), FS)
+        at_centre = p + 2 * np.pi * f * (n - 1) / (2 * FS)
+        got = sp.complex_at(sp.bin_of(f))
+        assert abs(np.angle(got * np.exp(-1j * at_centre))) < 1e-6
+
+    def test_no_transform_kept_gives_none(self):
+        sp = power_spectrum(np.random.default_rng(1).normal(size=4096), FS)
+        bare = Spectrum(sp.power, sp.df_hz, sp.f0_hz, sp.window_power, sp.n, False)
+        assert bare.complex_at(np.array([3])) is None
+        assert bare.line_rings(np.array([1e8, 2e8]), np.zeros(2, bool), np.array([1e8, 2e8]), 12, 44) is None
+
+    def test_rings_of_a_carriers_phase_noise_move_a_tones_two_lines_oppositely(self):
+        """IQ: a carrier with broadband phase noise and a tone's two sidebands (the lower one read
+        conjugated, as a mirror line). The carrier's noise at the tone's offset is a pair of
+        phase-modulation sidebands: it moves the two lines' phases oppositely, and white noise
+        does not move them together at all."""
+        rng = np.random.default_rng(7)
+        n, f1 = 2**16, 200e6
+        t = np.arange(n) / FS
+        phi = 3e-3 * rng.normal(size=n)  # broadband phase noise on the carrier
+        am = 1 + 0.1 * np.cos(2 * np.pi * f1 * t)
+        x = np.exp(1j * phi) * am * 10 + 1e-3 * (rng.normal(size=n) + 1j * rng.normal(size=n))
+        sp = power_spectrum(x, FS)
+        lines = np.array([f1, -f1])
+        ring, shift, offset = sp.line_rings(lines, np.array([False, True]), np.array([0.0, f1, -f1]), 12, 44)
+        assert ring.shape[1] == 2 and 48 <= ring.shape[0] <= 64 and shift.shape == (2,)
+        assert offset.shape == (ring.shape[0],) and np.all((np.abs(offset) > 12) & (np.abs(offset) <= 44))
+        coh = np.real(np.vdot(ring[:, 1], ring[:, 0])) / np.sqrt(np.vdot(ring[:, 0], ring[:, 0]).real
+                                                                  * np.vdot(ring[:, 1], ring[:, 1]).real)
+        assert coh < -0.9
+        # white noise alone: the two lines' rings are not coherent
+        sp = power_spectrum(am * 10 + 1e-1 * (rng.normal(size=n) + 1j * rng.normal(size=n)), FS)
+        ring, _, _ = sp.line_rings(lines, np.array([False, True]), np.array([0.0, f1, -f1]), 12, 44)
+        coh = np.real(np.vdot(ring[:, 1], ring[:, 0])) / np.sqrt(np.vdot(ring[:, 0], ring[:, 0]).real
+                                                                  * np.vdot(ring[:, 1], ring[:, 1]).real)
+        assert abs(coh) < 0.35
+
+
 class TestPackedPower:
     """The spectrum unpacked where read: every read gives the numbers of ``|rfft|^2`` there, the
     same whatever was read before, and the search reads a part of it only."""

@@ -1,7 +1,8 @@
 """Stage ``spectrum``: the windowed power spectrum, its local noise floor and line widths.
 
-The spectrum serves the Doppler search (``doppler``) and the lines' noise floors (``extract``);
-no phase is ever taken from it (the line fits are float64 exact DFTs, :mod:`.tones`).
+The spectrum serves the Doppler search (``doppler``) and the lines' noise floors (``extract``):
+their size, and how the noise about several lines moves together (:meth:`Spectrum.line_rings`).
+No line's phase is ever taken from it (the line fits are float64 exact DFTs, :mod:`.tones`).
 """
 
 from __future__ import annotations
@@ -99,6 +100,8 @@ def fft_backend() -> str:
 
 #: the noise floor's ring around a line, in bins of the whole record (:meth:`Spectrum.floor_half_width`)
 FLOOR_HALF_WIDTH_RECORD_BINS = 256
+#: :meth:`Spectrum.line_rings` wants at least this many offsets every line keeps
+RING_MIN_BINS = 24
 #: the bins an extracted line's floor keeps clear of every line, in bins of the whole record
 #: (:meth:`Spectrum.line_floor_guard`) ...
 LINE_FLOOR_GUARD_RECORD_BINS = 12
@@ -134,6 +137,10 @@ class Spectrum:
         Samples of the record this spectrum is the first part of (``fast`` transforms an eighth);
         None: the spectrum is of the whole record. The noise floor's ring is set in the record's
         bins (:data:`FLOOR_HALF_WIDTH_RECORD_BINS`), so it spans the same band in Hz either way.
+    bins : ndarray, PackedPower or None
+        The complex transform whose ``|X|^2`` is ``power`` (:meth:`complex_at` reads it), or None.
+    window : tuple or str or None
+        The window's :func:`scipy.signal.get_window` spec, or None (not known).
     """
 
     power: np.ndarray | PackedPower
@@ -148,6 +155,11 @@ class Spectrum:
     #: bins standing out of their floor, for the static lines' self-beat bound), keyed by what it
     #: was computed for
     memo: dict = field(default_factory=dict, repr=False, compare=False)
+    #: the complex transform behind ``power`` (:meth:`complex_at`): the whole of it (complex input,
+    #: a real transform not packed), or the :class:`PackedPower` that unpacks it; None: not kept
+    bins: np.ndarray | PackedPower | None = field(default=None, repr=False, compare=False)
+    #: the window the samples were weighted by (a :func:`scipy.signal.get_window` spec), or None
+    window: tuple | str | None = None
 
     @property
     def fs_hz(self) -> float:
@@ -234,6 +246,68 @@ class Spectrum:
         """
         return float(self.noise_variances([f_hz], exclude_hz, half_width, guard)[0])
 
+    def complex_at(self, idx: np.ndarray) -> np.ndarray | None:
+        """The complex transform at bins ``idx`` (any integer shape), each referred to the centre of
+        the samples transformed, ``X[k]*exp(2j*pi*f_k*(n - 1)/(2*fs))``: the symmetric window's
+        response is then real, so a line's bin holds the line's own phase and two bins a fraction
+        apart are not turned against each other. None where the transform was not kept.
+        """
+        k = np.asarray(idx, dtype=np.int64)
+        if self.bins is None:
+            return None
+        x = self.bins.complex_at(k) if isinstance(self.bins, PackedPower) else self.bins[k].astype(np.complex128)
+        if x is None:
+            return None
+        # f_k/fs = (k + k0)/n with k0 = f0/df an integer (0 real; -n/2 or -(n-1)/2 fftshifted);
+        # the angle from integers modulo its period 2n
+        k0 = int(round(self.f0_hz / self.df_hz))
+        return x * np.exp(1j * np.pi * (((k + k0) * (self.n - 1)) % (2 * self.n)) / self.n)
+
+    def line_rings(self, f_hz: np.ndarray, mirror: np.ndarray, exclude_hz: np.ndarray, guard: int,
+                   half_width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The noise about several lines at the offsets they share, turned into each line's frame:
+        shape (W, L) complex, with each line's misalignment, shape (L,), and the rows' offsets
+        (bins, shape (W,)); or None (no complex transform or window kept, or fewer than
+        :data:`RING_MIN_BINS` shared offsets).
+
+        Each line's ring is :meth:`ring`'s (``+-half_width`` bins less those within ``guard`` of
+        every frequency of ``exclude_hz``), at offsets every line keeps; a ``mirror``
+        line (its amplitude conjugated, as a line folded through 0 Hz is) is read at the opposite
+        offsets and conjugated, so that row ``w`` holds every line's noise at one offset of the
+        underlying process. Each column is turned by its line's own phase (its bin, centre-referred):
+        the imaginary part moves the line's phase, the real part its size.
+
+        A line lies a fraction of a bin off its bin, so one row's bins stand at offsets from their
+        lines that differ by up to a bin: the window then correlates them less than the process
+        does, ``exp(-(s_i - s_j)^2)`` times (the window's coherence over ``d`` bins,
+        :func:`window_coherence_scale` ``a``: ``exp(-a*d^2)``), where ``s`` (the second array) is
+        each line's offset from its bins in the direction its ring runs, times ``sqrt(a)``.
+
+        Parameters
+        ----------
+        f_hz : ndarray, shape (L,), Hz, as the spectrum holds them (signed for complex input)
+        mirror : ndarray of bool, shape (L,)
+        exclude_hz : ndarray, Hz: every line the record holds
+        guard, half_width : int, bins
+        """
+        f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+        mir = np.asarray(mirror, bool)[:, None]
+        idx, keep = self.ring(f, exclude_hz, half_width, guard)
+        idx, keep = np.where(mir, idx[:, ::-1], idx), np.where(mir, keep[:, ::-1], keep)
+        shared = keep.all(axis=0)
+        if int(shared.sum()) < RING_MIN_BINS or self.bins is None or self.window is None:
+            return None
+        vals = self.complex_at(np.concatenate([idx[:, shared], self.bin_of(f)[:, None]], axis=1))  # (L, W + 1)
+        if vals is None:
+            return None
+        vals = np.where(mir, np.conj(vals), vals)
+        line = vals[:, -1]
+        turn = np.where(np.abs(line) > 0, np.conj(line) / np.maximum(np.abs(line), 1e-300), 1.0)
+        # row w's bin is (w's offset) + (bin - f/df) from the line, read backward for a mirror line
+        off = (self.bin_of(f) - (f - self.f0_hz) / self.df_hz) * np.where(mir[:, 0], -1.0, 1.0)
+        return ((vals[:, :-1] * turn[:, None]).T, off * math.sqrt(window_coherence_scale(self.window, self.n)),
+                np.arange(-half_width, half_width + 1)[shared])
+
 
 @lru_cache(maxsize=8)
 def cached_window(window: tuple | str, m: int, dtype: str = "float64") -> np.ndarray:
@@ -262,6 +336,17 @@ def window_sum(window: tuple | str, m: int, dtype: str = "float64") -> float:
 def window_power(window: tuple | str, m: int) -> float:
     """``sum(w^2)`` of :func:`cached_window` (cached)."""
     return float(np.sum(cached_window(window, m) ** 2))
+
+
+@lru_cache(maxsize=16)
+def window_coherence_scale(window: tuple | str, m: int) -> float:
+    """``a`` of ``exp(-a*d^2)``, the coherence of white noise's two bins ``d`` bins apart after this
+    window (centre-referred: real), fitted at ``d = 1/2``: ``sum(w^2*cos(pi*t))/sum(w^2)`` with
+    ``t = (n - (m-1)/2)/m``. Kaiser(14): 0.173 (coherence 0.958 at half a bin, 0.841 at one bin, both
+    within 1e-3 of the window's own)."""
+    w2 = cached_window(window, m) ** 2
+    t = (np.arange(m) - (m - 1) / 2) / m
+    return float(-np.log(np.sum(w2 * np.cos(np.pi * t)) / np.sum(w2)) / 0.25)
 
 
 @lru_cache(maxsize=4)
@@ -296,6 +381,9 @@ class PackedPower:
     ----------
     packed : ndarray, shape (h,), complex64 or complex128: the FFT of the record's pairs; kept
         (not copied), and written only when every bin is unpacked in one go (it is then released)
+    keep : bool
+        Never write or release the packed FFT: :meth:`complex_at` reads it after every bin is
+        unpacked (the whole unpacking then costs one more buffer of ``h`` complex)
 
     Memory: the packed FFT (``m/2`` complex) is held with the ``m/2 + 1`` output bins until the
     spectrum is dropped (a 1e6-sample single-precision spectrum: 4 + 2 MB, where the unpacked
@@ -307,8 +395,9 @@ class PackedPower:
     #: runs of at least this many bins are unpacked each on its own, shorter ones batched
     LONG_RUN = 8 * BLOCK
 
-    def __init__(self, packed: np.ndarray):
+    def __init__(self, packed: np.ndarray, keep: bool = False):
         self._z = packed
+        self._keep = keep
         self._h = h = packed.size
         self.dtype = packed.real.dtype
         self.shape = (h + 1,)
@@ -356,7 +445,7 @@ class PackedPower:
             o += b - a
         np.conjugate(even, out=even)
         even += zk  # Z + conj(Z[-k])
-        whole = nyquist_too and len(parts) == 1 and parts[0] == (0, h)
+        whole = nyquist_too and len(parts) == 1 and parts[0] == (0, h) and not self._keep
         if whole:  # every bin at once: Z is not read again, so work in its buffer
             odd = zk
             odd *= 2
@@ -459,6 +548,18 @@ class PackedPower:
             self._ensure_blocks(need)
         return self._out[idx]
 
+    def complex_at(self, idx: np.ndarray) -> np.ndarray | None:
+        """``rfft(y)[idx]`` itself, complex128, shape of ``idx`` (bins ``0..h``), from the packed FFT
+        by the split above; None once the packed FFT was released (every bin unpacked in its buffer)."""
+        z, h = self._z, self._h
+        if z is None:
+            return None
+        k = np.asarray(idx, dtype=np.int64)
+        zk = z[k % h].astype(np.complex128)
+        zr = np.conj(z[(-k) % h]).astype(np.complex128)
+        tw = np.exp(-1j * np.pi * (k % (2 * h)) / h)  # W^k, W = exp(-2j*pi/m), m = 2h; angle from the integer
+        return ((zk + zr) - 1j * tw * (zk - zr)) / 2
+
     def unpack_all(self) -> np.ndarray:
         """Every bin, unpacked in one pass in the FFT's own buffer (read-only view of the store)."""
         if not self._done.any():
@@ -499,7 +600,7 @@ def real_power(y: np.ndarray) -> np.ndarray:
     return np.array(real_power_packed(y))
 
 
-def real_power_packed(y: np.ndarray) -> PackedPower:
+def real_power_packed(y: np.ndarray, keep: bool = False) -> PackedPower:
     """``|rfft(y)|^2`` of a real record of even length ``m`` as a :class:`PackedPower`: one complex
     FFT of half the length, unpacked where read.
 
@@ -507,9 +608,10 @@ def real_power_packed(y: np.ndarray) -> PackedPower:
     ----------
     y : ndarray, shape (m,), float32 or float64, C-contiguous, m even; overwritten (the pairs
         ``(y[2k], y[2k+1])`` are taken as one complex sample, a view, and transformed in place)
+    keep : bool, :class:`PackedPower`'s
     """
     return PackedPower(scipy.fft.fft(y.view(np.complex64 if y.dtype == np.float32 else np.complex128),
-                                     overwrite_x=True))
+                                     overwrite_x=True), keep)
 
 
 #: records at least this long keep their spectrum packed (:class:`PackedPower`, unpacked where
@@ -551,16 +653,16 @@ def power_spectrum(x: np.ndarray, fs_hz: float, window: tuple | str = ("kaiser",
         f0 = -fs_hz / 2 if m % 2 == 0 else -fs_hz / 2 + fs_hz / (2 * m)
         p = (X.real**2 + X.imag**2)
         # complex noise: E|X|^2 = s2_total * sum(w^2); keep the per-quadrature convention
-        return Spectrum(p, fs_hz / m, f0, wp, m, True, complex(total))
+        return Spectrum(p, fs_hz / m, f0, wp, m, True, complex(total), bins=X, window=win)
     if m % 2 == 0 and _fft_backend == "pocketfft":  # FFTW's own real transform is faster than the packing
-        p = real_power_packed(y)
+        p = bins = real_power_packed(y, keep=m < LAZY_MIN_SAMPLES)
         if m < LAZY_MIN_SAMPLES:
             p = p.unpack_all()  # short: unpacking it all costs less than reading it block by block
     else:
-        X = scipy.fft.rfft(y, overwrite_x=True)
+        X = bins = scipy.fft.rfft(y, overwrite_x=True)
         p = X.real**2 + X.imag**2
     # real noise of variance s2: E|X|^2 = s2 * sum(w^2)
-    return Spectrum(p, fs_hz / m, 0.0, wp, m, False, float(total))
+    return Spectrum(p, fs_hz / m, 0.0, wp, m, False, float(total), bins=bins, window=win)
 
 
 def local_floor(power: np.ndarray, inner: int = 8, outer: int = 48, mirror_dc: bool = False,
