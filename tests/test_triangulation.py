@@ -8,9 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from mtcw_core.dsp.extract import NoiseRing
 from mtcw_core.phase import C, wrap_pi
-from mtcw_core.ranging.triangulation import (Observations, _newton_polish, cost, fisher_sigma, grid_cost, resolve_ml,
-                                             resolve_seed, tone_phase_sigma, unambiguous_range)
+from mtcw_core.ranging.triangulation import (Observations, _newton_polish, cost, fisher_sigma, grid_cost, range_sigma,
+                                             resolve_ml, resolve_seed, tone_phase_sigma, unambiguous_range)
 
 TONES = np.array([100e6, 170e6, 260e6])
 PAIRS = [(i, j) for i, j in itertools.combinations(range(3), 2)]
@@ -137,6 +138,140 @@ class TestFisherSigma:
         """The common phase per family absorbs a common frequency shift (a Doppler family)."""
         f, v = TONES, np.array([1e-4, 3e-4, 2e-4])
         assert fisher_sigma([f + 5e6], [v]) == pytest.approx(fisher_sigma([f], [v]), rel=1e-9)
+
+
+def _circular(rng, shape) -> np.ndarray:
+    """Circular complex normal samples of unit mean power."""
+    return (rng.normal(size=shape) + 1j * rng.normal(size=shape)) / math.sqrt(2)
+
+
+def _rings(rows_by_family, shifts=None, near=None):
+    """NoiseRings of the families' rows (every row near, no shift unless given)."""
+    w = rows_by_family[0].shape[0]
+    near = np.ones(w, bool) if near is None else near
+    shifts = shifts or [np.zeros(r.shape[1]) for r in rows_by_family]
+    return [NoiseRing(r, sh, near) for r, sh in zip(rows_by_family, shifts)]
+
+
+def _pair_estimator_weights(freqs_by_family, var_by_family) -> np.ndarray:
+    """The range (m) the pair estimator weighted 1/(v_i v_j) puts on each line's phase, written out
+    from its normal equation: L = sum over pairs w_ij (k_i - k_j)(phi_i - phi_j) / sum w_ij (k_i - k_j)^2."""
+    num_rows, den = [], 0.0
+    for f, v in zip(freqs_by_family, var_by_family):
+        k = 4 * np.pi * f / C
+        row = np.zeros(f.size)
+        for i, j in itertools.combinations(range(f.size), 2):
+            w = 1 / (v[i] * v[j])
+            row[i] += w * (k[i] - k[j])
+            row[j] -= w * (k[i] - k[j])
+            den += w * (k[i] - k[j]) ** 2
+        num_rows.append(row)
+    return np.concatenate(num_rows) / den
+
+
+class TestRangeSigma:
+    """The pair estimator's own variance from the lines' noise rings (:func:`range_sigma`)."""
+
+    V = np.array([1e-4, 3e-4, 2e-4])
+
+    def test_independent_noise_gives_the_bound(self):
+        """White noise, independent line to line: the estimator's variance is the bound's."""
+        rng = np.random.default_rng(1)
+        rings = [_circular(rng, (20000, 3)) * np.sqrt(self.V) for _ in range(2)]
+        got = range_sigma([TONES, TONES], [self.V, self.V], _rings(rings))
+        assert got == pytest.approx(fisher_sigma([TONES, TONES], [self.V, self.V]), rel=0.03)
+
+    def test_without_rings_it_is_the_bound_for_families_alike(self):
+        assert range_sigma([TONES], [self.V], [None]) == pytest.approx(fisher_sigma([TONES], [self.V]),
+                                                                               rel=1e-12)
+        assert range_sigma([TONES, TONES + 5e6], [self.V, self.V], [None, None]) == pytest.approx(
+            fisher_sigma([TONES, TONES], [self.V, self.V]), rel=1e-9)
+
+    def test_families_unalike_weigh_as_the_pairs_do_not_as_the_bound(self):
+        """A family 4x noisier: its pairs weigh 1/16 as much, where the bound weighs it 1/4; the
+        estimator's variance (independent noise) is then above the bound, and is what is reported."""
+        g = _pair_estimator_weights([TONES, TONES], [self.V, 4 * self.V])
+        want = math.sqrt(np.sum(g**2 * np.concatenate([self.V, 4 * self.V])))
+        got = range_sigma([TONES, TONES], [self.V, 4 * self.V], [None, None])
+        assert got == pytest.approx(want, rel=1e-9)
+        assert got > 1.02 * fisher_sigma([TONES, TONES], [self.V, 4 * self.V])
+
+    def test_noise_that_turns_a_family_alike_cancels(self):
+        """The carrier's own phase noise turns every line of a family by one angle: the pair
+        phases cancel it, so only the small white part is left (not the ring's whole floor)."""
+        rng = np.random.default_rng(2)
+        white = self.V / 100
+        v = 1e-4 + white  # each line's floor: mostly the common turn
+        rings = [_circular(rng, (20000, 1)) * 1e-2 + _circular(rng, (20000, 3)) * np.sqrt(white)]
+        g = _pair_estimator_weights([TONES], [v])
+        want = math.sqrt(np.sum(g**2 * white))
+        assert range_sigma([TONES], [v], _rings(rings)) == pytest.approx(want, rel=0.05)
+        assert want < 0.2 * fisher_sigma([TONES], [v])
+
+    def test_a_tones_upper_and_lower_lines_moved_oppositely_cancel_in_their_mean(self):
+        """The carrier's noise at a tone's offset moves the upper line's phase one way and the
+        (conjugated) lower line's the other: the two families' ranges err oppositely."""
+        rng = np.random.default_rng(3)
+        pm = _circular(rng, (20000, 3)) * np.sqrt(self.V)
+        white_u, white_l = (_circular(rng, (20000, 3)) * np.sqrt(self.V / 100) for _ in range(2))
+        got = range_sigma([TONES, TONES], [self.V, self.V], _rings([pm + white_u, -pm + white_l]))
+        bound = fisher_sigma([TONES, TONES], [self.V, self.V])
+        assert got == pytest.approx(bound * 0.1, rel=0.05)
+
+    def test_noise_that_moves_the_lines_like_a_range_shift_is_counted_in_full(self):
+        """One phasor moving each line's phase in proportion to its weight (a neighbour's pedestal
+        turned by its own tone phases can): the range error is its projection, far above the
+        bound."""
+        rng = np.random.default_rng(4)
+        shape = np.array([1.0, -0.2, -0.8])
+        rings = [_circular(rng, (20000, 1)) * shape * 0.05 + _circular(rng, (20000, 3)) * np.sqrt(self.V / 100)]
+        g = _pair_estimator_weights([TONES], [self.V])
+        want = math.sqrt((g @ (shape * 0.05)) ** 2 + np.sum(g**2 * self.V / 100))
+        assert range_sigma([TONES], [self.V], _rings(rings)) == pytest.approx(want, rel=0.03)
+        assert want > 3 * fisher_sigma([TONES], [self.V])
+
+    def test_rows_a_fraction_of_a_bin_apart_are_taken_as_the_window_decorrelated_them(self):
+        """Two lines whose rows stand half a bin apart in offset: the window keeps their noise
+        exp(-(s_i - s_j)^2) as coherent; the coherence read is scaled back up by that."""
+        rng = np.random.default_rng(5)
+        f, v = TONES[:2], np.array([1e-4, 1e-4])
+        shift = np.array([0.0, 0.2])
+        keep = math.exp(-0.04)
+        c = _circular(rng, (40000, 1))
+        rings = [np.concatenate([c, keep * c + math.sqrt(1 - keep**2) * _circular(rng, (40000, 1))], axis=1)
+                 * 1e-2]
+        # the lines' noise is in truth one phasor (common to the family: cancelled); read as the
+        # window left it, 4 % of its variance would seem to move the range (0.2 of the bound)
+        got = range_sigma([f], [v], _rings(rings, [shift]))
+        assert got < 0.1 * fisher_sigma([f], [v])
+        assert range_sigma([f], [v], _rings(rings)) > 0.15 * fisher_sigma([f], [v])
+
+    def test_a_floor_rising_toward_the_lines_is_read_where_it_is_highest(self):
+        """A neighbour's pedestal: in the rows nearest the lines, noise 9x the far rows' that moves
+        the lines together like a range shift. The whole ring's mean reads it diluted; the near
+        rows read it whole, and the larger is taken."""
+        rng = np.random.default_rng(8)
+        shape = np.array([1.0, -0.2, -0.8]) * 0.02
+        near = np.zeros(2000, bool)
+        near[:200] = True
+        rows = _circular(rng, (2000, 3)) * np.sqrt(self.V)
+        rows[near] += _circular(rng, (200, 1)) * shape * 3
+        g = _pair_estimator_weights([TONES], [self.V])
+        want = math.sqrt(np.sum(g**2 * self.V) + (g @ shape * 3) ** 2)
+        got = range_sigma([TONES], [self.V], _rings([rows], near=near))
+        assert got == pytest.approx(want, rel=0.1)
+        assert range_sigma([TONES], [self.V], _rings([rows])) < 0.7 * want  # the whole ring alone
+
+    def test_the_weights_are_the_pair_estimators(self):
+        """The weights range_sigma projects on are the 1/(v_i v_j) pair estimator's (its normal
+        equation written out): one line's noise alone gives that line's weight times its sigma."""
+        rng = np.random.default_rng(6)
+        g = _pair_estimator_weights([TONES, TONES], [self.V, 2 * self.V])
+        for line in range(6):
+            noise = np.zeros((20000, 6), complex)
+            noise[:, line] = _circular(rng, 20000) * 0.01
+            got = range_sigma([TONES, TONES], [self.V, 2 * self.V], _rings([noise[:, :3], noise[:, 3:]]))
+            assert got == pytest.approx(abs(g[line]) * 0.01, rel=0.03)
 
 
 class TestTonePhaseSigma:

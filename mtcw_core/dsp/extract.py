@@ -12,7 +12,7 @@ resample + band-pass ``filtfilt`` + correlation path (:func:`seed_extract`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -24,6 +24,37 @@ from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
+
+
+@dataclass(frozen=True)
+class NoiseRing:
+    """The search spectrum's noise about a family's lines, at offsets shared by every usable line
+    of its target's families (their rows line up), mirrored and conjugated as the lines' ``z`` is
+    and turned into each line's frame (:meth:`~.spectrum.Spectrum.line_rings`): how the lines'
+    noise moves together. The carrier's own phase noise turns every line alike; at a tone's offset
+    it moves that tone's upper and lower lines' phases oppositely; a strong echo's pedestal a few
+    MHz off moves them together like a range shift.
+
+    Attributes
+    ----------
+    rows : ndarray, shape (W, T), complex
+        In phase units (rad): the mean over rows of ``|rows[:, i]|^2`` is line i's phase variance
+        from the floor there. Unusable lines' columns are 0.
+    shift : ndarray, shape (T,)
+        Each line's offset from its rows' bins, scaled so that the window leaves two lines' rows
+        ``exp(-(shift_i - shift_j)^2)`` as coherent as their noise is.
+    near : ndarray of bool, shape (W,)
+        The rows within :data:`RING_NEAR_BINS` beyond the guard: a floor rising toward the line
+        (a strong neighbour's pedestal) is read there at the line's own level.
+    """
+
+    rows: np.ndarray
+    shift: np.ndarray
+    near: np.ndarray
+
+    def columns(self, use: np.ndarray) -> NoiseRing:
+        """The ring of the lines ``use`` picks (a mask or indices, over T)."""
+        return NoiseRing(self.rows[:, use], self.shift[use], self.near)
 
 
 @dataclass
@@ -71,6 +102,9 @@ class LineFamily:
         The static lines on one photodiode beside found movers: they stood mostly above what the
         movers' self-beats' prediction took out of them -- a static echo's own lines, not a
         self-beat left over (:func:`_self_beats`' ``mostly_self``), whatever range they fit.
+    ring : NoiseRing or None
+        The noise about the lines, read together with the target's other families'
+        (:class:`NoiseRing`); None where not read.
     """
 
     name: str
@@ -85,6 +119,7 @@ class LineFamily:
     cross_x: float | None = None
     echo_beats: bool = False
     static_echo: bool = False
+    ring: NoiseRing | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -256,6 +291,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                            fams[0][2], x, s2_all[:first[1]])
+    rings = _target_rings(spec, fams, uniq)
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -263,9 +299,47 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         s2 = s2_all[first[i]:first[i + 1]]
         var = kappa * s2 / (n * np.maximum(amp2, 1e-300))
         var[bad] = np.inf
+        ring = rings[i]
+        if ring is not None:  # in phase units: the mean of |rows|^2 is the floor's phase variance
+            ring = replace(ring, rows=ring.rows * np.sqrt(kappa / (n * np.maximum(amp2, 1e-300) * spec.window_power)))
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
-                              still if target else None, bool(target and over_lo), bool(not target and own)))
+                              still if target else None, bool(target and over_lo), bool(not target and own),
+                              ring))
+    return out
+
+
+#: :attr:`NoiseRing.near`: the rows this many of the spectrum's bins beyond each line's guard, on
+#: either side -- near enough that a floor rising toward the line or a neighbour (the pedestal of a
+#: strong echo's line a few MHz off) is read at the line's own level, not the ring's median
+RING_NEAR_BINS = 32
+
+
+def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
+                  uniq: np.ndarray) -> list[NoiseRing | None]:
+    """Each planned family's :attr:`LineFamily.ring` (not yet in phase units): its target's usable
+    lines read together (one set of offsets per target, the noise floor's ring), split back per
+    family with 0 in unusable lines' columns."""
+    out: list[NoiseRing | None] = [None] * len(fams)
+    guard = spec.line_floor_guard()
+    for t in sorted({f[0] for f in fams}):
+        mine = [i for i, f in enumerate(fams) if f[0] == t]
+        good = [~np.asarray(fams[i][4], bool) for i in mine]
+        f = np.concatenate([fams[i][2][g] for i, g in zip(mine, good)])
+        mirror = np.concatenate([np.asarray(fams[i][3], bool)[g] for i, g in zip(mine, good)])
+        if f.size < 2:
+            continue
+        got = spec.line_rings(f, mirror, uniq, guard, spec.floor_half_width(guard))
+        if got is None:
+            continue
+        rows, shift, offset = got
+        near = np.abs(offset) <= guard + RING_NEAR_BINS
+        o = 0
+        for i, g in zip(mine, good):
+            r, sh = np.zeros((rows.shape[0], g.size), complex), np.zeros(g.size)
+            r[:, g], sh[g] = rows[:, o:o + int(g.sum())], shift[o:o + int(g.sum())]
+            out[i] = NoiseRing(r, sh, near)
+            o += int(g.sum())
     return out
 
 

@@ -28,7 +28,7 @@ from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
 from .mixing import consistency
-from .triangulation import (Observations, RangeSolution, fisher_sigma, resolve_ml, resolve_seed, tone_phase_sigma,
+from .triangulation import (Observations, RangeSolution, range_sigma, resolve_ml, resolve_seed, tone_phase_sigma,
                             unambiguous_range)
 
 
@@ -316,7 +316,9 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
     used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
     freqs, variances = [f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used]
-    sigma = fisher_sigma(freqs, variances)
+    # the pair estimator's own variance where the lines' noise moves together (the laser's phase
+    # noise about them); the bound where it does not
+    sigma = range_sigma(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
     # do the line phases agree with one range within their noise, and the tones' declared drift?
     # (Birge ratio)
     tone_var = settings.tone_phase_sigma_rad ** 2

@@ -14,11 +14,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ..phase import C, unambiguous_range, wrap_pi
+
+if TYPE_CHECKING:  # the lines' noise rings, read in the extract stage (which imports this module's users)
+    from ..dsp.extract import NoiseRing
 
 
 @dataclass(frozen=True)
@@ -291,3 +295,69 @@ def fisher_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarr
         w = 1 / v
         info += float(np.sum(w * k**2) - np.sum(w * k) ** 2 / np.sum(w))
     return 1 / math.sqrt(info) if info > 0 else math.inf
+
+
+def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray],
+                rings_by_family: list[NoiseRing | None]) -> float:
+    """Range sigma (m) of the pair estimator (:func:`resolve_ml`) where the lines' noise moves together.
+
+    The pair phases weighted ``1/(v_i*v_j)`` put the range at ``sum_i g_i*phi_i`` with, per family,
+    ``g_i = S_F*(k_i - kbar_F)/(v_i*sum_F S_F*I_F)`` (``kbar_F`` the family's ``1/v``-weighted mean
+    of ``k = 4*pi*f/c``, ``S_F = sum 1/v`` over its lines, ``I_F`` its information, as in
+    :func:`fisher_sigma`): with independent noise its variance is the bound's where the families'
+    ``S_F`` are alike, and more where they are not (the pairs weigh the quieter family ``S_F``
+    times more than the bound would). The lines' noise is not independent where the laser's phase
+    noise dominates the floor: the carrier's own noise turns every line of a family alike (``g``
+    sums to 0 in each: it cancels), and the carrier's noise at a tone's offset moves that tone's
+    upper and lower lines' phases oppositely (it cancels in their mean, which the two families
+    weigh alike). The variance is then ``g' Cphi g``, ``Cphi`` the lines' phase covariance read
+    from their noise rings (:attr:`~mtcw_core.dsp.extract.LineFamily.ring`: one row per offset,
+    each line's column in its own frame and in phase units, so that ``Cphi = Re(ring' conj(ring))/W``
+    where the noise is circular), each pair's coherence scaled back up by what the window took
+    from rows a fraction of a bin apart (``NoiseRing.shift``). Read from W offsets, ``g' Cphi g``
+    has W's scatter: it is kept above ``1/W`` of its value were the noise independent (how far a
+    cancellation can be read from W offsets). It is read twice, over the whole ring (the noise
+    floor's +-256 record bins: many rows, little scatter) and over its rows nearest the lines
+    (``NoiseRing.near``: where a floor rises toward the line, the pedestal of a strong echo's line
+    a few MHz off, the whole ring reads it low), and the larger is taken. Without rings the noise is taken as independent:
+    ``Cphi = diag(v)``.
+
+    Parameters
+    ----------
+    freqs_by_family, var_by_family : per family, the used lines' tones (Hz) and phase variances
+        (rad^2), shapes (T_F,)
+    rings_by_family : per family, the used lines' :class:`~mtcw_core.dsp.extract.NoiseRing`
+        (W rows, T_F columns), or None: then the noise is taken as independent
+    """
+    rings = not any(r is None for r in rings_by_family) and len({r.rows.shape[0] for r in rings_by_family}) == 1
+    info, gs, vs, rs, ss = 0.0, [], [], [], []
+    for f, v, r in zip(freqs_by_family, var_by_family, rings_by_family):
+        if f.size < 2:
+            continue
+        k = 4 * np.pi * f / C
+        w = 1 / v
+        # the family's pairs sum to S*(its GLS normal equation), S = sum(1/v): families weigh S*I_F
+        scale = float(np.sum(w))
+        info += scale * float(np.sum(w * k**2) - np.sum(w * k) ** 2 / scale)
+        gs.append(scale * (k - np.sum(w * k) / scale) * w)
+        vs.append(v)
+        if rings:
+            rs.append(r.rows)
+            ss.append(r.shift)
+    if info <= 0:
+        return math.inf
+    g = np.concatenate(gs) / info
+    independent = float(np.sum(g**2 * np.concatenate(vs)))
+    if not rings:
+        return math.sqrt(independent)
+    ring, shift = np.concatenate(rs, axis=1), np.concatenate(ss)
+    # two lines' rows stand at offsets up to a bin apart: the window decorrelated them that much
+    decorrelated = np.exp(-np.subtract.outer(shift, shift) ** 2)
+    var = 0.0
+    for rows in (ring, ring[rings_by_family[0].near]):  # the whole ring, and its rows nearest the lines
+        if rows.shape[0] == 0:
+            continue
+        c = np.real(rows.T @ rows.conj()) / rows.shape[0] / decorrelated  # (T, T): phase covariance, rad^2
+        # the estimate's own scatter (W rows) bounds how far the lines' noise can be taken to cancel
+        var = max(var, float(g @ c @ g), float(np.sum(g**2 * np.diag(c))) / rows.shape[0])
+    return math.sqrt(var)
