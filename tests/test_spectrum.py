@@ -342,6 +342,18 @@ class TestComplexBins:
         assert bare.complex_at(np.array([3])) is None
         assert bare.line_rings(np.array([1e8, 2e8]), np.zeros(2, bool), np.array([1e8, 2e8]), 12, 44) is None
 
+    def test_lines_whose_rows_come_within_the_guard_are_not_read_together(self):
+        """Two lines 2 bins apart: their rows at one offset are 2 bins apart, correlated by the
+        window itself (0.5 for Kaiser(14)), whatever their noise does; so no rings. 20 bins apart
+        they are read; a mirror line's rows run backward and cross the other's (none)."""
+        sp = power_spectrum(np.random.default_rng(2).normal(size=2**16), FS)
+        f0 = 1000 * sp.df_hz
+        no = np.zeros(2, bool)
+        assert sp.line_rings(np.array([f0, f0 + 2 * sp.df_hz]), no, np.array([f0]), 12, 256) is None
+        assert sp.line_rings(np.array([f0, f0 + 20 * sp.df_hz]), no, np.array([f0]), 12, 256) is not None
+        assert sp.line_rings(np.array([f0, f0 + 100 * sp.df_hz]), np.array([False, True]), np.array([f0]), 12,
+                             256) is None
+
     def test_rings_of_a_carriers_phase_noise_move_a_tones_two_lines_oppositely(self):
         """IQ: a carrier with broadband phase noise and a tone's two sidebands (the lower one read
         conjugated, as a mirror line). The carrier's noise at the tone's offset is a pair of

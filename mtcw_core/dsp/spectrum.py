@@ -267,8 +267,9 @@ class Spectrum:
                    half_width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The noise about several lines at the offsets they share, turned into each line's frame:
         shape (W, L) complex, with each line's misalignment, shape (L,), and the rows' offsets
-        (bins, shape (W,)); or None (no complex transform or window kept, or fewer than
-        :data:`RING_MIN_BINS` shared offsets).
+        (bins, shape (W,)); or None (no complex transform or window kept, fewer than
+        :data:`RING_MIN_BINS` shared offsets, or two lines whose rows come within ``guard`` bins
+        of each other: the window correlates those rows whatever the noise does).
 
         Each line's ring is :meth:`ring`'s (``+-half_width`` bins less those within ``guard`` of
         every frequency of ``exclude_hz``), at offsets every line keeps; a ``mirror``
@@ -296,6 +297,13 @@ class Spectrum:
         idx, keep = np.where(mir, idx[:, ::-1], idx), np.where(mir, keep[:, ::-1], keep)
         shared = keep.all(axis=0)
         if int(shared.sum()) < RING_MIN_BINS or self.bins is None or self.window is None:
+            return None
+        # two lines whose rows come within ``guard`` bins of each other share the window's own
+        # correlation of neighbouring bins, not their noise's (U and L 1-2 bins apart in ``fast``'s
+        # eighth-record spectrum read as -0.87 coherent; the record's own fit holds them apart)
+        rows = idx[:, shared]
+        gap = np.abs(rows[:, None, :] - rows[None, :, :]).min(axis=2) + guard * np.eye(f.size, dtype=np.int64)
+        if int(gap.min()) < guard:
             return None
         vals = self.complex_at(np.concatenate([idx[:, shared], self.bin_of(f)[:, None]], axis=1))  # (L, W + 1)
         if vals is None:
