@@ -858,6 +858,18 @@ def test_a_mover_beaten_by_a_static_echo_whose_lines_fit_its_range_is_not_confid
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
 
 
+def test_two_static_echoes_beside_a_weak_lo_are_not_confident():
+    """The envelope probe's scene 1689 (IQ, 1 MHz laser at 1550 nm, the LO 1 % of the power; static
+    echoes at 2.29 m, 20 dB, and 11.4 m, 43 dB, 2^18 samples): the static point's range sigma read
+    from the noise rings about its lines, which do not see the carrier's noise at the lines
+    themselves (inside the guard), left it at z 5.3-5.4 in every profile. The static candidate's
+    lines carry no rings."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(1689, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
 @pytest.mark.parametrize("receiver, old_rms", [("iq", 0.19), ("single", 0.52)])
 def test_a_lone_movers_range_sigma_is_its_error_not_the_lasers_whole_floor(receiver, old_rms):
     """A mover at 1.7 m (25 dB, 3.24 m/s, 2^16 samples, 100 kHz laser): the carrier's own phase

@@ -354,6 +354,17 @@ class TestComplexBins:
         assert sp.line_rings(np.array([f0, f0 + 100 * sp.df_hz]), np.array([False, True]), np.array([f0]), 12,
                              256) is None
 
+    def test_a_line_beyond_the_band_reads_no_ring(self):
+        """A line past fs/2 (or below -fs/2 for IQ) has no bin of its own here: no rings (its
+        bin once indexed past the spectrum's end, or wrapped to another bin in the packed one)."""
+        rng = np.random.default_rng(3)
+        for x in (rng.normal(size=2**16), rng.normal(size=2**16) + 1j * rng.normal(size=2**16)):
+            sp = power_spectrum(x, FS)
+            for beyond in (0.5 * FS + 3 * sp.df_hz, -0.5 * FS - 3 * sp.df_hz):
+                f = np.array([1e8, beyond])
+                assert sp.line_rings(f, np.zeros(2, bool), f, 12, 44) is None
+            assert sp.line_rings(np.array([1e8, 2e8]), np.zeros(2, bool), np.array([1e8, 2e8]), 12, 44) is not None
+
     def test_rings_of_a_carriers_phase_noise_move_a_tones_two_lines_oppositely(self):
         """IQ: a carrier with broadband phase noise and a tone's two sidebands (the lower one read
         conjugated, as a mirror line). The carrier's noise at the tone's offset is a pair of

@@ -317,12 +317,17 @@ RING_NEAR_BINS = 32
 
 def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
                   uniq: np.ndarray) -> list[NoiseRing | None]:
-    """Each planned family's :attr:`LineFamily.ring` (not yet in phase units): its target's usable
-    lines read together (one set of offsets per target, the noise floor's ring), split back per
-    family with 0 in unusable lines' columns."""
+    """Each planned mover's family's :attr:`LineFamily.ring` (not yet in phase units): its target's
+    usable lines read together (one set of offsets per target, the noise floor's ring), split back
+    per family with 0 in unusable lines' columns; None for the static candidate's."""
     out: list[NoiseRing | None] = [None] * len(fams)
     guard = spec.line_floor_guard()
-    for t in sorted({f[0] for f in fams}):
+    # not the static candidate's: on one photodiode its lines at f_i mix the carrier's phase noise
+    # and its conjugate in shares its range sets, tone by tone, so the noise at the line (the
+    # Lorentzian core, inside the guard) moves them apart as the ring beyond the guard does not
+    # show (a static echo at 24.4 m on one photodiode: range z rms 0.85 -> 1.30, one -5.9; IQ, two
+    # static echoes with the LO 1 % of the power: 5.4, the envelope probe's scene 1689)
+    for t in sorted({f[0] for f in fams} - {0}):
         mine = [i for i, f in enumerate(fams) if f[0] == t]
         good = [~np.asarray(fams[i][4], bool) for i in mine]
         f = np.concatenate([fams[i][2][g] for i, g in zip(mine, good)])

@@ -267,9 +267,10 @@ class Spectrum:
                    half_width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The noise about several lines at the offsets they share, turned into each line's frame:
         shape (W, L) complex, with each line's misalignment, shape (L,), and the rows' offsets
-        (bins, shape (W,)); or None (no complex transform or window kept, fewer than
-        :data:`RING_MIN_BINS` shared offsets, or two lines whose rows come within ``guard`` bins
-        of each other: the window correlates those rows whatever the noise does).
+        (bins, shape (W,)); or None (no complex transform or window kept, a line beyond the band
+        the spectrum holds, fewer than :data:`RING_MIN_BINS` shared offsets, or two lines whose
+        rows come within ``guard`` bins of each other: the window correlates those rows whatever
+        the noise does).
 
         Each line's ring is :meth:`ring`'s (``+-half_width`` bins less those within ``guard`` of
         every frequency of ``exclude_hz``), at offsets every line keeps; a ``mirror``
@@ -293,6 +294,9 @@ class Spectrum:
         """
         f = np.atleast_1d(np.asarray(f_hz, dtype=float))
         mir = np.asarray(mirror, bool)[:, None]
+        own = self.bin_of(f)
+        if np.any((own < 0) | (own >= self.power.size)):  # a line beyond the band this spectrum holds
+            return None
         idx, keep = self.ring(f, exclude_hz, half_width, guard)
         idx, keep = np.where(mir, idx[:, ::-1], idx), np.where(mir, keep[:, ::-1], keep)
         shared = keep.all(axis=0)
@@ -305,7 +309,7 @@ class Spectrum:
         gap = np.abs(rows[:, None, :] - rows[None, :, :]).min(axis=2) + guard * np.eye(f.size, dtype=np.int64)
         if int(gap.min()) < guard:
             return None
-        vals = self.complex_at(np.concatenate([idx[:, shared], self.bin_of(f)[:, None]], axis=1))  # (L, W + 1)
+        vals = self.complex_at(np.concatenate([idx[:, shared], own[:, None]], axis=1))  # (L, W + 1)
         if vals is None:
             return None
         vals = np.where(mir, np.conj(vals), vals)
