@@ -316,7 +316,7 @@ class Spectrum:
         line = vals[:, -1]
         turn = np.where(np.abs(line) > 0, np.conj(line) / np.maximum(np.abs(line), 1e-300), 1.0)
         # row w's bin is (w's offset) + (bin - f/df) from the line, read backward for a mirror line
-        off = (self.bin_of(f) - (f - self.f0_hz) / self.df_hz) * np.where(mir[:, 0], -1.0, 1.0)
+        off = (own - (f - self.f0_hz) / self.df_hz) * np.where(mir[:, 0], -1.0, 1.0)
         return ((vals[:, :-1] * turn[:, None]).T, off * math.sqrt(window_coherence_scale(self.window, self.n)),
                 np.arange(-half_width, half_width + 1)[shared])
 

@@ -316,8 +316,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     ok = [f.snr_db >= settings.min_line_snr_db for f in fams]
     used = [(f, m) for f, m in zip(fams, ok) if np.sum(m) >= 2]
     freqs, variances = [f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used]
-    # the pair estimator's own variance where the lines' noise moves together (the laser's phase
-    # noise about them); the bound where it does not
+    # the pair estimator's own variance: over its lines' noise rings where they were read (a mover's:
+    # the laser's phase noise about them moves them together), with the lines independent where not
     sigma = range_sigma(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
     # do the line phases agree with one range within their noise, and the tones' declared drift?
     # (Birge ratio)
