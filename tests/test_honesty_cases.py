@@ -908,3 +908,21 @@ def test_a_mover_beside_a_strong_static_echo_has_a_range_sigma_that_covers_it():
          if not p.flagged and p.range_z is not None and fr.truth[p.truth_index].velocity_mps]
     assert len(z) >= 20
     assert float(np.sqrt(np.mean(np.square(z)))) <= 1.4 and max(np.abs(z)) < 4.0, np.round(z, 2)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "not yet (sixteenth session's review): a slow mover whose lines sit in a strong static echo's "
+    "pedestal, 20 bins off its lines, can resolve a wrong range with a small sigma -- frame 5 of "
+    "seed 16 is 0.67 m off at z 45.6 unflagged (chi2/dof 7; 143.9 before the noise rings); "
+    "docs/benchmarks/honesty/notes.md"))
+def test_a_slow_mover_in_a_strong_static_echos_pedestal_is_never_confidently_wrong():
+    """IQ receiver, 2^16 samples, 100 kHz laser: a mover at 1.7 m (25 dB, 0.8 m/s: its lines 1.5
+    MHz, 20 bins, from the static lines) beside a static echo at 30.7 m (10 dB, its pedestal
+    ~5 MHz wide). Every unflagged point of the mover within 5 sigma over 8 frames."""
+    from mtcw_bench.honesty import base_scene
+
+    sc = scene_variant(with_targets(base_scene(2**16), [tgt(1.7, 0.8, 25.0), tgt(30.7, 0.0, 10.0)]),
+                       receiver={"kind": "iq"})
+    z = [p.range_z for fr, _, v in run(sc, get_profile("balanced", **declared(sc)), 8, 16) for p in v.points
+         if not p.flagged and p.range_z is not None and fr.truth[p.truth_index].velocity_mps]
+    assert len(z) >= 6 and max(np.abs(z)) < 5.0, np.round(z, 2)
