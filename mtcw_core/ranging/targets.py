@@ -319,6 +319,9 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # the pair estimator's own variance: over its lines' noise rings where they were read (a mover's:
     # the laser's phase noise about them moves them together), with the lines independent where not
     sigma = range_sigma(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
+    # noise the rings show moving the lines together, beyond what independent lines would give (a
+    # strong echo's pedestal about a slow mover's lines), widens the cycle-slip odds as much
+    together = (sigma / range_sigma(freqs, variances, [None] * len(used))) ** 2 if used else 1.0
     # do the line phases agree with one range within their noise, and the tones' declared drift?
     # (Birge ratio)
     tone_var = settings.tone_phase_sigma_rad ** 2
@@ -334,7 +337,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         sigma *= math.sqrt(ratio)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
-    p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0), settings.min_line_snr_db)
+    p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0),
+                                    settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     # the static lines' sizes against one target's (two echoes on one Doppler-0 line set)
     a_chi2, a_dof = (0.0, 0) if dop.detected else amplitude_chi2(fams, ref.tone_amplitudes, settings.min_line_snr_db)
