@@ -913,7 +913,8 @@ def test_a_mover_beside_a_strong_static_echo_has_a_range_sigma_that_covers_it():
 def test_a_slow_mover_in_a_strong_static_echos_pedestal_is_never_confidently_wrong():
     """IQ receiver, 2^16 samples, 100 kHz laser: a mover at 1.7 m (25 dB, 0.8 m/s: its lines 1.5
     MHz, 20 bins, from the static lines) beside a static echo at 30.7 m (10 dB, its pedestal
-    ~5 MHz wide). Every unflagged point of the mover within 5 sigma over 8 frames.
+    ~5 MHz wide). Every unflagged point of the mover within 5 sigma over 8 frames (most of its
+    points are flagged here: ``blended``).
 
     The sixteenth session's review found frame 5 resolved 0.67 m off, unflagged at z 45.6 (143.9
     before that session's noise rings): the pedestal, one phasor turned by each static line's phase,
@@ -924,6 +925,8 @@ def test_a_slow_mover_in_a_strong_static_echos_pedestal_is_never_confidently_wro
 
     sc = scene_variant(with_targets(base_scene(2**16), [tgt(1.7, 0.8, 25.0), tgt(30.7, 0.0, 10.0)]),
                        receiver={"kind": "iq"})
-    z = [p.range_z for fr, _, v in run(sc, get_profile("balanced", **declared(sc)), 8, 16) for p in v.points
-         if not p.flagged and p.range_z is not None and fr.truth[p.truth_index].velocity_mps]
-    assert len(z) >= 6 and max(np.abs(z)) < 5.0, np.round(z, 2)
+    mover = [p for fr, _, v in run(sc, get_profile("balanced", **declared(sc)), 8, 16) for p in v.points
+             if p.range_z is not None and p.truth_index is not None and fr.truth[p.truth_index].velocity_mps]
+    assert len(mover) >= 6  # reported in (nearly) every frame, flagged or not
+    assert all(abs(p.range_z) < 5.0 for p in mover if not p.flagged), [(round(p.range_z, 2), p.flags) for p in mover]
+    assert any(abs(p.range_z) > 5.0 for p in mover)  # the wrong frame is still there, flagged
