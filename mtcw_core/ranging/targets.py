@@ -321,7 +321,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     sigma = range_sigma(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
     # noise the rings show moving the lines together, beyond what independent lines would give (a
     # strong echo's pedestal about a slow mover's lines), widens the cycle-slip odds as much
-    together = (sigma / range_sigma(freqs, variances, [None] * len(used))) ** 2 if used else 1.0
+    alone = range_sigma(freqs, variances, [None] * len(used)) if used else math.inf
+    together = (sigma / alone) ** 2 if 0 < alone < math.inf and math.isfinite(sigma) else 1.0
     # do the line phases agree with one range within their noise, and the tones' declared drift?
     # (Birge ratio)
     tone_var = settings.tone_phase_sigma_rad ** 2
