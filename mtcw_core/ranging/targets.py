@@ -28,7 +28,7 @@ from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
 from .mixing import consistency
-from .triangulation import (Observations, RangeSolution, range_sigma, resolve_ml, resolve_seed, tone_phase_sigma,
+from .triangulation import (Observations, RangeSolution, range_sigmas, resolve_ml, resolve_seed, tone_phase_sigma,
                             unambiguous_range)
 
 
@@ -318,10 +318,9 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     freqs, variances = [f.tone_hz[m] for f, m in used], [f.phase_var[m] for f, m in used]
     # the pair estimator's own variance: over its lines' noise rings where they were read (a mover's:
     # the laser's phase noise about them moves them together), with the lines independent where not
-    sigma = range_sigma(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
+    sigma, alone = range_sigmas(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
     # noise the rings show moving the lines together, beyond what independent lines would give (a
     # strong echo's pedestal about a slow mover's lines), widens the cycle-slip odds as much
-    alone = range_sigma(freqs, variances, [None] * len(used)) if used else math.inf
     together = (sigma / alone) ** 2 if 0 < alone < math.inf and math.isfinite(sigma) else 1.0
     # do the line phases agree with one range within their noise, and the tones' declared drift?
     # (Birge ratio)

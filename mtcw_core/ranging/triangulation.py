@@ -299,7 +299,14 @@ def fisher_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarr
 
 def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray],
                 rings_by_family: list[NoiseRing | None]) -> float:
-    """Range sigma (m) of the pair estimator (:func:`resolve_ml`) where the lines' noise moves together.
+    """Range sigma (m) of the pair estimator: the first of :func:`range_sigmas`."""
+    return range_sigmas(freqs_by_family, var_by_family, rings_by_family)[0]
+
+
+def range_sigmas(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarray],
+                 rings_by_family: list[NoiseRing | None]) -> tuple[float, float]:
+    """Range sigma (m) of the pair estimator (:func:`resolve_ml`) where the lines' noise moves
+    together, and what it would be were the lines independent (the same weights, ``C = diag(v)``).
 
     The pair phases weighted ``1/(v_i*v_j)`` put the range at ``sum_i g_i*phi_i`` with, per family,
     ``g_i = S_F*(k_i - kbar_F)/(v_i*sum_F S_F*I_F)`` (``kbar_F`` the family's ``1/v``-weighted mean
@@ -319,8 +326,8 @@ def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarra
     cancellation can be read from W offsets). It is read twice, over the whole ring (the noise
     floor's +-256 record bins: many rows, little scatter) and over its rows nearest the lines
     (``NoiseRing.near``: where a floor rises toward the line, the pedestal of a strong echo's line
-    a few MHz off, the whole ring reads it low), and the larger is taken. Without rings the noise is taken as independent:
-    ``Cphi = diag(v)``.
+    a few MHz off, the whole ring reads it low), and the larger is taken. Without rings the noise is
+    taken as independent: ``Cphi = diag(v)``.
 
     Parameters
     ----------
@@ -328,8 +335,13 @@ def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarra
         (rad^2), shapes (T_F,)
     rings_by_family : per family, the used lines' :class:`~mtcw_core.dsp.extract.NoiseRing`
         (W rows, T_F columns), or None: then the noise is taken as independent
+
+    Returns
+    -------
+    (sigma, independent) : m; both inf where the lines carry no range information
     """
-    rings = not any(r is None for r in rings_by_family) and len({r.rows.shape[0] for r in rings_by_family}) == 1
+    rings = (not any(r is None for r in rings_by_family)
+             and len({r.rows.shape[0] for r in rings_by_family}) == 1)
     info, gs, vs, rs, ss = 0.0, [], [], [], []
     for f, v, r in zip(freqs_by_family, var_by_family, rings_by_family):
         if f.size < 2:
@@ -345,11 +357,11 @@ def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarra
             rs.append(r.rows)
             ss.append(r.shift)
     if info <= 0:
-        return math.inf
+        return math.inf, math.inf
     g = np.concatenate(gs) / info
-    independent = float(np.sum(g**2 * np.concatenate(vs)))
+    independent = math.sqrt(float(np.sum(g**2 * np.concatenate(vs))))
     if not rings:
-        return math.sqrt(independent)
+        return independent, independent
     ring, shift = np.concatenate(rs, axis=1), np.concatenate(ss)
     # two lines' rows stand at offsets up to a bin apart: the window decorrelated them that much
     decorrelated = np.exp(-np.subtract.outer(shift, shift) ** 2)
@@ -360,4 +372,4 @@ def range_sigma(freqs_by_family: list[np.ndarray], var_by_family: list[np.ndarra
         c = np.real(rows.T @ rows.conj()) / rows.shape[0] / decorrelated  # (T, T): phase covariance, rad^2
         # the estimate's own scatter (W rows) bounds how far the lines' noise can be taken to cancel
         var = max(var, float(g @ c @ g), float(np.sum(g**2 * np.diag(c))) / rows.shape[0])
-    return math.sqrt(var)
+    return math.sqrt(var), independent
