@@ -930,3 +930,63 @@ def test_a_slow_mover_in_a_strong_static_echos_pedestal_is_never_confidently_wro
     assert len(mover) >= 6  # reported in (nearly) every frame, flagged or not
     assert all(abs(p.range_z) < 5.0 for p in mover if not p.flagged), [(round(p.range_z, 2), p.flags) for p in mover]
     assert any(abs(p.range_z) > 5.0 for p in mover)  # the wrong frame is still there, flagged
+
+
+def test_a_mover_far_above_the_lo_beside_a_static_echo_leaves_no_confident_static_point():
+    """The envelope probe's scene 3359: one photodiode behind an 8-bit ADC, the LO 1 % of the power,
+    a mover at 1.9 dB loss (64x the LO's power) and a static echo at 22 dB (0.6x). The static echo
+    beats with the mover as a second LO and turns the mover's lines, from which its self-beat is
+    predicted: with the echo the stronger, the prediction is the static lines' size and misses their
+    phases, so the LO-larger root, which takes out nothing, was taken, and the static lines -- the
+    mover's self-beat -- were ranged 2400 sigmas off, unflagged, in every frame and profile. The
+    other root's self-beat now bounds what is left on them: ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(3359, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_quantizers_cross_products_on_a_weak_movers_lines_flag_it():
+    """The envelope probe's scene 6815: IQ behind an 8-bit ADC whose floor is mostly its own, a
+    static echo 40 dB above a mover. The quantizer passes the mover's lines through a gain that
+    beats at the static lines' differences: each tone's line is copied onto the others with the
+    static lines' phases, and the range came out 107 sigmas off, unflagged. The same copies stand
+    8-18 dB over the floor beside the lines, where no line is: the mover is ``blended``. On 12-bit
+    codes (the thermal noise above an LSB) the same frame's mover is right, unflagged."""
+    from mtcw_bench.envelope_probe import draw, judge_scene
+
+    counts, lines = judge_scene(6815, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    kw = draw(6815)
+    kw["digitizer"]["adc_bits"] = 12
+    sc = scene_variant(load_scene("moving-target"), **kw)
+    fr = list(Simulator(sc, 6815).frames(2))[1]
+    st = get_profile("balanced", tone_phase_sigma_rad=0.01 * 2**0.5, **declared(sc))
+    v = judge_frame(process_frame(fr, st), fr.truth)
+    mover = [p for p in v.points if p.truth_index == 1]
+    assert mover and not mover[0].flagged and abs(mover[0].range_z) < 5, v.points
+
+
+def test_a_quantizers_copy_stronger_than_its_mover_is_flagged():
+    """The envelope probe's scene 7816: one photodiode behind an 8-bit ADC, a 3.72 m/s mover and
+    its quantizer copy at three times its speed, at its range, 1.2 dB the stronger: reported as a
+    second, confident target. A quantizer's products of a line fall at whole multiples of it, never
+    at a fraction: the copy is ``blended`` whatever its strength; the mover is right."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(7816, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene", [6001, 7305])
+def test_a_bump_of_a_static_echos_pedestal_is_no_confident_mover(scene):
+    """The envelope probe's scenes 6001 (a balanced receiver, a static echo at 7 dB loss, a 100 kHz
+    laser, its lines faded) and 7305 (one photodiode, a static echo at 37 dB, a 1 MHz laser, the LO
+    1 % of the power): the static echo's phase-noise pedestal is the floor about every line it
+    could put a "mover" on, one process at every tone, and one bump of it was reported as a mover at
+    the echo's range at 1.3 m/s (speed z 193 and 46). Counted as the lines' rings show them moving
+    together, such a bump was likely enough (4e-5 and 3e-4): ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -398,15 +398,17 @@ class TestSelectTargets:
         cands = [(1, strong), (2, copy), (3, apart), (4, close)]
         assert select_targets(cands, self.ST) == [strong, close, replace(copy, blended=True), apart]
         # at twice the mover's speed (within 5 sigmas) a copy only 2 dB weaker is one too (scene
-        # 2267: 8-bit codes, 15 m/s, its copy at 29.99 m/s 5 dB under it); 2.3x, or stronger, is not,
-        # nor is 3.0 m/s above (20x, but 5 sigmas of 20x reach 0.1 m/s: any speed would be a multiple)
+        # 2267: 8-bit codes, 15 m/s, its copy at 29.99 m/s 5 dB under it), and one stronger (scene
+        # 7816: 8-bit codes, a 3.72 m/s mover's copy at 11.17 m/s 1.2 dB above it: a quantizer's
+        # products lie at multiples of a line, never at a fraction); 2.3x is not, nor is 3.0 m/s
+        # above (20x, but 5 sigmas of 20x reach 0.1 m/s: any speed would be a multiple)
         double = replace(close, velocity_mps=0.3 + 4e-3)
         off = replace(close, velocity_mps=0.345)
         assert select_targets([(1, strong), (2, double)], self.ST) == [
             strong, replace(double, blended=True)]
         assert select_targets([(1, strong), (2, off)], self.ST) == [strong, off]
         louder = replace(strong, velocity_mps=0.3, tone_snr_db={k: 50.0 for k in strong.tone_snr_db})
-        assert select_targets([(1, strong), (2, louder)], self.ST) == [louder, strong]
+        assert select_targets([(1, strong), (2, louder)], self.ST) == [replace(louder, blended=True), strong]
 
     def test_a_weak_twin_at_the_static_range_leaves_its_speed_unmeasured(self):
         """No laser declared: the weak twin may be the static target's wings or a mover whose
@@ -788,3 +790,43 @@ class TestToneAmplitudes:
         assert amps[260e6] == (1.1, pytest.approx(math.hypot(0.04 / 1.1, 0.02)))  # relative to its amplitude
         assert amps[100e6] == (0.9, pytest.approx(0.02))
         assert Reference.of(fr, ChainSettings(), None).tone_amplitudes is None
+
+
+class TestPedestalGhostOdds:
+    """:func:`pedestal_ghost_odds`: a Doppler line's odds of being noise, its lines counted as their
+    rings show their noise moving together."""
+
+    @staticmethod
+    def fams(rows: np.ndarray) -> list[LineFamily]:
+        from mtcw_core.dsp.extract import NoiseRing
+
+        t = np.array([5e8, 7e8, 9.5e8])
+        out = []
+        for name, cols in (("U", rows[:, :3]), ("L", rows[:, 3:])):
+            ring = NoiseRing(cols, np.zeros(3), np.ones(cols.shape[0], bool))
+            out.append(LineFamily(name, t, t, np.ones((1, 3), complex), np.zeros(1), np.full(3, 1e-2), 1, ring=ring))
+        return out
+
+    def test_independent_lines_at_the_threshold_are_no_ghost_one_process_is(self):
+        from mtcw_core.ranging.targets import pedestal_ghost_odds
+
+        rng = np.random.default_rng(3)
+        w = 400
+        white = (rng.standard_normal((w, 6)) + 1j * rng.standard_normal((w, 6))) * np.sqrt(0.5e-2)
+        # one process at every line: each row one complex draw, the same at all six lines
+        one = np.repeat(white[:, :1], 6, axis=1)
+        # six lines and the baseband, 1.5x the search's threshold of 8 per line
+        dop = DopplerEstimate(2e6, True, 1.5 * 8.0 * 7, 8.0 * 7, 1e4)
+        apart = pedestal_ghost_odds(dop, self.fams(white), 8.0, 1e5)
+        together = pedestal_ghost_odds(dop, self.fams(one), 8.0, 1e5)
+        # independent: the search's own statistic, a Gamma(7) tail at 84 over 1e5 bins; one process:
+        # a single line's ratio at 12 (e^-12 ~ 6e-6, times 1e5 bins)
+        assert apart < 1e-12
+        assert 0.1 < together <= 1.0
+        # noise that the rings show 2x above the floor the lines were judged on halves each ratio
+        assert pedestal_ghost_odds(dop, self.fams(one * math.sqrt(2)), 8.0, 1.0) > 10 * pedestal_ghost_odds(
+            dop, self.fams(one), 8.0, 1.0)
+        # no rings, or no Doppler line: nothing to say
+        bare = [replace(f, ring=None) for f in self.fams(one)]
+        assert pedestal_ghost_odds(dop, bare, 8.0, 1e5) == 0.0
+        assert pedestal_ghost_odds(replace(dop, detected=False), self.fams(one), 8.0, 1e5) == 0.0

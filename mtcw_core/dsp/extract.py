@@ -105,6 +105,10 @@ class LineFamily:
     ring : NoiseRing or None
         The noise about the lines, read together with the target's other families'
         (:class:`NoiseRing`); None where not read.
+    copy_v : ndarray, shape (T,), or None
+        A mover's lines on integer ADC codes whose white floor is mostly the quantizer's: what the
+        quantizer's products could add to each (V), as its copies of the mover's lines where no
+        line stands show them (:func:`quantizer_copies`); None where not measured.
     """
 
     name: str
@@ -120,6 +124,7 @@ class LineFamily:
     echo_beats: bool = False
     static_echo: bool = False
     ring: NoiseRing | None = None
+    copy_v: np.ndarray | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -292,6 +297,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                            fams[0][2], x, s2_all[:first[1]])
     rings = _target_rings(spec, fams, uniq)
+    copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -305,7 +311,131 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
                               still if target else None, bool(target and over_lo), bool(not target and own),
-                              ring))
+                              ring, copies[i]))
+    return out
+
+
+#: :func:`quantizer_copies` reads a record whose white floor (per channel) is at most this many
+#: times the quantizer's own ``LSB^2/12``: thermal noise under ~1/2 LSB leaves the quantizer's error
+#: a function of the signal, with products (a 1/2 LSB of Gaussian noise already damps its
+#: harmonics' amplitudes by ~exp(-2*pi^2/4) ~ 0.7 %)
+QUANT_DOMINATED = 4.0
+#: ... and counts the copies where their mean power stands this many of its own sigmas (``1/sqrt(K)``
+#: of the floor for K copies of noise alone) above the floor
+COPY_NOISE_SIGMAS = 3.0
+#: ... of at least this many copies; or the largest, where K copies of noise alone would reach it
+#: with these odds (an exponential's tail: ``log(K/odds)`` times the floor)
+COPY_MIN = 4
+COPY_FALSE_ODDS = 1e-3
+
+
+def _copy_positions(spec: Spectrum, t: np.ndarray, fds: list[float], lines: np.ndarray, uniq: np.ndarray,
+                    guard: int) -> np.ndarray:
+    """Where :func:`quantizer_copies` reads the movers' ``lines`` (Hz) copied: each moved by a
+    difference of two tones ``t`` or by a sum or difference of found Dopplers (or one), in the
+    spectrum and more than ``guard`` bins from every fitted line (``uniq``) and from every product
+    of two fields (each tone or 0 Hz with another, moved by 0, a found Doppler, or the difference of
+    two); folded to positive frequencies on a real record. Shape (P,), Hz, sorted."""
+    dops = np.unique([s * a + r * b for a in fds for b in [0.0, *fds] for s in (1, -1) for r in (1, -1)])
+    moves = np.concatenate([(t[:, None] - t[None, :])[~np.eye(t.size, dtype=bool)], dops])
+    base = np.concatenate([[0.0], t, -t])
+    shifts = np.unique(np.concatenate([[0.0], dops[np.isin(np.round(np.abs(dops), 3), np.round(np.abs(fds), 3))],
+                                       [a - b for a in fds for b in fds], [b - a for a in fds for b in fds]]))
+    second = ((base[:, None] + base[None, :]).ravel()[:, None] + shifts[None, :]).ravel()
+    taken = np.unique(np.concatenate([second, uniq, -uniq]))
+    lo, hi = spec.f0_hz + guard * spec.df_hz, spec.f0_hz + (spec.power.size - 1 - guard) * spec.df_hz
+    pos = (lines[:, None] + moves[None, :]).ravel()
+    pos = np.unique(np.round(pos if spec.complex_input else np.abs(pos), 3))
+    pos = pos[(pos > lo) & (pos < hi)]
+    if not pos.size:
+        return pos
+    j = np.clip(np.searchsorted(taken, pos), 1, taken.size - 1)
+    near = np.minimum(np.abs(pos - taken[j - 1]), np.abs(pos - taken[j]))
+    return pos[near > guard * spec.df_hz]
+
+
+def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
+                     zs: dict, uniq: np.ndarray, fds: list[float]) -> list[np.ndarray | None]:
+    """Each mover's families' :attr:`LineFamily.copy_v` (V, shape (T,)); None for the static
+    candidate's, and for every family unless the record is integer ADC codes whose white floor is
+    mostly the quantizer's (:data:`QUANT_DOMINATED`).
+
+    Quantizing a record whose noise is under an LSB makes its error a function of the signal: a weak
+    line ``m`` beside strong ones ``S`` passes the quantizer as ``m(t)*g(S(t))``, a gain that beats
+    at the strong lines' differences, so each of the mover's lines is copied to ``f + f_i - f_j``
+    (tones ``i != j``) -- onto its other lines, with the strong lines' phases, and beside them. The
+    copies beside them are read: where no product of two fields (a square-law detector's lines, each
+    tone or 0 Hz with another, moved by 0, a found Doppler, or two of them) falls, only a
+    nonlinearity puts power. Their mean power above the floor, where it stands out of the noise
+    (:data:`COPY_NOISE_SIGMAS`), is what each line may carry; as an amplitude, each line's size
+    times the root of that power over the line's own in the spectrum. The envelope probe's scene
+    6815 (IQ, 8-bit codes, a static echo 40 dB above a mover): copies 8-18 dB over the floor beside
+    lines 17-27 dB over it, the mover's range 107 sigmas off, unflagged; on float volts 0 +- 5 dB.
+    The modulator's own third-order products fall at the same places (35 dB under a mover's lines on
+    ``moving-target``): where the quantizer's floor rules, they count too.
+
+    Parameters
+    ----------
+    fams : the planned families ``(target, name, freqs, conj, bad)`` (:func:`plan_lines`)
+    zs : {(target, name): ndarray (S, T)} their lines
+    uniq : every fitted line (Hz); fds : the Doppler lines found (Hz)
+    """
+    out: list[np.ndarray | None] = [None] * len(fams)
+    codes = frame.samples.dtype.kind in "iu" and frame.scale != 0
+    movers = [i for i, f in enumerate(fams) if f[0]]
+    if not codes or not movers:
+        return out
+    iq, guard = spec.complex_input, spec.line_floor_guard()
+    lines = np.concatenate([fams[i][2][~np.asarray(fams[i][4], bool)] for i in movers])
+    pos = _copy_positions(spec, np.asarray(frame.tones_hz, dtype=float), fds, lines, uniq, guard)
+    if pos.size < COPY_MIN:
+        return out
+    s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
+    if not np.median(s2) <= QUANT_DOMINATED * frame.scale**2 / 12.0 * (2.0 if iq else 1.0):
+        return out
+    floor = s2 * spec.window_power
+    p = spec.power_at(pos)
+    ratio, top = float(np.mean(p / floor)), float(np.max(p / floor))
+    # the copies' mean where it stands out of the noise; the largest where no noise draw reaches it
+    excess = max(float(np.mean(p - floor)) if ratio > 1.0 + COPY_NOISE_SIGMAS / math.sqrt(pos.size) else 0.0,
+                 float(np.max(p - floor)) if top > math.log(pos.size / COPY_FALSE_ODDS) else 0.0)
+    for i in movers:
+        f = fams[i][2]
+        own = spec.power_at(f) - spec.noise_variances(f, uniq, guard=guard) * spec.window_power
+        amp = np.sqrt(np.mean(np.abs(zs[fams[i][0], fams[i][1]]) ** 2, axis=0))
+        out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
+    return out
+    iq, guard = spec.complex_input, spec.line_floor_guard()
+    t = np.asarray(frame.tones_hz, dtype=float)
+    diffs = (t[:, None] - t[None, :])[~np.eye(t.size, dtype=bool)]
+    base = np.concatenate([[0.0], t, -t])
+    shifts = np.unique([0.0] + [s * a for a in fds for s in (1, -1)]
+                       + [s * a + r * b for a in fds for b in fds for s in (1, -1) for r in (1, -1)])
+    second = ((base[:, None] + base[None, :]).ravel()[:, None] + shifts[None, :]).ravel()
+    taken = np.unique(np.concatenate([second, uniq, -uniq]))
+    lo, hi = spec.f0_hz + guard * spec.df_hz, spec.f0_hz + (spec.power.size - 1 - guard) * spec.df_hz
+    for k in sorted({f[0] for f in fams} - {0}):
+        mine = [i for i, f in enumerate(fams) if f[0] == k]
+        lines = np.concatenate([fams[i][2][~np.asarray(fams[i][4], bool)] for i in mine])
+        pos = (lines[:, None] + diffs[None, :]).ravel()
+        pos = np.unique(np.round(pos if iq else np.abs(pos), 3))
+        near = np.min(np.abs(pos[:, None] - taken[None, :]), axis=1) if pos.size else pos
+        pos = pos[(pos > lo) & (pos < hi) & (near > guard * spec.df_hz)]
+        if pos.size < COPY_MIN:
+            continue
+        s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
+        q2 = frame.scale**2 / 12.0 * (2.0 if iq else 1.0)
+        if not np.median(s2) <= QUANT_DOMINATED * q2:
+            continue
+        floor = s2 * spec.window_power
+        p = spec.power_at(pos)
+        ratio = float(np.mean(p / floor))
+        excess = float(np.mean(p - floor)) if ratio > 1.0 + COPY_NOISE_SIGMAS / math.sqrt(pos.size) else 0.0
+        for i in mine:
+            f = fams[i][2]
+            own = spec.power_at(f) - spec.noise_variances(f, uniq, guard=guard) * spec.window_power
+            amp = np.sqrt(np.mean(np.abs(zs[k, fams[i][1]]) ** 2, axis=0))
+            out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
     return out
 
 
@@ -397,8 +527,8 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
                 continue  # echoes under 0.1 % of the mean: no LO below them (their self-beat is negligible)
             pred = _predicted_self_beats(zs, *carriers)
             rest = s - self_beat_scale(s, pred) * pred
-            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers))
-        _, lo_smaller, zs[0, "S"], carriers = min(left, key=lambda t: t[:2])
+            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers, pred))
+        _, lo_smaller, zs[0, "S"], carriers, _ = min(left, key=lambda t: t[:2])
         over_lo = lo_smaller and len(found) >= 2
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
@@ -413,10 +543,38 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         # floor: static lines of noise alone made a lone mover's speed sigma 1.5x its own at 2^16)
         noise = CROSS_NOISE_SIGMAS * np.sqrt(2.0 * static_s2 / frame.n)
         cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken - noise, 0.0), *carriers)
+        taken = np.maximum(taken, _other_root_left(left, lo_smaller, s))
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
                                    found), cross, still, over_lo, bool(found) and not mostly_self
+
+
+def _other_root_left(left: list[tuple], lo_smaller: bool, s: np.ndarray) -> np.ndarray | float:
+    """What an echo stronger than the LO may have left on the static lines ``s`` (S, T) where the
+    prediction taken was the LO-larger one (:func:`_self_beats`' ``left``): the other root's
+    predicted self-beat, per tone (V, shape (T,)), where it is admissible -- no larger than
+    :data:`OTHER_ROOT_EXCLUDES` times the static lines, all tones together -- else 0.
+
+    The record's mean and a mover's carrier line fit either root of :func:`_carriers`; the LO-larger
+    one wins where its prediction leaves less of the static lines, which it also does where it
+    takes out nothing: where the echo is the stronger and its predicted self-beat, the size of the
+    static lines, misses their phases -- a second echo near the LO's power beats with the mover as a
+    second LO and turns the mover's lines the prediction is made of --, those lines are then that
+    self-beat, unexplained, not a static echo's (the envelope probe's scene 3359: a mover 64x the
+    LO's power beside a static echo at 0.6x, its self-beat predicted at 0.7-2x the static lines'
+    size 0.2-1.3 rad off their phases; the static point 2400 sigmas off, unflagged)."""
+    if lo_smaller:
+        return 0.0
+    pred = next((t[4] for t in left if t[1]), None)
+    if pred is None or np.sum(np.abs(pred) ** 2) > OTHER_ROOT_EXCLUDES**2 * np.sum(np.abs(s) ** 2):
+        return 0.0
+    return np.sqrt(np.mean(np.abs(pred) ** 2, axis=0))
+
+
+#: the echo-larger root's self-beat is no reading of the static lines where it would be this many
+#: times their size (all tones together): another echo would have to cancel most of it at every tone
+OTHER_ROOT_EXCLUDES = 3.0
 
 
 #: a static line counts toward a static echo's beat with the movers (:func:`cross_beat_bound`) by

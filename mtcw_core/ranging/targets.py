@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import chdtrc
+from scipy.special import chdtrc, gammaincc
 from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import Calibration
@@ -340,6 +340,9 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0),
                                     settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
+    # a "mover" one bump of a pedestal that moves every line together could have made
+    ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold,
+                                2 * fd_max(frame.tones_hz, settings) * frame.n / frame.fs_hz) > GHOST_ODDS_MAX
     # the static lines' sizes against one target's (two echoes on one Doppler-0 line set)
     a_chi2, a_dof = (0.0, 0) if dop.detected else amplitude_chi2(fams, ref.tone_amplitudes, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
@@ -362,10 +365,50 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         blended=bool((dof > 0 and (ratio > settings.blended_chi2 or p_fit < BLENDED_P))
                      or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous or any(f.echo_beats for f in fams) or unexplained > UNEXPLAINED_SIGMAS
+                     or unexplained_sigmas(fams, settings.min_line_snr_db, "copy_v") > UNEXPLAINED_SIGMAS or ghost
                      or (a_dof > 0 and not chdtrc(a_dof, a_chi2) >= BLENDED_P)),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
+
+
+#: a Doppler line is taken for noise that moved its lines together where the odds that noise alone
+#: put it there (:func:`pedestal_ghost_odds`) exceed this
+GHOST_ODDS_MAX = 1e-5
+
+
+def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: float, search_bins: float) -> float:
+    """The odds that noise alone made a found Doppler line, counting its lines' noise as the rings
+    show it moving together (``factor``: the search's threshold per line; ``search_bins``: the
+    Doppler bins it searched).
+
+    The search sums ``L`` lines' ratios to their floors and asks ``factor*L``: for independent lines
+    a Gamma(L) tail, astronomically small. Where a strong echo's phase-noise pedestal is the floor
+    about every line, it is one process at every tone: the lines' powers rise and fall together, and
+    one bump of it is a "mover" at every line at once, with the echo's own tone phases (the envelope
+    probe's scene 6001: a static echo at 7 dB loss under a 100 kHz laser, its lines faded, a
+    "mover" at its range at 1.3 m/s, 193 sigmas from 0, unflagged). Here the lines count as the
+    participation ratio ``P`` of their rings' power correlations, ``(sum l)^2 / sum l^2`` over its
+    eigenvalues (``L`` for independent lines, 1 for one process), and each line's ratio as measured
+    against the noise the rings show about it (the floor the search used reads a pedestal rising
+    toward the lines low): ``search_bins`` times the Gamma(P) tail at ``P`` times the mean ratio.
+    0 where no rings were read.
+    """
+    rings = [(f.ring.rows, f.phase_var) for f in fams if f.ring is not None]
+    lines = dop.threshold / factor if factor > 0 else 0.0
+    if not dop.detected or not rings or lines < 1:
+        return 0.0
+    rows = np.concatenate([r for r, _ in rings], axis=1)
+    var = np.concatenate([v for _, v in rings])
+    use = np.isfinite(var) & (var > 0) & np.any(rows != 0, axis=0)
+    if np.sum(use) < 2:
+        return 0.0
+    power = np.abs(rows[:, use]) ** 2
+    corr = np.nan_to_num(np.corrcoef(power.T))
+    eig = np.linalg.eigvalsh(corr)
+    p_eff = float(np.clip(np.sum(eig) ** 2 / np.sum(eig**2), 1.0, lines))
+    kappa = max(float(np.mean(np.mean(power, axis=0) / var[use])), 1.0)
+    return float(min(1.0, search_bins * gammaincc(p_eff, p_eff * dop.score / lines / kappa)))
 
 
 #: :func:`amplitude_chi2` uses a line whose segments' noise (``2*S*phase_var`` of its mean power)
@@ -737,15 +780,17 @@ def _copies(points: list[tuple[int, TargetPoint]]) -> list[tuple[int, TargetPoin
     frames): 8- and 12-bit ADCs, at 2x and 41x a mover's Doppler and at other offsets, 8-31 dB under
     its lines, at its range within its sigma. A copy at a whole multiple of the mover's speed (``k +
     1 >= 2``, within 5 sigmas) is one whenever it is weaker (scene 2267: 8-bit codes, a 15 m/s
-    mover's copy at 29.99 m/s only 5 dB under it). Float volts hold such copies too (scene 3275: one
+    mover's copy at 29.99 m/s only 5 dB under it), or stronger: the quantizer's products of a line
+    at ``f_d`` fall at whole multiples of ``f_d``, never at a fraction of another's (scene 7816: 8-bit
+    codes, a 3.72 m/s mover's copy at 11.17 m/s, 1.2 dB above it, unflagged). Float volts hold such copies too (scene 3275: one
     photodiode, a 1 MHz laser, an echo at 7.7 dB loss with the LO a tenth of the power: a "mover" at
     4.5 m/s, 19 dB under a 0.08 m/s mover, at its range), and are judged alike (the rule had looked
     at integer codes only). A real second target at the same range and another speed (a
     spinning part) cannot be told from such a copy in one frame: flagged, not dropped."""
     movers = [p for k, p in points if k > 0]
     return [(k, replace(p, blended=True) if k > 0 and any(
-        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + COPY_MARGIN_DB or (
-            median_snr(q) > median_snr(p) and _speed_multiple(p, q))) for q in movers) else p) for k, p in points]
+        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + COPY_MARGIN_DB or _speed_multiple(p, q))
+        for q in movers) else p) for k, p in points]
 
 
 def _speed_multiple(p: TargetPoint, q: TargetPoint) -> bool:
