@@ -990,3 +990,15 @@ def test_a_bump_of_a_static_echos_pedestal_is_no_confident_mover(scene):
 
     counts, lines = judge_scene(scene, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_record_of_a_few_adc_codes_gives_no_confident_point():
+    """The envelope probe's scene 6487: one photodiode behind an 8-bit ADC, two movers at 55-57 dB
+    loss whose record spans 4 codes (its spread half an LSB). The quantizer's error is then the
+    signal's own function at every line's size: the lines' phases fall 2-4x their floor's sigmas
+    off (within them on 12-bit codes of the same frames), and a range came out 92 sigmas off,
+    unflagged. Every point of a record spanning fewer than 16 codes is ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(6487, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

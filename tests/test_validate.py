@@ -213,6 +213,16 @@ class TestValidate:
         stuck[::7] = 32760
         assert reason(make(stuck, scale=1e-6)) == "clipped"
 
+    def test_code_span_counts_adc_steps(self):
+        """``code_span_steps``: the codes' range over the step between the codes present."""
+        from mtcw_core.dsp.validate import code_span_steps
+
+        codes = np.array([120, 121, 123, 121, 122], np.int8)
+        assert code_span_steps(codes) == 3
+        assert code_span_steps(codes.astype(np.int16) * 256) == 3  # 8-bit codes in 16-bit words
+        assert code_span_steps(np.array([-100, 0, 100], np.int16)) == 2  # steps of 100
+        assert code_span_steps(np.full(5, 7, np.int16)) == 0
+
     def test_a_clipped_6_bit_record_is_clipped(self):
         """4-8-bit ADCs travel as int8: a 6-bit record's rails are -32 and 31, the record's own
         extremes, not int8's; it spans 63 steps, so they count."""

@@ -23,6 +23,7 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
+from .validate import MIN_RAIL_SPAN_STEPS, code_span_steps
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
@@ -108,7 +109,8 @@ class LineFamily:
     copy_v : ndarray, shape (T,), or None
         A mover's lines on integer ADC codes whose white floor is mostly the quantizer's: what the
         quantizer's products could add to each (V), as its copies of the mover's lines where no
-        line stands show them (:func:`quantizer_copies`); None where not measured.
+        line stands show them; every line's own size on a record of few codes (under-resolved)
+        (:func:`quantizer_copies`); None where not measured.
     """
 
     name: str
@@ -354,25 +356,33 @@ def _copy_positions(spec: Spectrum, t: np.ndarray, fds: list[float], lines: np.n
     return pos[near > guard * spec.df_hz]
 
 
+def _copies_excess(p: np.ndarray, floor: np.ndarray) -> float:
+    """The copies' power ``p`` above their floors ``floor`` (spectrum units, shape (P,)): their mean
+    where it stands out of the noise (:data:`COPY_NOISE_SIGMAS`), their largest where no noise draw
+    of as many would reach it (:data:`COPY_FALSE_ODDS`), the larger; 0 where neither."""
+    ratio, top = float(np.mean(p / floor)), float(np.max(p / floor))
+    mean = float(np.mean(p - floor)) if ratio > 1.0 + COPY_NOISE_SIGMAS / math.sqrt(p.size) else 0.0
+    return max(mean, float(np.max(p - floor)) if top > math.log(p.size / COPY_FALSE_ODDS) else 0.0)
+
+
 def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
                      zs: dict, uniq: np.ndarray, fds: list[float]) -> list[np.ndarray | None]:
-    """Each mover's families' :attr:`LineFamily.copy_v` (V, shape (T,)); None for the static
-    candidate's, and for every family unless the record is integer ADC codes whose white floor is
-    mostly the quantizer's (:data:`QUANT_DOMINATED`).
+    """Each mover's families' :attr:`LineFamily.copy_v` (V, shape (T,)) on integer ADC codes whose
+    white floor is mostly the quantizer's (:data:`QUANT_DOMINATED`); every family's, the static
+    one's too, at its lines' own size where the codes span fewer than
+    :data:`~.validate.MIN_RAIL_SPAN_STEPS` steps (under-resolved); None elsewhere.
 
-    Quantizing a record whose noise is under an LSB makes its error a function of the signal: a weak
-    line ``m`` beside strong ones ``S`` passes the quantizer as ``m(t)*g(S(t))``, a gain that beats
-    at the strong lines' differences, so each of the mover's lines is copied to ``f + f_i - f_j``
-    (tones ``i != j``) -- onto its other lines, with the strong lines' phases, and beside them. The
-    copies beside them are read: where no product of two fields (a square-law detector's lines, each
-    tone or 0 Hz with another, moved by 0, a found Doppler, or two of them) falls, only a
-    nonlinearity puts power. Their mean power above the floor, where it stands out of the noise
-    (:data:`COPY_NOISE_SIGMAS`), is what each line may carry; as an amplitude, each line's size
-    times the root of that power over the line's own in the spectrum. The envelope probe's scene
-    6815 (IQ, 8-bit codes, a static echo 40 dB above a mover): copies 8-18 dB over the floor beside
-    lines 17-27 dB over it, the mover's range 107 sigmas off, unflagged; on float volts 0 +- 5 dB.
-    The modulator's own third-order products fall at the same places (35 dB under a mover's lines on
-    ``moving-target``): where the quantizer's floor rules, they count too.
+    Under an LSB of noise the quantizer's error is the signal's function: a weak line ``m`` beside
+    strong ones ``S`` passes as ``m(t)*g(S(t))``, a gain beating at the strong lines' differences,
+    copying each of the mover's lines to ``f + f_i - f_j`` -- onto its other lines, with the strong
+    lines' phases, and beside them (:func:`_copy_positions`: where no square-law product falls,
+    only a nonlinearity puts power). Their mean power above the floor, where it stands out of the
+    noise (:data:`COPY_NOISE_SIGMAS`), or their largest, is what each line may carry: its size times
+    the root of that power over the line's own. Scene 6815 of the envelope probe (IQ, 8-bit codes, a
+    static echo 40 dB above a mover): copies 8-18 dB over the floor beside lines 17-27 dB over it,
+    the range 107 sigmas off, unflagged; on float volts 0 +- 5 dB. The modulator's third-order
+    products fall there too (35 dB under a mover's lines on ``moving-target``), and count where
+    the quantizer's floor rules.
 
     Parameters
     ----------
@@ -382,6 +392,11 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     """
     out: list[np.ndarray | None] = [None] * len(fams)
     codes = frame.samples.dtype.kind in "iu" and frame.scale != 0
+    if codes and code_span_steps(frame.samples) < MIN_RAIL_SPAN_STEPS:
+        # under-resolved: the record is a few codes, its quantizer error the signal's own function
+        # at the size of every line (the envelope probe's scene 6487: 4 codes, the lines' phases
+        # 2-4x their floor's sigmas off where 12-bit codes of the same frame are within them)
+        return [np.sqrt(np.mean(np.abs(zs[f[0], f[1]]) ** 2, axis=0)) for f in fams]
     movers = [i for i, f in enumerate(fams) if f[0]]
     if not codes or not movers:
         return out
@@ -393,12 +408,7 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
     if not np.median(s2) <= QUANT_DOMINATED * frame.scale**2 / 12.0 * (2.0 if iq else 1.0):
         return out
-    floor = s2 * spec.window_power
-    p = spec.power_at(pos)
-    ratio, top = float(np.mean(p / floor)), float(np.max(p / floor))
-    # the copies' mean where it stands out of the noise; the largest where no noise draw reaches it
-    excess = max(float(np.mean(p - floor)) if ratio > 1.0 + COPY_NOISE_SIGMAS / math.sqrt(pos.size) else 0.0,
-                 float(np.max(p - floor)) if top > math.log(pos.size / COPY_FALSE_ODDS) else 0.0)
+    excess = _copies_excess(spec.power_at(pos), s2 * spec.window_power)
     for i in movers:
         f = fams[i][2]
         own = spec.power_at(f) - spec.noise_variances(f, uniq, guard=guard) * spec.window_power

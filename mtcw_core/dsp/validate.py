@@ -47,6 +47,17 @@ def rail_fraction(r: np.ndarray, rail) -> float:
 MIN_RAIL_SPAN_STEPS = 16
 
 
+def code_span_steps(r: np.ndarray, hi=None, lo=None) -> int:
+    """How many ADC steps integer codes ``r`` (extremes ``hi``, ``lo``; taken from ``r`` when not
+    given) span: their range over the gcd of the gaps between the codes present (8-bit codes sent
+    as 16-bit words step by 256)."""
+    hi = int(np.max(r)) if hi is None else int(hi)
+    lo = int(np.min(r)) if lo is None else int(lo)
+    present = np.flatnonzero(np.bincount((r.astype(np.int64) - lo).ravel()))
+    step = int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1
+    return (hi - lo) // max(step, 1)
+
+
 def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:
     """The fraction of ``r`` (extremes ``hi``, ``lo``) stuck at a digitizer's rails.
 
@@ -61,9 +72,7 @@ def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:
     frac = max(rail_fraction(r, hi), rail_fraction(r, lo))
     if frac <= limit or r.dtype.kind not in "iu":
         return frac
-    present = np.flatnonzero(np.bincount((r.astype(np.int64) - int(lo)).ravel()))
-    step = int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1
-    if (int(hi) - int(lo)) // max(step, 1) >= MIN_RAIL_SPAN_STEPS:
+    if code_span_steps(r, hi, lo) >= MIN_RAIL_SPAN_STEPS:
         return frac
     lim = np.iinfo(r.dtype)
     return max([0.0] + [rail_fraction(r, v) for v in (hi, lo) if v in (lim.max, lim.min)])
