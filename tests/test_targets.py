@@ -398,17 +398,25 @@ class TestSelectTargets:
         cands = [(1, strong), (2, copy), (3, apart), (4, close)]
         assert select_targets(cands, self.ST) == [strong, close, replace(copy, blended=True), apart]
         # at twice the mover's speed (within 5 sigmas) a copy only 2 dB weaker is one too (scene
-        # 2267: 8-bit codes, 15 m/s, its copy at 29.99 m/s 5 dB under it), and one stronger (scene
-        # 7816: 8-bit codes, a 3.72 m/s mover's copy at 11.17 m/s 1.2 dB above it: a quantizer's
-        # products lie at multiples of a line, never at a fraction); 2.3x is not, nor is 3.0 m/s
-        # above (20x, but 5 sigmas of 20x reach 0.1 m/s: any speed would be a multiple)
+        # 2267: 8-bit codes, 15 m/s, its copy at 29.99 m/s 5 dB under it), and one up to 3 dB stronger
+        # (scene 7816: 8-bit codes, a 3.72 m/s mover's copy at 11.17 m/s 1.2 dB above it: a
+        # quantizer's products lie at multiples of a line, never at a fraction), not one 4 dB
+        # stronger; 2.3x is not, nor is 3.0 m/s above (20x, but 5 sigmas of 20x reach 0.1 m/s: any
+        # speed would be a multiple)
         double = replace(close, velocity_mps=0.3 + 4e-3)
         off = replace(close, velocity_mps=0.345)
         assert select_targets([(1, strong), (2, double)], self.ST) == [
             strong, replace(double, blended=True)]
         assert select_targets([(1, strong), (2, off)], self.ST) == [strong, off]
-        louder = replace(strong, velocity_mps=0.3, tone_snr_db={k: 50.0 for k in strong.tone_snr_db})
+        louder = replace(strong, velocity_mps=0.3, tone_snr_db={k: 48.0 for k in strong.tone_snr_db})
         assert select_targets([(1, strong), (2, louder)], self.ST) == [replace(louder, blended=True), strong]
+        loudest = replace(louder, tone_snr_db={k: 50.0 for k in strong.tone_snr_db})
+        assert select_targets([(1, strong), (2, loudest)], self.ST) == [loudest, strong]
+        # a strong mover is no copy of a faint point at a third of its speed (its range sigma wide)
+        faint = replace(point(3.58, [14.0, 14.0, 14.0]), velocity_mps=0.31, velocity_sigma_mps=4e-3,
+                        range_sigma_m=0.05, direction="unknown")
+        fast = replace(strong, velocity_mps=0.9)
+        assert select_targets([(1, fast), (2, faint)], self.ST)[0] == fast
 
     def test_a_weak_twin_at_the_static_range_leaves_its_speed_unmeasured(self):
         """No laser declared: the weak twin may be the static target's wings or a mover whose
@@ -826,7 +834,11 @@ class TestPedestalGhostOdds:
         # noise that the rings show 2x above the floor the lines were judged on halves each ratio
         assert pedestal_ghost_odds(dop, self.fams(one * math.sqrt(2)), 8.0, 1.0) > 10 * pedestal_ghost_odds(
             dop, self.fams(one), 8.0, 1.0)
-        # no rings, or no Doppler line: nothing to say
+        # no rings, or no Doppler line: nothing to say; nor for a sub-guard fit (its score is one
+        # line's SNR against a threshold of its own), nor over a ring of a few rows
         bare = [replace(f, ring=None) for f in self.fams(one)]
         assert pedestal_ghost_odds(dop, bare, 8.0, 1e5) == 0.0
         assert pedestal_ghost_odds(replace(dop, detected=False), self.fams(one), 8.0, 1e5) == 0.0
+        assert pedestal_ghost_odds(replace(dop, method="fit", threshold=100.0, score=150.0), self.fams(one),
+                                   8.0, 1e5) == 0.0
+        assert pedestal_ghost_odds(dop, self.fams(one[:1]), 8.0, 1e5) == 0.0

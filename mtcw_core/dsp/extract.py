@@ -23,7 +23,7 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
-from .validate import MIN_RAIL_SPAN_STEPS, code_span_steps
+from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
 
 
@@ -107,7 +107,7 @@ class LineFamily:
         The noise about the lines, read together with the target's other families'
         (:class:`NoiseRing`); None where not read.
     copy_v : ndarray, shape (T,), or None
-        A mover's lines on integer ADC codes whose white floor is mostly the quantizer's: what the
+        A mover's lines on integer ADC codes whose thermal noise is under ~1/2 LSB: what the
         quantizer's products could add to each (V), as its copies of the mover's lines where no
         line stands show them; every line's own size on a record of few codes (under-resolved)
         (:func:`quantizer_copies`); None where not measured.
@@ -318,9 +318,9 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
 
 
 #: :func:`quantizer_copies` reads a record whose white floor (per channel) is at most this many
-#: times the quantizer's own ``LSB^2/12``: thermal noise under ~1/2 LSB leaves the quantizer's error
-#: a function of the signal, with products (a 1/2 LSB of Gaussian noise already damps its
-#: harmonics' amplitudes by ~exp(-2*pi^2/4) ~ 0.7 %)
+#: times the quantizer's own ``LSB^2/12`` (the quantizer then at least a quarter of it): thermal
+#: noise under ~1/2 LSB leaves the quantizer's error a function of the signal, with products (1/2 LSB
+#: of Gaussian noise damps its first harmonic by exp(-2*pi^2/4) ~ 0.7 %; 1.3 LSB by ~1e-15)
 QUANT_DOMINATED = 4.0
 #: ... and counts the copies where their mean power stands this many of its own sigmas (``1/sqrt(K)``
 #: of the floor for K copies of noise alone) above the floor
@@ -341,8 +341,12 @@ def _copy_positions(spec: Spectrum, t: np.ndarray, fds: list[float], lines: np.n
     dops = np.unique([s * a + r * b for a in fds for b in [0.0, *fds] for s in (1, -1) for r in (1, -1)])
     moves = np.concatenate([(t[:, None] - t[None, :])[~np.eye(t.size, dtype=bool)], dops])
     base = np.concatenate([[0.0], t, -t])
+    # the square law's shifts: none, a Doppler, two movers' beat (on a real record the Dopplers are
+    # |f_d|, and two movers going opposite ways beat at the sum of theirs)
     shifts = np.unique(np.concatenate([[0.0], dops[np.isin(np.round(np.abs(dops), 3), np.round(np.abs(fds), 3))],
-                                       [a - b for a in fds for b in fds], [b - a for a in fds for b in fds]]))
+                                       [s * (a - b) for a in fds for b in fds for s in (1, -1)],
+                                       [] if spec.complex_input else [s * (a + b) for a in fds for b in fds
+                                                                      for s in (1, -1)]]))
     second = ((base[:, None] + base[None, :]).ravel()[:, None] + shifts[None, :]).ravel()
     taken = np.unique(np.concatenate([second, uniq, -uniq]))
     lo, hi = spec.f0_hz + guard * spec.df_hz, spec.f0_hz + (spec.power.size - 1 - guard) * spec.df_hz
@@ -368,9 +372,10 @@ def _copies_excess(p: np.ndarray, floor: np.ndarray) -> float:
 def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
                      zs: dict, uniq: np.ndarray, fds: list[float]) -> list[np.ndarray | None]:
     """Each mover's families' :attr:`LineFamily.copy_v` (V, shape (T,)) on integer ADC codes whose
-    white floor is mostly the quantizer's (:data:`QUANT_DOMINATED`); every family's, the static
-    one's too, at its lines' own size where the codes span fewer than
-    :data:`~.validate.MIN_RAIL_SPAN_STEPS` steps (under-resolved); None elsewhere.
+    white floor is at most :data:`QUANT_DOMINATED` times the quantizer's own ``LSB^2/12`` (thermal
+    noise under ~1/2 LSB); there, every family's, the static one's too, at its lines' own size
+    where the codes span fewer than :data:`~.validate.MIN_RAIL_SPAN_STEPS` steps (under-resolved);
+    None elsewhere.
 
     Under an LSB of noise the quantizer's error is the signal's function: a weak line ``m`` beside
     strong ones ``S`` passes as ``m(t)*g(S(t))``, a gain beating at the strong lines' differences,
@@ -378,7 +383,8 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     lines' phases, and beside them (:func:`_copy_positions`: where no square-law product falls,
     only a nonlinearity puts power). Their mean power above the floor, where it stands out of the
     noise (:data:`COPY_NOISE_SIGMAS`), or their largest, is what each line may carry: its size times
-    the root of that power over the line's own. Scene 6815 of the envelope probe (IQ, 8-bit codes, a
+    the root of that power over the line's own -- pooled over the movers, as a gain beating at two
+    movers' Doppler difference copies one's lines onto the other's. Scene 6815 of the envelope probe (IQ, 8-bit codes, a
     static echo 40 dB above a mover): copies 8-18 dB over the floor beside lines 17-27 dB over it,
     the range 107 sigmas off, unflagged; on float volts 0 +- 5 dB. The modulator's third-order
     products fall there too (35 dB under a mover's lines on ``moving-target``), and count where
@@ -391,23 +397,27 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     uniq : every fitted line (Hz); fds : the Doppler lines found (Hz)
     """
     out: list[np.ndarray | None] = [None] * len(fams)
-    codes = frame.samples.dtype.kind in "iu" and frame.scale != 0
-    if codes and code_span_steps(frame.samples) < MIN_RAIL_SPAN_STEPS:
+    if frame.samples.dtype.kind not in "iu" or frame.scale == 0:
+        return out
+    iq, guard = spec.complex_input, spec.line_floor_guard()
+    # the signal channels' codes (not a pulse reference): the fewest steps any spans, and its LSB in
+    # volts (8-bit codes sent as 16-bit words step by 256)
+    steps = [code_steps(c) for c, name in zip(frame.samples, frame.channels) if name != "pulse_ref"]
+    span, step = min(steps)
+    q2 = (step * frame.scale) ** 2 / 12.0 * (2.0 if iq else 1.0)  # the quantizer's own (IQ: both channels)
+    if not np.median(spec.noise_variances(uniq, uniq, guard=guard)) <= QUANT_DOMINATED * q2:
+        return out  # thermal noise over ~1/2 LSB: the quantizer's error is noise, its products damped
+    if span < MIN_RAIL_SPAN_STEPS:
         # under-resolved: the record is a few codes, its quantizer error the signal's own function
         # at the size of every line (the envelope probe's scene 6487: 4 codes, the lines' phases
         # 2-4x their floor's sigmas off where 12-bit codes of the same frame are within them)
         return [np.sqrt(np.mean(np.abs(zs[f[0], f[1]]) ** 2, axis=0)) for f in fams]
     movers = [i for i, f in enumerate(fams) if f[0]]
-    if not codes or not movers:
-        return out
-    iq, guard = spec.complex_input, spec.line_floor_guard()
-    lines = np.concatenate([fams[i][2][~np.asarray(fams[i][4], bool)] for i in movers])
+    lines = np.concatenate([fams[i][2][~np.asarray(fams[i][4], bool)] for i in movers]) if movers else uniq[:0]
     pos = _copy_positions(spec, np.asarray(frame.tones_hz, dtype=float), fds, lines, uniq, guard)
     if pos.size < COPY_MIN:
         return out
     s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
-    if not np.median(s2) <= QUANT_DOMINATED * frame.scale**2 / 12.0 * (2.0 if iq else 1.0):
-        return out
     excess = _copies_excess(spec.power_at(pos), s2 * spec.window_power)
     for i in movers:
         f = fams[i][2]
@@ -415,38 +425,7 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
         amp = np.sqrt(np.mean(np.abs(zs[fams[i][0], fams[i][1]]) ** 2, axis=0))
         out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
     return out
-    iq, guard = spec.complex_input, spec.line_floor_guard()
-    t = np.asarray(frame.tones_hz, dtype=float)
-    diffs = (t[:, None] - t[None, :])[~np.eye(t.size, dtype=bool)]
-    base = np.concatenate([[0.0], t, -t])
-    shifts = np.unique([0.0] + [s * a for a in fds for s in (1, -1)]
-                       + [s * a + r * b for a in fds for b in fds for s in (1, -1) for r in (1, -1)])
-    second = ((base[:, None] + base[None, :]).ravel()[:, None] + shifts[None, :]).ravel()
-    taken = np.unique(np.concatenate([second, uniq, -uniq]))
-    lo, hi = spec.f0_hz + guard * spec.df_hz, spec.f0_hz + (spec.power.size - 1 - guard) * spec.df_hz
-    for k in sorted({f[0] for f in fams} - {0}):
-        mine = [i for i, f in enumerate(fams) if f[0] == k]
-        lines = np.concatenate([fams[i][2][~np.asarray(fams[i][4], bool)] for i in mine])
-        pos = (lines[:, None] + diffs[None, :]).ravel()
-        pos = np.unique(np.round(pos if iq else np.abs(pos), 3))
-        near = np.min(np.abs(pos[:, None] - taken[None, :]), axis=1) if pos.size else pos
-        pos = pos[(pos > lo) & (pos < hi) & (near > guard * spec.df_hz)]
-        if pos.size < COPY_MIN:
-            continue
-        s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
-        q2 = frame.scale**2 / 12.0 * (2.0 if iq else 1.0)
-        if not np.median(s2) <= QUANT_DOMINATED * q2:
-            continue
-        floor = s2 * spec.window_power
-        p = spec.power_at(pos)
-        ratio = float(np.mean(p / floor))
-        excess = float(np.mean(p - floor)) if ratio > 1.0 + COPY_NOISE_SIGMAS / math.sqrt(pos.size) else 0.0
-        for i in mine:
-            f = fams[i][2]
-            own = spec.power_at(f) - spec.noise_variances(f, uniq, guard=guard) * spec.window_power
-            amp = np.sqrt(np.mean(np.abs(zs[k, fams[i][1]]) ** 2, axis=0))
-            out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
-    return out
+
 
 
 #: :attr:`NoiseRing.near`: the rows this many of the spectrum's bins beyond each line's guard, on

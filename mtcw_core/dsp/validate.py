@@ -47,15 +47,20 @@ def rail_fraction(r: np.ndarray, rail) -> float:
 MIN_RAIL_SPAN_STEPS = 16
 
 
-def code_span_steps(r: np.ndarray, hi=None, lo=None) -> int:
+def code_steps(r: np.ndarray, hi=None, lo=None) -> tuple[int, int]:
     """How many ADC steps integer codes ``r`` (extremes ``hi``, ``lo``; taken from ``r`` when not
-    given) span: their range over the gcd of the gaps between the codes present (8-bit codes sent
-    as 16-bit words step by 256)."""
+    given) span, and the step (codes): their range over the gcd of the gaps between the codes
+    present (8-bit codes sent as 16-bit words step by 256)."""
     hi = int(np.max(r)) if hi is None else int(hi)
     lo = int(np.min(r)) if lo is None else int(lo)
     present = np.flatnonzero(np.bincount((r.astype(np.int64) - lo).ravel()))
-    step = int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1
-    return (hi - lo) // max(step, 1)
+    step = max(int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1, 1)
+    return (hi - lo) // step, step
+
+
+def code_span_steps(r: np.ndarray, hi=None, lo=None) -> int:
+    """The steps of :func:`code_steps`."""
+    return code_steps(r, hi, lo)[0]
 
 
 def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:

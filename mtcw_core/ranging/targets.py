@@ -341,8 +341,10 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
                                     settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     # a "mover" one bump of a pedestal that moves every line together could have made
-    ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold,
-                                2 * fd_max(frame.tones_hz, settings) * frame.n / frame.fs_hz) > GHOST_ODDS_MAX
+    # (the bins the search read: one sign of Doppler on a real record, both on IQ, in its part of the record)
+    bins = (2 if frame.receiver == "iq" else 1) * fd_max(frame.tones_hz, settings) * frame.n * min(
+        settings.doppler_fraction, 1.0) / frame.fs_hz
+    ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold, bins) > GHOST_ODDS_MAX
     # the static lines' sizes against one target's (two echoes on one Doppler-0 line set)
     a_chi2, a_dof = (0.0, 0) if dop.detected else amplitude_chi2(fams, ref.tone_amplitudes, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
@@ -375,6 +377,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
 #: a Doppler line is taken for noise that moved its lines together where the odds that noise alone
 #: put it there (:func:`pedestal_ghost_odds`) exceed this
 GHOST_ODDS_MAX = 1e-5
+#: ... read over at least this many ring rows (fewer: no correlation to speak of)
+GHOST_MIN_ROWS = 16
 
 
 def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: float, search_bins: float) -> float:
@@ -396,7 +400,8 @@ def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: fl
     """
     rings = [(f.ring.rows, f.phase_var) for f in fams if f.ring is not None]
     lines = dop.threshold / factor if factor > 0 else 0.0
-    if not dop.detected or not rings or lines < 1:
+    # a sub-guard fit's score is its baseband line's SNR against a threshold of its own: not a sum
+    if not dop.detected or dop.method == "fit" or not rings or lines < 1:
         return 0.0
     rows = np.concatenate([r for r, _ in rings], axis=1)
     var = np.concatenate([v for _, v in rings])
@@ -404,7 +409,10 @@ def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: fl
     if np.sum(use) < 2:
         return 0.0
     power = np.abs(rows[:, use]) ** 2
+    if power.shape[0] < GHOST_MIN_ROWS:
+        return 0.0
     corr = np.nan_to_num(np.corrcoef(power.T))
+    np.fill_diagonal(corr, 1.0)  # a column of constant power correlates with nothing
     eig = np.linalg.eigvalsh(corr)
     p_eff = float(np.clip(np.sum(eig) ** 2 / np.sum(eig**2), 1.0, lines))
     kappa = max(float(np.mean(np.mean(power, axis=0) / var[use])), 1.0)
@@ -767,6 +775,10 @@ def select_targets(points: list[tuple[int, TargetPoint]], settings: ChainSetting
 #: a copy of a mover's line family stands this far (dB) below the mover's own lines at least (the
 #: envelope probe's ghosts: 8-31 dB below)
 COPY_MARGIN_DB = 6.0
+#: ... and a copy at a whole multiple of a mover's speed may stand up to this far (dB) above it (the
+#: envelope probe's scene 7816: 1.2 dB); a mover far above a weak point at a fraction of its speed is
+#: no copy of it
+COPY_STRONGER_DB = 3.0
 
 
 def _copies(points: list[tuple[int, TargetPoint]]) -> list[tuple[int, TargetPoint]]:
@@ -782,15 +794,17 @@ def _copies(points: list[tuple[int, TargetPoint]]) -> list[tuple[int, TargetPoin
     1 >= 2``, within 5 sigmas) is one whenever it is weaker (scene 2267: 8-bit codes, a 15 m/s
     mover's copy at 29.99 m/s only 5 dB under it), or stronger: the quantizer's products of a line
     at ``f_d`` fall at whole multiples of ``f_d``, never at a fraction of another's (scene 7816: 8-bit
-    codes, a 3.72 m/s mover's copy at 11.17 m/s, 1.2 dB above it, unflagged). Float volts hold such copies too (scene 3275: one
+    codes, a 3.72 m/s mover's copy at 11.17 m/s, 1.2 dB above it, unflagged): up to
+    :data:`COPY_STRONGER_DB` above it. Float volts hold such copies too (scene 3275: one
     photodiode, a 1 MHz laser, an echo at 7.7 dB loss with the LO a tenth of the power: a "mover" at
     4.5 m/s, 19 dB under a 0.08 m/s mover, at its range), and are judged alike (the rule had looked
     at integer codes only). A real second target at the same range and another speed (a
     spinning part) cannot be told from such a copy in one frame: flagged, not dropped."""
     movers = [p for k, p in points if k > 0]
     return [(k, replace(p, blended=True) if k > 0 and any(
-        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + COPY_MARGIN_DB or _speed_multiple(p, q))
-        for q in movers) else p) for k, p in points]
+        q is not p and _same_range(p, q) and (median_snr(q) >= median_snr(p) + COPY_MARGIN_DB or (
+            median_snr(q) >= median_snr(p) - COPY_STRONGER_DB and _speed_multiple(p, q))) for q in movers) else p)
+        for k, p in points]
 
 
 def _speed_multiple(p: TargetPoint, q: TargetPoint) -> bool:
