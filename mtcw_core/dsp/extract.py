@@ -23,8 +23,8 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
-from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments
+from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 
 
 @dataclass(frozen=True)
@@ -384,11 +384,11 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     only a nonlinearity puts power). Their mean power above the floor, where it stands out of the
     noise (:data:`COPY_NOISE_SIGMAS`), or their largest, is what each line may carry: its size times
     the root of that power over the line's own -- pooled over the movers, as a gain beating at two
-    movers' Doppler difference copies one's lines onto the other's. Scene 6815 of the envelope probe (IQ, 8-bit codes, a
-    static echo 40 dB above a mover): copies 8-18 dB over the floor beside lines 17-27 dB over it,
-    the range 107 sigmas off, unflagged; on float volts 0 +- 5 dB. The modulator's third-order
-    products fall there too (35 dB under a mover's lines on ``moving-target``), and count where
-    the quantizer's floor rules.
+    movers' Doppler difference copies one's lines onto the other's. Scene 6815 of the envelope
+    probe (IQ, 8-bit codes, a static echo 40 dB above a mover): copies 8-18 dB over the floor
+    beside lines 17-27 dB over it, the range 107 sigmas off, unflagged; on float volts 0 +- 5 dB.
+    The modulator's third-order products fall there too (35 dB under a mover's lines on
+    ``moving-target``), and count where the quantizer's floor rules.
 
     Parameters
     ----------
@@ -425,7 +425,6 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
         amp = np.sqrt(np.mean(np.abs(zs[fams[i][0], fams[i][1]]) ** 2, axis=0))
         out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
     return out
-
 
 
 #: :attr:`NoiseRing.near`: the rows this many of the spectrum's bins beyond each line's guard, on
