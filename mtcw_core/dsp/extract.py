@@ -402,7 +402,7 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     iq, guard = spec.complex_input, spec.line_floor_guard()
     # the signal channels' codes (not a pulse reference): the fewest steps any spans, and its LSB in
     # volts (8-bit codes sent as 16-bit words step by 256)
-    steps = [code_steps(c) for c, name in zip(frame.samples, frame.channels) if name != "pulse_ref"]
+    steps = [code_steps(c, stride=16) for c, name in zip(frame.samples, frame.channels) if name != "pulse_ref"]
     span, step = min(steps)
     q2 = (step * frame.scale) ** 2 / 12.0 * (2.0 if iq else 1.0)  # the quantizer's own (IQ: both channels)
     if not np.median(spec.noise_variances(uniq, uniq, guard=guard)) <= QUANT_DOMINATED * q2:

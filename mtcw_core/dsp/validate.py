@@ -47,13 +47,15 @@ def rail_fraction(r: np.ndarray, rail) -> float:
 MIN_RAIL_SPAN_STEPS = 16
 
 
-def code_steps(r: np.ndarray, hi=None, lo=None) -> tuple[int, int]:
+def code_steps(r: np.ndarray, hi=None, lo=None, stride: int = 1) -> tuple[int, int]:
     """How many ADC steps integer codes ``r`` (extremes ``hi``, ``lo``; taken from ``r`` when not
     given) span, and the step (codes): their range over the gcd of the gaps between the codes
-    present (8-bit codes sent as 16-bit words step by 256)."""
+    present (8-bit codes sent as 16-bit words step by 256), read in every ``stride``-th code (a
+    subset's step is a multiple of the whole's: the same unless codes off it are rare; 16-bit words
+    of 1e6 samples take ~9 ms read whole, ~1 ms at a stride of 16)."""
     hi = int(np.max(r)) if hi is None else int(hi)
     lo = int(np.min(r)) if lo is None else int(lo)
-    present = np.flatnonzero(np.bincount((r.astype(np.int64) - lo).ravel()))
+    present = np.flatnonzero(np.bincount((r[..., ::stride].astype(np.int64) - lo).ravel()))
     step = max(int(np.gcd.reduce(np.diff(present))) if present.size > 1 else 1, 1)
     return (hi - lo) // step, step
 
