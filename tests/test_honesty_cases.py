@@ -947,7 +947,7 @@ def test_a_mover_far_above_the_lo_beside_a_static_echo_leaves_no_confident_stati
 
 
 def test_a_quantizers_cross_products_on_a_weak_movers_lines_flag_it():
-    """The envelope probe's scene 6815: IQ behind an 8-bit ADC whose floor is mostly its own, a
+    """The envelope probe's scene 6815: IQ behind an 8-bit ADC whose floor is at most 4x its own, a
     static echo 40 dB above a mover. The quantizer passes the mover's lines through a gain that
     beats at the static lines' differences: each tone's line is copied onto the others with the
     static lines' phases, and the range came out 107 sigmas off, unflagged. The same copies stand
