@@ -214,8 +214,11 @@ class TestValidate:
         assert reason(make(stuck, scale=1e-6)) == "clipped"
 
     def test_code_span_counts_adc_steps(self):
-        """``code_span_steps``: the codes' range over the step between the codes present."""
-        from mtcw_core.dsp.validate import code_span_steps
+        """``code_steps``: the codes' range over the step between the codes present."""
+        from mtcw_core.dsp.validate import code_steps
+
+        def code_span_steps(r):
+            return code_steps(r)[0]
 
         codes = np.array([120, 121, 123, 121, 122], np.int8)
         assert code_span_steps(codes) == 3

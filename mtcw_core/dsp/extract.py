@@ -299,7 +299,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                            fams[0][2], x, s2_all[:first[1]])
     rings = _target_rings(spec, fams, uniq)
-    copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected])
+    copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
+                              [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
         z = zs[target, name]
@@ -370,7 +371,7 @@ def _copies_excess(p: np.ndarray, floor: np.ndarray) -> float:
 
 
 def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
-                     zs: dict, uniq: np.ndarray, fds: list[float]) -> list[np.ndarray | None]:
+                     zs: dict, uniq: np.ndarray, fds: list[float], s2: list[np.ndarray]) -> list[np.ndarray | None]:
     """Each mover's families' :attr:`LineFamily.copy_v` (V, shape (T,)) on integer ADC codes whose
     white floor is at most :data:`QUANT_DOMINATED` times the quantizer's own ``LSB^2/12`` (thermal
     noise under ~1/2 LSB); there, every family's, the static one's too, at its lines' own size
@@ -395,6 +396,7 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     fams : the planned families ``(target, name, freqs, conj, bad)`` (:func:`plan_lines`)
     zs : {(target, name): ndarray (S, T)} their lines
     uniq : every fitted line (Hz); fds : the Doppler lines found (Hz)
+    s2 : each family's lines' noise floors (V^2 per sample, shape (T,) each), as the lines were judged
     """
     out: list[np.ndarray | None] = [None] * len(fams)
     if frame.samples.dtype.kind not in "iu" or frame.scale == 0:
@@ -417,11 +419,10 @@ def quantizer_copies(spec: Spectrum, frame: Frame, fams: list[tuple[int, str, np
     pos = _copy_positions(spec, np.asarray(frame.tones_hz, dtype=float), fds, lines, uniq, guard)
     if pos.size < COPY_MIN:
         return out
-    s2 = spec.noise_variances(pos, uniq, guard=guard)  # per-sample variance (V^2; IQ: both quadratures)
-    excess = _copies_excess(spec.power_at(pos), s2 * spec.window_power)
+    floor = spec.noise_variances(pos, uniq, guard=guard) * spec.window_power  # (per-sample variance x window)
+    excess = _copies_excess(spec.power_at(pos), floor)
     for i in movers:
-        f = fams[i][2]
-        own = spec.power_at(f) - spec.noise_variances(f, uniq, guard=guard) * spec.window_power
+        own = spec.power_at(fams[i][2]) - s2[i] * spec.window_power
         amp = np.sqrt(np.mean(np.abs(zs[fams[i][0], fams[i][1]]) ** 2, axis=0))
         out[i] = amp * np.sqrt(excess / np.maximum(own, 1e-300))
     return out

@@ -60,11 +60,6 @@ def code_steps(r: np.ndarray, hi=None, lo=None, stride: int = 1) -> tuple[int, i
     return (hi - lo) // step, step
 
 
-def code_span_steps(r: np.ndarray, hi=None, lo=None) -> int:
-    """The steps of :func:`code_steps`."""
-    return code_steps(r, hi, lo)[0]
-
-
 def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:
     """The fraction of ``r`` (extremes ``hi``, ``lo``) stuck at a digitizer's rails.
 
@@ -79,7 +74,7 @@ def clip_fraction(r: np.ndarray, hi, lo, limit: float) -> float:
     frac = max(rail_fraction(r, hi), rail_fraction(r, lo))
     if frac <= limit or r.dtype.kind not in "iu":
         return frac
-    if code_span_steps(r, hi, lo) >= MIN_RAIL_SPAN_STEPS:
+    if code_steps(r, hi, lo)[0] >= MIN_RAIL_SPAN_STEPS:
         return frac
     lim = np.iinfo(r.dtype)
     return max([0.0] + [rail_fraction(r, v) for v in (hi, lo) if v in (lim.max, lim.min)])
