@@ -591,19 +591,27 @@ class TestNoiseRings:
         return run_stages(fr, get_profile("balanced", **declared(sc)), until="extract"), fr
 
     @pytest.mark.parametrize("receiver", ["single", "iq"])
-    def test_a_movers_families_carry_rings_the_static_candidates_do_not(self, receiver):
-        """A mover's U and L families share one set of rows; the static candidate's lines (on one
-        photodiode a mix of the carrier's noise and its conjugate, tone by tone) carry none."""
+    def test_a_movers_families_and_the_static_candidates_beside_it_carry_rings(self, receiver):
+        """A mover's U and L families share one set of rows; beside a mover the static candidate's
+        lines carry theirs too (the mover's pedestal moves them together: the envelope probe's
+        scene 9322), which only widen its sigma (``targets.solve_target``)."""
         st, _ = self._families(receiver)
         movers = [f for f in st.families if f.target >= 1]
         assert movers and all(f.ring is not None for f in movers)
         assert len({f.ring.rows.shape[0] for f in movers}) == 1
-        for f in movers:
+        for f in st.families:
             assert f.ring.rows.shape[1] == f.tone_hz.size and f.ring.near.any() and not f.ring.near.all()
             # in phase units: the rows' mean power is the floor's phase variance, near the line's own
             ratio = np.mean(np.abs(f.ring.rows) ** 2, axis=0) / f.phase_var
             assert np.all((ratio > 0.3) & (ratio < 3.0)), ratio
-        assert all(f.ring is None for f in st.families if f.target == 0)
+        assert any(f.ring is not None for f in st.families if f.target == 0)
+
+    def test_a_static_candidate_alone_reads_no_ring(self):
+        """No mover found: no pedestal a few bins off to read (on one photodiode the static lines mix
+        the carrier's noise and its conjugate, tone by tone, as the ring beyond the guard does not
+        show); the ring's pass over the spectrum is not spent."""
+        st, _ = self._families("single", v=0.0)
+        assert st.families and all(f.target == 0 and f.ring is None for f in st.families)
 
     def test_a_line_beyond_the_band_reads_no_ring_and_the_frame_is_ranged(self):
         """IQ at 1.91 GS/s: the mover's upper line at 956.09 MHz lies past fs/2 (the ring once
@@ -611,6 +619,6 @@ class TestNoiseRings:
         from mtcw_core.chain import process_frame
 
         st, fr = self._families("iq", fs=1.91e9, v=-3.24)
-        assert all(f.ring is None for f in st.families)
+        assert all(f.ring is None for f in st.families if f.target >= 1)  # the static lines lie in the band
         res = process_frame(fr, st.settings)
         assert res.status == "ok", res.reason

@@ -240,6 +240,29 @@ class TestSolveTarget:
         assert p.tone_snr_db == {"100000000": pytest.approx(40.0), "170000000": pytest.approx(-10 * np.log10(2e-4)),
                                  "260000000": pytest.approx(-10 * np.log10(4e-4))}
 
+    def test_the_static_lines_ring_widens_their_sigma_never_narrows_it(self):
+        """Beside a mover the static candidate's lines carry their noise ring (its pedestal moves
+        them together, tone by tone as it moves its own: the envelope probe's scene 9322); the
+        sigma is the ring's where that is wider than independent lines', else the independent one
+        (one common draw at every line, the carrier's own noise, would cancel to nothing)."""
+        from dataclasses import replace
+
+        from mtcw_core.dsp.extract import NoiseRing
+
+        f = fam(range_m=3.7)
+        obs = mix([f], PHI, 10.0)[0]
+        alone = fisher_sigma([TONES], [f.phase_var])
+        rng = np.random.default_rng(5)
+        draw = (rng.standard_normal((400, 1)) + 1j * rng.standard_normal((400, 1))) * np.sqrt(2e-4)
+        common = replace(f, ring=NoiseRing(np.repeat(draw, 3, axis=1), np.zeros(3), np.ones(400, bool)))
+        p = solve_target([common], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        assert p.range_sigma_m == pytest.approx(alone, rel=1e-12)
+        # a pedestal a range shift's pattern moves: each line by its tone's share of one draw
+        k = TONES / TONES.mean()
+        shift = replace(f, ring=NoiseRing(np.imag(draw) * k * 1j * 3, np.zeros(3), np.ones(400, bool)))
+        p = solve_target([shift], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0), None)
+        assert p.range_sigma_m > 1.5 * alone
+
     def test_internal_delay(self):
         tau0 = 7e-9
         f = fam(range_m=2.2, tau0=tau0)

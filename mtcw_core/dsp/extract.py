@@ -298,7 +298,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                            fams[0][2], x, s2_all[:first[1]])
-    rings = _target_rings(spec, fams, uniq)
+    rings = _target_rings(spec, fams, uniq, any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
     out = []
@@ -435,18 +435,23 @@ RING_NEAR_BINS = 32
 
 
 def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]],
-                  uniq: np.ndarray) -> list[NoiseRing | None]:
-    """Each planned mover's family's :attr:`LineFamily.ring` (not yet in phase units): its target's
+                  uniq: np.ndarray, static: bool) -> list[NoiseRing | None]:
+    """Each planned target's families' :attr:`LineFamily.ring` (not yet in phase units): its
     usable lines read together (one set of offsets per target, the noise floor's ring), split back
-    per family with 0 in unusable lines' columns; None for the static candidate's."""
+    per family with 0 in unusable lines' columns; the static candidate's only where ``static`` (a
+    mover was found), else None."""
     out: list[NoiseRing | None] = [None] * len(fams)
     guard = spec.line_floor_guard()
-    # not the static candidate's: on one photodiode its lines at f_i mix the carrier's phase noise
-    # and its conjugate in shares its range sets, tone by tone, so the noise at the line (the
-    # Lorentzian core, inside the guard) moves them apart as the ring beyond the guard does not
-    # show (a static echo at 24.4 m on one photodiode: range z rms 0.85 -> 1.30, one -5.9; IQ, two
-    # static echoes with the LO 1 % of the power: 5.4, the envelope probe's scene 1689)
-    for t in sorted({f[0] for f in fams} - {0}):
+    # the static candidate's ring only widens its sigma (targets.solve_target): on one photodiode
+    # its lines at f_i mix the carrier's phase noise and its conjugate in shares its range sets,
+    # tone by tone, so the noise at the line (the Lorentzian core, inside the guard) moves them
+    # apart as the ring beyond the guard does not show (a static echo at 24.4 m on one photodiode:
+    # range z rms 0.85 -> 1.30, one -5.9; IQ, two static echoes with the LO 1 % of the power: 5.4,
+    # the envelope probe's scene 1689, when the ring could narrow it); but a mover's pedestal,
+    # flat across the static lines a few bins off, moves them together as it moves its own lines
+    # (scene 9322: IQ, a 1 MHz laser, a mover 11 dB above a static echo 2 bins off, the static
+    # point 6 sigmas off; the ring reads 2.5x the sigma independent lines give)
+    for t in sorted({f[0] for f in fams} - (set() if static else {0})):
         mine = [i for i, f in enumerate(fams) if f[0] == t]
         good = [~np.asarray(fams[i][4], bool) for i in mine]
         f = np.concatenate([fams[i][2][g] for i, g in zip(mine, good)])

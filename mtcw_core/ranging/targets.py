@@ -319,6 +319,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # the pair estimator's own variance: over its lines' noise rings where they were read (a mover's:
     # the laser's phase noise about them moves them together), with the lines independent where not
     sigma, alone = range_sigmas(freqs, variances, [None if f.ring is None else f.ring.columns(m) for f, m in used])
+    if not dop.detected:  # the static lines' ring only widens (extract._target_rings)
+        sigma = max(sigma, alone)
     # noise the rings show moving the lines together, beyond what independent lines would give (a
     # strong echo's pedestal about a slow mover's lines), widens the cycle-slip odds as much
     together = (sigma / alone) ** 2 if 0 < alone < math.inf and math.isfinite(sigma) else 1.0
