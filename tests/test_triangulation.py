@@ -356,3 +356,17 @@ def test_newton_from_many_starts_is_each_start_alone():
     together = _newton_polish(obs, 0.0, starts, iterations=8, limit_m=lam / 16)
     alone = [float(_newton_polish(obs, 0.0, s, iterations=8, limit_m=lam / 16)[0]) for s in starts]
     np.testing.assert_array_equal(together, alone)
+
+
+@pytest.mark.parametrize("ppc", [8, 16])
+def test_ml_range_is_the_highest_peak_not_the_grids(ppc):
+    """Two cycles 0.9 % apart in J (the envelope probe's scene 6729: 400/720/730 MHz, pairs 320,
+    330 and 10 MHz): at 8 points per cycle (``fast``), and at 16 too, the grid sampled the lower
+    peak higher, and the range was that peak refined (13.19 m, the higher one at 13.65 m among its runners-up).
+    The range is the highest of the refined peaks, whatever the grid."""
+    obs = Observations(np.array([3.2e8, 3.3e8, 1e7]), np.array([-0.8861, -0.3523, 0.5338]),
+                       np.array([2284730.99, 2255638.49, 1902372.65]))
+    sol = resolve_ml(obs, 0.0, (-0.05, 14.9396229), ppc)
+    assert sol.range_m == pytest.approx(13.6515, abs=1e-3)
+    assert all(cost(obs, [sol.range_m])[0] >= cost(obs, [a])[0] for a in sol.alternatives_m)
+    assert any(abs(a - 13.1905) < 1e-3 for a in sol.alternatives_m)
