@@ -622,3 +622,19 @@ class TestNoiseRings:
         assert all(f.ring is None for f in st.families if f.target >= 1)  # the static lines lie in the band
         res = process_frame(fr, st.settings)
         assert res.status == "ok", res.reason
+
+
+@pytest.mark.parametrize("receiver", ["single", "iq"])
+def test_the_static_lines_keep_each_movers_predicted_self_beat_on_one_photodiode(receiver):
+    """One photodiode: the static lines carry, per found mover, the self-beat its LO beats predict
+    and the extract stage took out at scale 1 (:attr:`LineFamily.self_beats`; the resolve stage
+    takes out the rest its coherence kept from the prediction); no other receiver sees self-beats."""
+    st, _ = TestNoiseRings._families(receiver)
+    static = [f for f in st.families if f.target == 0]
+    if receiver == "iq":
+        assert all(f.self_beats is None for f in st.families)
+        return
+    parts = static[0].self_beats
+    assert parts is not None and set(parts) == {f.target for f in st.families if f.target >= 1}
+    assert all(p.shape == static[0].z.shape and np.all(np.isfinite(p)) for p in parts.values())
+    assert all(f.self_beats is None for f in st.families if f.target >= 1)

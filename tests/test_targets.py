@@ -865,3 +865,51 @@ class TestPedestalGhostOdds:
         assert pedestal_ghost_odds(replace(dop, method="fit", threshold=100.0, score=150.0), self.fams(one),
                                    8.0, 1e5) == 0.0
         assert pedestal_ghost_odds(dop, self.fams(one[:1]), 8.0, 1e5) == 0.0
+
+
+class TestWholeSelfBeats:
+    """:func:`whole_self_beats`: the rest of a mover's self-beat (its prediction keeps the carrier's
+    coherence at its delay) taken out of the static lines once its range is known."""
+
+    @staticmethod
+    def static(pred: np.ndarray) -> LineFamily:
+        f = fam(range_m=1.3, var=(1e-4,) * 3)
+        return replace(f, self_beats={1: pred})
+
+    @staticmethod
+    def mover(range_m: float) -> tuple[int, TargetPoint, float]:
+        return 1, replace(point(range_m, [30.0] * 3), direction="receding", velocity_mps=0.2), 3.0
+
+    def test_the_rest_at_the_movers_coherence_is_taken_out(self):
+        from mtcw_core.ranging.targets import carrier_coherence, whole_self_beats
+
+        pred = 0.05 * np.exp(1j * np.array([[0.3, -1.1, 2.0]]))
+        st = ChainSettings(laser_linewidth_hz=1e6, lo_path_difference_m=20.0)
+        f = self.static(pred)
+        movers = [replace(g, phase_var=np.full(3, 1e-3)) for g in (fam("U", 1), fam("L", 1))]
+        out = whole_self_beats([f], [self.mover(2.0)], [f, *movers], st)[0]
+        c = carrier_coherence(st, 2.0)  # |2*2 - 20| m of delay under 1 MHz: 0.81
+        assert 0.7 < c < 0.9
+        np.testing.assert_allclose(out.z, f.z - (1 / c - 1) * pred, rtol=1e-12)
+        assert np.all(out.phase_var > f.phase_var)  # the mover's lines' noise on what was taken
+        assert out.unexplained_v is None or not np.any(out.unexplained_v)  # one period searched: no farther range
+
+    def test_farther_cycles_within_a_declared_range_bound_the_rest(self):
+        from mtcw_core.ranging.targets import self_beat_scales, whole_self_beats
+
+        pred = 0.05 * np.ones((1, 3), complex)
+        st = ChainSettings(laser_linewidth_hz=1e6, range_max_m=12.0)
+        least, most = self_beat_scales(st, 2.0, 3.0)  # 2, 5, 8, 11 m: the least at 2 m, the most at 11
+        assert least == pytest.approx(math.exp(2 * math.pi * 1e6 * 4.0 / C))
+        assert most == pytest.approx(math.exp(2 * math.pi * 1e6 * 22.0 / C))
+        out = whole_self_beats([self.static(pred)], [self.mover(2.0)], [], st)[0]
+        np.testing.assert_allclose(out.unexplained_v, (most - least) * 0.05, rtol=1e-12)
+
+    def test_nothing_without_a_declared_laser_or_a_prediction(self):
+        from mtcw_core.ranging.targets import whole_self_beats
+
+        f = self.static(0.05 * np.ones((1, 3), complex))
+        assert whole_self_beats([f], [self.mover(2.0)], [f], ChainSettings())[0] is f
+        plain = fam(range_m=1.3)
+        fams = [plain]
+        assert whole_self_beats(fams, [self.mover(2.0)], fams, ChainSettings(laser_linewidth_hz=1e6)) is fams

@@ -111,6 +111,13 @@ class LineFamily:
         quantizer's products could add to each (V), as its copies of the mover's lines where no
         line stands show them; every line's own size on a record of few codes (under-resolved)
         (:func:`quantizer_copies`); None where not measured.
+    self_beats : dict or None
+        The static lines on one photodiode beside found movers: per mover (target k), its self-beat
+        as predicted from its LO beats and taken out of ``z`` at scale 1 (V, shape (S, T)). The
+        prediction keeps the carrier's coherence at the mover's delay, the self-beat all of it
+        (:func:`self_beat_scale`): where the laser is declared, the rest is taken out once the
+        mover's range is known (:func:`~mtcw_core.ranging.targets.whole_self_beats`). None where
+        none was taken at scale 1.
     """
 
     name: str
@@ -127,6 +134,7 @@ class LineFamily:
     static_echo: bool = False
     ring: NoiseRing | None = None
     copy_v: np.ndarray | None = None
+    self_beats: dict[int, np.ndarray] | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -292,12 +300,12 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
-    sb_bound, cross, still, over_lo, own = None, {}, None, False, False
+    sb_bound, cross, still, over_lo, own, parts = None, {}, None, False, False, None
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still, over_lo, own = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
-                                                           fams[0][2], x, s2_all[:first[1]])
+        sb_bound, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
+                                                                  fams[0][2], x, s2_all[:first[1]])
     rings = _target_rings(spec, fams, uniq, any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
@@ -314,7 +322,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               sb_bound if target == 0 else None, cross.get(target) if target else None,
                               still if target else None, bool(target and over_lo), bool(not target and own),
-                              ring, copies[i]))
+                              ring, copies[i], parts if target == 0 else None))
     return out
 
 
@@ -490,11 +498,13 @@ def _still_bins(spec: Spectrum, static_hz: np.ndarray, beta: float, x: np.ndarra
 
 def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[DopplerEstimate], dc: np.ndarray,
                 spec: Spectrum, frame: Frame, settings: ChainSettings, static_hz: np.ndarray, x: np.ndarray,
-                static_s2: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float | None, bool, bool]:
+                static_s2: np.ndarray
+                ) -> tuple[np.ndarray, dict[int, np.ndarray], float | None, bool, bool, dict[int, np.ndarray] | None]:
     """One photodiode: each mover's echo also beats with itself, lines at ``f_i`` with no Doppler on
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
-    adding its own sidebands to every product). Returned: the bound on those of movers the search
+    adding its own sidebands to every product). Returned: the movers' predicted self-beats where
+    they were taken at scale 1 (:attr:`LineFamily.self_beats`, else None), last; the bound on those of movers the search
     did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), per
     found mover the static echo's beat on its lines (:func:`cross_beat_bound`), and the largest
     Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
@@ -508,7 +518,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     out (:attr:`LineFamily.static_echo`). ``static_s2``: the static lines' noise floors (V^2 per
     sample)."""
     found = [d.fd_hz for d in dops if d.detected]
-    cross, still, over_lo, mostly_self = {}, None, False, True
+    cross, still, over_lo, mostly_self, parts = {}, None, False, True, None
     if found:
         # the LO the larger part of the record's mean, or the echoes: whichever prediction leaves
         # less of the static lines (an echo above the LO's power had its self-beat predicted
@@ -520,9 +530,11 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             if not lo_larger and not np.all(carriers[1] > 1e-3 * np.abs(dc)):
                 continue  # echoes under 0.1 % of the mean: no LO below them (their self-beat is negligible)
             pred = _predicted_self_beats(zs, *carriers)
-            rest = s - self_beat_scale(s, pred) * pred
-            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers, pred))
-        _, lo_smaller, zs[0, "S"], carriers, _ = min(left, key=lambda t: t[:2])
+            scale = self_beat_scale(s, pred)
+            rest = s - scale * pred
+            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers, pred, scale))
+        _, lo_smaller, zs[0, "S"], carriers, _, scale = min(left, key=lambda t: t[:2])
+        parts = _self_beat_parts(zs, *carriers) if scale == 1.0 else None
         over_lo = lo_smaller and len(found) >= 2
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
@@ -541,7 +553,7 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
-                                   found), cross, still, over_lo, bool(found) and not mostly_self
+                                   found), cross, still, over_lo, bool(found) and not mostly_self, parts
 
 
 def _other_root_left(left: list[tuple], lo_smaller: bool, s: np.ndarray) -> np.ndarray | float:
@@ -887,7 +899,12 @@ def self_beat_lines(zs: dict, z_all: np.ndarray, uniq: np.ndarray, fds: list[flo
 
 def _predicted_self_beats(zs: dict, base: list[tuple[int, np.ndarray]], lo_power: np.ndarray) -> np.ndarray:
     """:func:`self_beat_lines` from the movers' carrier lines and the LO's power (:func:`_carriers`)."""
-    out = np.zeros_like(zs[0, "S"])
+    return sum(_self_beat_parts(zs, base, lo_power).values(), np.zeros_like(zs[0, "S"]))
+
+
+def _self_beat_parts(zs: dict, base: list[tuple[int, np.ndarray]], lo_power: np.ndarray) -> dict[int, np.ndarray]:
+    """Each mover's term of :func:`_predicted_self_beats` (V, shape (S, T)), by target."""
+    out = {}
     for k, b in base:
         if (k, "U") not in zs:
             continue
@@ -895,7 +912,7 @@ def _predicted_self_beats(zs: dict, base: list[tuple[int, np.ndarray]], lo_power
         have = (np.abs(u) > 0) & (np.abs(low) > 0)
         pred = np.where(have, 0.5 * (u * np.conj(b)[:, None] + low * b[:, None]), np.where(
             np.abs(u) > 0, u * np.conj(b)[:, None], low * b[:, None]))
-        out += pred / np.maximum(lo_power, 1e-300)[:, None]
+        out[k] = pred / np.maximum(lo_power, 1e-300)[:, None]
     return out
 
 

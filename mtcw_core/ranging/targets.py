@@ -27,7 +27,7 @@ from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
-from .mixing import consistency
+from .mixing import consistency, mix
 from .triangulation import (Observations, RangeSolution, range_sigmas, resolve_ml, resolve_seed, tone_phase_sigma,
                             unambiguous_range)
 
@@ -75,6 +75,84 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
     shorter than the record); 1 for an ideal laser or one declared coherent (linewidth 0).
     """
     return math.exp(-2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, range_m))
+
+
+#: :func:`whole_self_beats` reads a mover's self-beat as at most this many times its prediction
+#: (its carrier coherence no lower than 0.1: below, the prediction is mostly its lines' noise)
+SELF_BEAT_MAX_SCALE = 10.0
+
+
+def self_beat_scales(settings: ChainSettings, range_m: float, period_m: float) -> tuple[float, float]:
+    """The least and the most a mover's self-beat can be over its prediction from its LO beats,
+    ``1/c`` (:func:`carrier_coherence` ``c``), each at most :data:`SELF_BEAT_MAX_SCALE`, over the
+    ranges its CW point could be at within the searched interval: ``range_m`` alone where the
+    interval is one period (no ``range_max_m`` declared: the point says where in it the mover
+    is), else ``range_m + n * period_m`` up to ``range_max_m``."""
+    n_max = 0
+    if settings.range_max_m is not None and period_m > 0:
+        n_max = max(int(math.floor((settings.range_max_m - range_m) / period_m)), 0)
+    # |2L - d_LO| is least at the candidate nearest d_LO/2 and largest at an end
+    near = min(max(round((settings.lo_path_difference_m / 2 - range_m) / period_m), 0), n_max) if period_m > 0 else 0
+    scales = [min(1.0 / max(carrier_coherence(settings, range_m + n * period_m), 1e-300), SELF_BEAT_MAX_SCALE)
+              for n in {0, near, n_max}]
+    return min(scales), max(scales)
+
+
+def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint, float]],
+                     families: list[LineFamily], settings: ChainSettings) -> list[LineFamily]:
+    """The static lines of one photodiode with the rest of each found mover's self-beat taken out
+    and bounded, where the laser is declared.
+
+    The extract stage takes out each mover's self-beat as its LO beats predict it
+    (:attr:`~mtcw_core.dsp.extract.LineFamily.self_beats`): a product of two of its lines, each
+    holding the carrier's coherence at the echo's delay, so the prediction keeps
+    :func:`carrier_coherence` ``c`` of a self-beat that (the echo with itself) has all of it. The
+    delay is known modulo the point's period (:func:`self_beat_scales`): ``(1/c - 1)`` times the
+    prediction at the least ``1/c`` the mover's ranges allow is taken out, its noise (the mover's
+    lines' relative noise) enters the static lines' phase variance, and what more its farther
+    ranges within a declared ``range_max_m`` would leave bounds them
+    (:attr:`~mtcw_core.dsp.extract.LineFamily.unexplained_v`, the point ``blended`` where it could
+    turn them by 3 sigmas). A mover at 18.9 m under a 1 MHz laser (``c`` = 0.45; the envelope
+    probe's scene 6729) left 55 % of its self-beat on a static echo's lines of the same size,
+    turning them 0.07-0.12 rad (3-4 sigmas) together, the static point one 0.47 m cycle off; but
+    its 3-tone plan repeats every 15 m, where the mover's point, at 3.87 m, says nothing of its
+    delay (beyond the searched interval: not mended, not bounded).
+
+    Parameters
+    ----------
+    fams : the static candidate's families; movers : the movers' (target, point, period m)
+    families : every family (the movers' own, for their lines' noise)
+
+    Returns
+    -------
+    ``fams``, those that carry self-beats mended (the same list where none did)
+    """
+    if settings.laser_linewidth_hz <= 0 or not any(f.self_beats for f in fams):
+        return fams
+    out = []
+    for f in fams:
+        extra, noise, rest = np.zeros_like(f.z), np.zeros(f.z.shape[1]), np.zeros(f.z.shape[1])
+        for k, p, period in movers:
+            pred = (f.self_beats or {}).get(k)
+            if pred is None or not math.isfinite(p.range_m):
+                continue
+            least, most = self_beat_scales(settings, p.range_m, period)
+            own = [g.phase_var for g in families if g.target == k]
+            rel = 2.0 * float(np.median(np.concatenate(own))) if own else 1.0  # its lines' noise, two in the product
+            size = np.sqrt(np.mean(np.abs(pred) ** 2, axis=0))
+            extra += (least - 1.0) * pred
+            noise += (least * size) ** 2 * min(rel, 1.0)
+            rest += (most - least) * size
+        usable = np.isfinite(f.phase_var)
+        if not np.any(extra[:, usable]) and not np.any(rest[usable]):
+            out.append(f)
+            continue
+        z = np.where(usable, f.z - extra, f.z)
+        amp2 = np.maximum(np.mean(np.abs(z) ** 2, axis=0), 1e-300)
+        var = f.phase_var * np.mean(np.abs(f.z) ** 2, axis=0) / amp2 + noise / amp2
+        bound = rest if f.unexplained_v is None else f.unexplained_v + rest
+        out.append(replace(f, z=z, phase_var=np.where(usable, var, f.phase_var), unexplained_v=bound))
+    return out
 
 
 
@@ -592,10 +670,15 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     points: list[tuple[int, TargetPoint]] = []
     periods: list[float] = []
     l_unamb = None
-    for k, obs in sorted(observations.items()):
+    # the movers first: the rest of their self-beats is taken from the static lines by their ranges
+    for k, obs in sorted(observations.items(), key=lambda kv: (kv[0] == 0, kv[0])):
         fam_k = [f for f in families if f.target == k]
         if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
             continue  # the phase-noise pedestal of a stronger mover, not a target
+        if k == 0:
+            mended = whole_self_beats(fam_k, [(j, q, lj) for (j, q), lj in zip(points, periods)], families, settings)
+            if mended is not fam_k:
+                fam_k, obs = mended, mix(mended, ref.tone_phases_rad, settings.min_line_snr_db).get(0, obs)
         lu = unambiguous_range(obs.df_hz)
         point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
         if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
@@ -603,6 +686,8 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
         points.append((k, point))
         periods.append(lu)
         l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+    order = sorted(range(len(points)), key=lambda i: points[i][0])
+    points, periods = [points[i] for i in order], [periods[i] for i in order]
     if coarse is None and l_unamb is not None:
         # a point whose own lines repeat sooner than the frame's (a weak target that lost a line:
         # 510/710/950 MHz repeat every 3.75 m, with 130 MHz every 7.49 m) is known only modulo its
