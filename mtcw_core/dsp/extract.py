@@ -306,7 +306,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                                   fams[0][2], x, s2_all[:first[1]])
-    rings = _target_rings(spec, fams, uniq, any(d.detected for d in dops))
+    rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
     out = []
@@ -447,7 +447,7 @@ def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndar
     """Each planned target's families' :attr:`LineFamily.ring` (not yet in phase units): its
     usable lines read together (one set of offsets per target, the noise floor's ring), split back
     per family with 0 in unusable lines' columns; the static candidate's only where ``static`` (a
-    mover was found), else None."""
+    mover was found on a balanced or IQ receiver), else None."""
     out: list[NoiseRing | None] = [None] * len(fams)
     guard = spec.line_floor_guard()
     # the static candidate's ring only widens its sigma (targets.solve_target): on one photodiode
@@ -458,7 +458,10 @@ def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndar
     # the envelope probe's scene 1689, when the ring could narrow it); but a mover's pedestal,
     # flat across the static lines a few bins off, moves them together as it moves its own lines
     # (scene 9322: IQ, a 1 MHz laser, a mover 11 dB above a static echo 2 bins off, the static
-    # point 6 sigmas off; the ring reads 2.5x the sigma independent lines give)
+    # point 6 sigmas off; the ring reads 2.5x the sigma independent lines give). Not on one
+    # photodiode, where the static candidate beside strong movers is mostly their beats: its
+    # widened sigma made select take movers at its range for its own (the movers probe: 129 more
+    # missed targets, echoes at 0-10 dB of loss)
     for t in sorted({f[0] for f in fams} - (set() if static else {0})):
         mine = [i for i, f in enumerate(fams) if f[0] == t]
         good = [~np.asarray(fams[i][4], bool) for i in mine]
