@@ -913,3 +913,33 @@ class TestWholeSelfBeats:
         plain = fam(range_m=1.3)
         fams = [plain]
         assert whole_self_beats(fams, [self.mover(2.0)], fams, ChainSettings(laser_linewidth_hz=1e6)) is fams
+
+
+class TestSidebandChi2:
+    """:func:`sideband_chi2`: an IQ record's static lines, upper against lower sideband per tone."""
+
+    @staticmethod
+    def fams(upper: np.ndarray, lower: np.ndarray, var: float = 1e-4) -> list[LineFamily]:
+        t = np.array([2.7e8, 4.6e8, 6.4e8])
+        return [LineFamily(name, t, s * t, np.asarray(a, complex)[None, :] * np.exp(1j * 0.4), np.zeros(1),
+                           np.full(3, var), 0) for name, s, a in (("U", 1, upper), ("L", -1, lower))]
+
+    def test_one_echo_is_symmetric_two_are_not(self):
+        from scipy.special import chdtrc
+
+        from mtcw_core.ranging.targets import BLENDED_P, sideband_chi2
+
+        one = self.fams(np.array([1.0, 1.3, 0.8]), np.array([1.0, 1.3, 0.8]) * (1 + 0.01 * np.array([1, -1, 0.5])))
+        c, dof = sideband_chi2(one, 0.01, 10.0)
+        assert dof == 3 and chdtrc(dof, c) > 0.05
+        # the envelope probe's scene 10319: two echoes, sizes 1.2 / 1.5, 1.9 / 0.1, 0.8 / 1.7
+        two = self.fams(np.array([1.2, 1.9, 0.8]), np.array([1.5, 0.1, 1.7]))
+        c, dof = sideband_chi2(two, 0.01, 10.0)
+        assert dof == 3 and chdtrc(dof, c) < BLENDED_P
+
+    def test_one_sideband_or_weak_lines_say_nothing(self):
+        from mtcw_core.ranging.targets import sideband_chi2
+
+        two = self.fams(np.array([1.2, 1.9, 0.8]), np.array([1.5, 0.1, 1.7]))
+        assert sideband_chi2(two[:1], 0.01, 10.0) == (0.0, 0)
+        assert sideband_chi2(self.fams(np.ones(3), np.ones(3), var=0.5), 0.01, 10.0) == (0.0, 0)
