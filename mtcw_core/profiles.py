@@ -99,6 +99,10 @@ class ChainSettings(BaseModel):
     tone_amplitude_tolerance: float = Field(0.01, ge=0, le=1, description=(
         "the relative rms error of tone_amplitudes (their drift since they were measured, the front end's): "
         "it widens each line's amplitude sigma in that check"))
+    sideband_tolerance: float = Field(0.05, ge=0, le=1, description=(
+        "an IQ receiver's upper and lower sideband sizes of one echo agree within this, relative (its "
+        "hybrid's balance and image rejection, the modulator's symmetry): a static point whose sidebands "
+        "differ beyond it and their noise is flagged blended (two echoes on one line set)"))
     cycle_slip_max: float = Field(1e-3, gt=0, le=1, description="the line phases give another cycle odds above "
                                                                 "this: the point is flagged cycle_ambiguous")
     blended_chi2: float = Field(10.0, gt=1, description="chi2/dof of the line phases above which one point "

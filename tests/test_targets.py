@@ -881,38 +881,55 @@ class TestWholeSelfBeats:
         return 1, replace(point(range_m, [30.0] * 3), direction="receding", velocity_mps=0.2), 3.0
 
     def test_the_rest_at_the_movers_coherence_is_taken_out(self):
-        from mtcw_core.ranging.targets import carrier_coherence, whole_self_beats
+        from mtcw_core.ranging.targets import SELF_BEAT_SCATTER, carrier_coherence, whole_self_beats
 
         pred = 0.05 * np.exp(1j * np.array([[0.3, -1.1, 2.0]]))
         st = ChainSettings(laser_linewidth_hz=1e6, lo_path_difference_m=20.0)
         f = self.static(pred)
         movers = [replace(g, phase_var=np.full(3, 1e-3)) for g in (fam("U", 1), fam("L", 1))]
-        out = whole_self_beats([f], [self.mover(2.0)], [f, *movers], st)[0]
+        out = whole_self_beats([f], [self.mover(2.0)], [f, *movers], st, (-0.05, 2.95))[0]
         c = carrier_coherence(st, 2.0)  # |2*2 - 20| m of delay under 1 MHz: 0.81
         assert 0.7 < c < 0.9
         np.testing.assert_allclose(out.z, f.z - (1 / c - 1) * pred, rtol=1e-12)
-        assert np.all(out.phase_var > f.phase_var)  # the mover's lines' noise on what was taken
-        assert out.unexplained_v is None or not np.any(out.unexplained_v)  # one period searched: no farther range
+        # the mover's lines' noise and the prediction's scatter about c on what was taken
+        amp2 = np.abs(out.z[0]) ** 2
+        added = (0.05 / c) ** 2 * (2e-3 + (SELF_BEAT_SCATTER * (1 - c)) ** 2) / amp2
+        np.testing.assert_allclose(out.phase_var, f.phase_var * np.abs(f.z[0]) ** 2 / amp2 + added, rtol=1e-9)
+        assert not np.any(out.unexplained_v)  # one period searched: no other cycle
 
-    def test_farther_cycles_within_a_declared_range_bound_the_rest(self):
+    @pytest.mark.parametrize("reported", [2.0, 8.0])
+    def test_other_cycles_within_a_declared_range_bound_the_rest(self, reported):
+        """A mover reported at 2 or at 8 m with a 3 m period and 12 m declared: it could be at 2, 5,
+        8 or 11 m (the pair cost repeats: its point is any of them), the least at 2 m, the most at 11."""
         from mtcw_core.ranging.targets import self_beat_scales, whole_self_beats
 
         pred = 0.05 * np.ones((1, 3), complex)
         st = ChainSettings(laser_linewidth_hz=1e6, range_max_m=12.0)
-        least, most = self_beat_scales(st, 2.0, 3.0)  # 2, 5, 8, 11 m: the least at 2 m, the most at 11
+        least, most = self_beat_scales(st, reported, 3.0, (-0.05, 12.0))
         assert least == pytest.approx(math.exp(2 * math.pi * 1e6 * 4.0 / C))
         assert most == pytest.approx(math.exp(2 * math.pi * 1e6 * 22.0 / C))
-        out = whole_self_beats([self.static(pred)], [self.mover(2.0)], [], st)[0]
+        out = whole_self_beats([self.static(pred)], [self.mover(reported)], [], st, (-0.05, 12.0))[0]
         np.testing.assert_allclose(out.unexplained_v, (most - least) * 0.05, rtol=1e-12)
+
+    def test_a_mover_known_modulo_a_shorter_period_is_bounded_over_the_frames(self):
+        """No range declared: the frame's period is searched, and a mover whose own lines repeat
+        sooner (one lost) could be in any of its cycles within it."""
+        from mtcw_core.ranging.targets import self_beat_scales
+
+        st = ChainSettings(laser_linewidth_hz=1e6)
+        assert self_beat_scales(st, 2.0, 3.0, (-0.05, 2.95))[0] == self_beat_scales(st, 2.0, 3.0, (-0.05, 2.95))[1]
+        least, most = self_beat_scales(st, 2.0, 3.0, (-0.05, 14.95))
+        assert most == pytest.approx(math.exp(2 * math.pi * 1e6 * 2 * 14.0 / C)) and least < most
 
     def test_nothing_without_a_declared_laser_or_a_prediction(self):
         from mtcw_core.ranging.targets import whole_self_beats
 
         f = self.static(0.05 * np.ones((1, 3), complex))
-        assert whole_self_beats([f], [self.mover(2.0)], [f], ChainSettings())[0] is f
+        span = (-0.05, 2.95)
+        assert whole_self_beats([f], [self.mover(2.0)], [f], ChainSettings(), span)[0] is f
         plain = fam(range_m=1.3)
         fams = [plain]
-        assert whole_self_beats(fams, [self.mover(2.0)], fams, ChainSettings(laser_linewidth_hz=1e6)) is fams
+        assert whole_self_beats(fams, [self.mover(2.0)], fams, ChainSettings(laser_linewidth_hz=1e6), span) is fams
 
 
 class TestSidebandChi2:

@@ -361,8 +361,9 @@ def test_newton_from_many_starts_is_each_start_alone():
 @pytest.mark.parametrize("ppc", [8, 16])
 def test_ml_range_is_the_highest_peak_not_the_grids(ppc):
     """Two cycles 0.9 % apart in J (the envelope probe's scene 6729: 400/720/730 MHz, pairs 320,
-    330 and 10 MHz): at 8 points per cycle (``fast``), and at 16 too, the grid sampled the lower
-    peak higher, and the range was that peak refined (13.19 m, the higher one at 13.65 m among its runners-up).
+    330 and 10 MHz): at 8 points per cycle (``fast``) the grid sampled a lower peak higher (13.19
+    m; at 16 another, 14.11 m), and the range was that peak refined, the highest (13.65 m) among
+    its runners-up.
     The range is the highest of the refined peaks, whatever the grid."""
     obs = Observations(np.array([3.2e8, 3.3e8, 1e7]), np.array([-0.8861, -0.3523, 0.5338]),
                        np.array([2284730.99, 2255638.49, 1902372.65]))
@@ -370,3 +371,18 @@ def test_ml_range_is_the_highest_peak_not_the_grids(ppc):
     assert sol.range_m == pytest.approx(13.6515, abs=1e-3)
     assert all(cost(obs, [sol.range_m])[0] >= cost(obs, [a])[0] for a in sol.alternatives_m)
     assert any(abs(a - 13.1905) < 1e-3 for a in sol.alternatives_m)
+
+
+@pytest.mark.parametrize("range_m", [-0.047, 0.01, L_UNAMB - 0.06, L_UNAMB - 0.0505])
+def test_a_peak_at_an_end_of_the_interval_is_not_its_own_runner_up(range_m):
+    """A range within a grid step of the interval's ends (one period): its peak refined across an
+    end is reported inside it, and the grid's samples by that end are the same solution, not a
+    runner-up (a first version counted them: margin ~0, the same range among the alternatives,
+    ``cycle_ambiguous`` -- found in review)."""
+    sol = resolve_ml(observations(range_m), 0.0, (-0.05, L_UNAMB - 0.05))
+    assert sol.range_m == pytest.approx(range_m if range_m >= -0.05 else range_m + L_UNAMB, abs=1e-9)
+    assert sol.margin > 0.02
+    lam = float(np.min(observations(range_m).synthetic_wavelengths_m))
+    for a in sol.alternatives_m:
+        d = abs(a - sol.range_m) % L_UNAMB
+        assert min(d, L_UNAMB - d) > lam / 2

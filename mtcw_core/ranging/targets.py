@@ -80,68 +80,79 @@ def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
 #: :func:`whole_self_beats` reads a mover's self-beat as at most this many times its prediction
 #: (its carrier coherence no lower than 0.1: below, the prediction is mostly its lines' noise)
 SELF_BEAT_MAX_SCALE = 10.0
+#: ... and its prediction as scattering about ``c`` times it by this times ``1 - c``, relative: the
+#: product of two lines' record means of the laser's phase term, ``|<exp(j*Phi)>|^2``, is ``c``
+#: only on average (measured in review: 10-15 % rms at ``c`` = 0.43, none at ``c`` = 1)
+SELF_BEAT_SCATTER = 0.25
 
 
-def self_beat_scales(settings: ChainSettings, range_m: float, period_m: float) -> tuple[float, float]:
+def self_beat_scales(settings: ChainSettings, range_m: float, period_m: float, span_m: tuple[float, float]
+                     ) -> tuple[float, float]:
     """The least and the most a mover's self-beat can be over its prediction from its LO beats,
     ``1/c`` (:func:`carrier_coherence` ``c``), each at most :data:`SELF_BEAT_MAX_SCALE`, over the
-    ranges its CW point could be at within the searched interval: ``range_m`` alone where the
-    interval is one period (no ``range_max_m`` declared: the point says where in it the mover
-    is), else ``range_m + n * period_m`` up to ``range_max_m``."""
-    n_max = 0
-    if settings.range_max_m is not None and period_m > 0:
-        n_max = max(int(math.floor((settings.range_max_m - range_m) / period_m)), 0)
+    ranges its CW point could be at: ``range_m + n * period_m`` within ``span_m`` (m, the frame's
+    searched interval: one of its periods without a declared ``range_max_m``, where a point whose
+    own lines repeat sooner -- a mover that lost a line -- could be in any of its cycles)."""
+    lo, hi = span_m
+    if not period_m > 0 or not math.isfinite(period_m) or hi - lo <= period_m * (1 + 1e-9):
+        n_min = n_max = 0
+    else:
+        n_min = min(math.ceil((lo - range_m) / period_m - 1e-9), 0)
+        n_max = max(math.floor((hi - range_m) / period_m + 1e-9), 0)
     # |2L - d_LO| is least at the candidate nearest d_LO/2 and largest at an end
-    near = min(max(round((settings.lo_path_difference_m / 2 - range_m) / period_m), 0), n_max) if period_m > 0 else 0
+    near = min(max(round((settings.lo_path_difference_m / 2 - range_m) / period_m), n_min), n_max) if n_max > n_min else 0
     scales = [min(1.0 / max(carrier_coherence(settings, range_m + n * period_m), 1e-300), SELF_BEAT_MAX_SCALE)
-              for n in {0, near, n_max}]
+              for n in {n_min, near, n_max}]
     return min(scales), max(scales)
 
 
 def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint, float]],
-                     families: list[LineFamily], settings: ChainSettings) -> list[LineFamily]:
+                     families: list[LineFamily], settings: ChainSettings, span_m: tuple[float, float]
+                     ) -> list[LineFamily]:
     """The static lines of one photodiode with the rest of each found mover's self-beat taken out
     and bounded, where the laser is declared.
 
     The extract stage takes out each mover's self-beat as its LO beats predict it
     (:attr:`~mtcw_core.dsp.extract.LineFamily.self_beats`): a product of two of its lines, each
-    holding the carrier's coherence at the echo's delay, so the prediction keeps
+    holding ``sqrt(c)`` of its size at the echo's delay, so the prediction keeps
     :func:`carrier_coherence` ``c`` of a self-beat that (the echo with itself) has all of it. The
-    delay is known modulo the point's period (:func:`self_beat_scales`): ``(1/c - 1)`` times the
-    prediction at the least ``1/c`` the mover's ranges allow is taken out, its noise (the mover's
-    lines' relative noise) enters the static lines' phase variance, and what more its farther
-    ranges within a declared ``range_max_m`` would leave bounds them
+    delay is known modulo the point's period (:func:`self_beat_scales`, over ``span_m``): ``(1/c -
+    1)`` times the prediction at the least ``1/c`` the mover's ranges allow is taken out; its
+    noise -- the mover's lines' relative noise, and the prediction's own scatter about ``c``
+    (:data:`SELF_BEAT_SCATTER`) -- enters the static lines' phase variance; and what more its
+    other cycles in the span would leave bounds them
     (:attr:`~mtcw_core.dsp.extract.LineFamily.unexplained_v`, the point ``blended`` where it could
     turn them by 3 sigmas). A mover at 18.9 m under a 1 MHz laser (``c`` = 0.45; the envelope
     probe's scene 6729) left 55 % of its self-beat on a static echo's lines of the same size,
-    turning them 0.07-0.12 rad (3-4 sigmas) together, the static point one 0.47 m cycle off; but
-    its 3-tone plan repeats every 15 m, where the mover's point, at 3.87 m, says nothing of its
-    delay (beyond the searched interval: not mended, not bounded).
+    turning them 0.07-0.12 rad (3-4 sigmas) together, the static point one 0.47 m cycle off; its
+    3-tone plan repeats every 15 m, and the mover's point, 3.87 m, is taken at its word: a mover
+    beyond the searched interval is mended as if inside it.
 
     Parameters
     ----------
     fams : the static candidate's families; movers : the movers' (target, point, period m)
     families : every family (the movers' own, for their lines' noise)
+    span_m : the frame's searched range interval (m)
 
     Returns
     -------
-    ``fams``, those that carry self-beats mended (the same list where none did)
+    ``fams`` itself where nothing was mended, else a new list
     """
     if settings.laser_linewidth_hz <= 0 or not any(f.self_beats for f in fams):
         return fams
-    out = []
+    out, mended = [], False
     for f in fams:
         extra, noise, rest = np.zeros_like(f.z), np.zeros(f.z.shape[1]), np.zeros(f.z.shape[1])
         for k, p, period in movers:
             pred = (f.self_beats or {}).get(k)
             if pred is None or not math.isfinite(p.range_m):
                 continue
-            least, most = self_beat_scales(settings, p.range_m, period)
+            least, most = self_beat_scales(settings, p.range_m, period, span_m)
             own = [g.phase_var for g in families if g.target == k]
             rel = 2.0 * float(np.median(np.concatenate(own))) if own else 1.0  # its lines' noise, two in the product
             size = np.sqrt(np.mean(np.abs(pred) ** 2, axis=0))
             extra += (least - 1.0) * pred
-            noise += (least * size) ** 2 * min(rel, 1.0)
+            noise += (least * size) ** 2 * (min(rel, 1.0) + (SELF_BEAT_SCATTER * (1.0 - 1.0 / least)) ** 2)
             rest += (most - least) * size
         usable = np.isfinite(f.phase_var)
         if not np.any(extra[:, usable]) and not np.any(rest[usable]):
@@ -152,7 +163,8 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
         var = f.phase_var * np.mean(np.abs(f.z) ** 2, axis=0) / amp2 + noise / amp2
         bound = rest if f.unexplained_v is None else f.unexplained_v + rest
         out.append(replace(f, z=z, phase_var=np.where(usable, var, f.phase_var), unexplained_v=bound))
-    return out
+        mended = True
+    return out if mended else fams
 
 
 
@@ -429,7 +441,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     a_chi2, a_dof = (0.0, 0) if dop.detected else amplitude_chi2(fams, ref.tone_amplitudes, settings.min_line_snr_db)
     # ... and, on an IQ record, its two sidebands' sizes against each other
     s_chi2, s_dof = (0.0, 0) if dop.detected or frame.receiver != "iq" else sideband_chi2(
-        fams, settings.tone_amplitude_tolerance, settings.min_line_snr_db)
+        fams, settings.sideband_tolerance, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
                                        phase_psd(settings, sol.range_m, dop, frame.receiver == "iq"),
@@ -591,8 +603,8 @@ def sideband_chi2(fams: list[LineFamily], tolerance: float, min_snr_db: float) -
     declared sizes (:func:`amplitude_chi2`) they stood within chance (p 0.018). Each tone whose two
     lines are at ``min_snr_db`` or more, their noise's share of each at most
     :data:`AMPLITUDE_NOISE_SHARE`: ``(|U_i| - |L_i|)^2`` over their sizes' noise variances
-    (:func:`line_powers`) plus ``tolerance`` of their mean size squared (the modulator's own
-    sideband balance). Needs no declared sizes.
+    (:func:`line_powers`) plus ``tolerance`` of their mean size squared (``sideband_tolerance``: the
+    hybrid's balance and image rejection, the modulator's symmetry). Needs no declared sizes.
 
     Returns
     -------
@@ -713,11 +725,15 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
         fam_k = [f for f in families if f.target == k]
         if k >= 2 and any(is_scaled_copy(fam_k, [f for f in families if f.target == j]) for j in range(1, k)):
             continue  # the phase-noise pedestal of a stronger mover, not a target
-        if k == 0:
-            mended = whole_self_beats(fam_k, [(j, q, lj) for (j, q), lj in zip(points, periods)], families, settings)
-            if mended is not fam_k:
-                fam_k, obs = mended, mix(mended, ref.tone_phases_rad, settings.min_line_snr_db).get(0, obs)
         lu = unambiguous_range(obs.df_hz)
+        if k == 0:
+            span = _search_interval(settings, max([lu, *periods]), coarse)[:2]
+            mended = whole_self_beats(fam_k, [(j, q, lj) for (j, q), lj in zip(points, periods)], families, settings,
+                                      span)
+            remixed = mix(mended, ref.tone_phases_rad, settings.min_line_snr_db) if mended is not fam_k else {}
+            if 0 in remixed:  # (mended lines too weak to pair: left as they were)
+                fam_k, obs = mended, remixed[0]
+                lu = unambiguous_range(obs.df_hz)
         point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
         if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
             continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)

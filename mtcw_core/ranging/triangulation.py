@@ -62,6 +62,8 @@ class RangeSolution:
 
 #: runners-up of the cycle resolution handed to the caller (their likelihood decides a flag)
 ALTERNATIVES = 4
+#: :func:`resolve_ml` refines at most this many of the grid's highest local maxima
+MAX_REFINED = 16
 
 
 def _cost(obs: Observations, tau0_s: float):
@@ -181,13 +183,14 @@ def resolve_ml(
                            for i in range(0, grid.size, 65536)])
     is_max = np.zeros(vals.size, bool)
     is_max[1:-1] = (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:])
-    is_max[int(np.argmax(vals))] = True
-    # the grid's highest local maxima, each refined to its own peak: the grid samples a peak up to
-    # ~2 % under its top at 16 points per cycle (~8 % at ``fast``'s 8), so two cycles closer than
-    # that in J were taken in the grid's order, not the cost's (the envelope probe's scene 6729:
-    # the lower peak by 0.9 %, reported with the higher among its runners-up)
-    idx = np.flatnonzero(is_max)
-    top = idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES + 1]]
+    # every local maximum the grid may have sampled up to its sampling loss under the top -- J =
+    # sum w*cos(...) loses up to ~(pi/ppc)^2/2 of sum(w) half a step off a peak: ~2 % at 16 points
+    # per cycle, ~8 % at ``fast``'s 8 -- refined to its own peak, and the highest is the range (the
+    # grid's order is not the cost's: the envelope probe's scene 6729, two cycles 0.9 % apart)
+    loss = 0.75 * (np.pi / points_per_cycle) ** 2 * float(np.sum(obs.weight))
+    ib = int(np.argmax(vals))
+    idx = np.union1d(np.flatnonzero(is_max & (vals >= vals[ib] - loss)), [ib])
+    top = idx[np.argsort(vals[idx])[::-1][:MAX_REFINED]]
     peaks = _peaks(obs, tau0_s, j, grid[top], step, 1e-9)
     jp = j(peaks)
     best, jbest = float(peaks[int(np.argmax(jp))]), float(np.max(jp))
@@ -198,17 +201,18 @@ def resolve_ml(
         best += period
     elif best >= hi and best - period >= lo - step:
         best -= period
-    # second-best local maximum at least half the finest synthetic wavelength away
+    # the runners-up: local maxima at least half the finest synthetic wavelength away (across the
+    # ends, within one period, the same solution is no runner-up), each refined to its own peak
     half = 0.5 * float(np.min(obs.synthetic_wavelengths_m))
-    far = np.abs(grid - best) > half
-    cand = vals[is_max & far]
-    j2 = float(cand.max()) if cand.size else -1.0
+    dist = np.abs(grid - best)
+    if hi - lo <= period + step:
+        dist = np.minimum(dist % period, period - dist % period)
+    far = np.flatnonzero(is_max & (dist > half))
+    top = far[np.argsort(vals[far])[::-1][:ALTERNATIVES]]
+    alts = tuple(float(a) for a in _peaks(obs, tau0_s, j, grid[top], step, 1e-6 * step)) if top.size else ()
+    j2 = float(np.max(j(np.array(alts)))) if alts else -1.0
     margin = float(np.clip(1 - max(j2, 0.0) / jbest, 0, 1)) if jbest > 0 else 0.0
     edge = min(best - lo, hi - best) < half
-    # the runners-up, each refined to its own peak
-    idx = np.flatnonzero(is_max & far)
-    top = idx[np.argsort(vals[idx])[::-1][:ALTERNATIVES]]
-    alts = tuple(float(a) for a in _peaks(obs, tau0_s, j, grid[top], step, 1e-6 * step)) if top.size else ()
     return RangeSolution(best, margin, _residual(obs, tau0_s, best), bool(edge), alternatives_m=alts)
 
 
