@@ -893,7 +893,7 @@ class TestWholeSelfBeats:
         np.testing.assert_allclose(out.z, f.z - (1 / c - 1) * pred, rtol=1e-12)
         # the mover's lines' noise and the prediction's scatter about c on what was taken
         amp2 = np.abs(out.z[0]) ** 2
-        added = (0.05 / c) ** 2 * (2e-3 + (SELF_BEAT_SCATTER * (1 - c)) ** 2) / amp2
+        added = (0.05 * (1 / c - 1)) ** 2 * (2e-3 + SELF_BEAT_SCATTER ** 2) / amp2
         np.testing.assert_allclose(out.phase_var, f.phase_var * np.abs(f.z[0]) ** 2 / amp2 + added, rtol=1e-9)
         assert not np.any(out.unexplained_v)  # one period searched: no other cycle
 

@@ -117,8 +117,8 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
     holding ``sqrt(c)`` of its size at the echo's delay, so the prediction keeps
     :func:`carrier_coherence` ``c`` of a self-beat that (the echo with itself) has all of it. The
     delay is known modulo the point's period (:func:`self_beat_scales`, over ``span_m``): ``(1/c -
-    1)`` times the prediction at the least ``1/c`` the mover's ranges allow is taken out; its
-    noise -- the mover's lines' relative noise, and the prediction's own scatter about ``c``
+    1)`` times the prediction at the least ``1/c`` the mover's ranges allow is taken out; that
+    part's noise -- the mover's lines' relative noise, and the prediction's own scatter about ``c``
     (:data:`SELF_BEAT_SCATTER`) -- enters the static lines' phase variance; and what more its
     other cycles in the span would leave bounds them
     (:attr:`~mtcw_core.dsp.extract.LineFamily.unexplained_v`, the point ``blended`` where it could
@@ -152,7 +152,11 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
             rel = 2.0 * float(np.median(np.concatenate(own))) if own else 1.0  # its lines' noise, two in the product
             size = np.sqrt(np.mean(np.abs(pred) ** 2, axis=0))
             extra += (least - 1.0) * pred
-            noise += (least * size) ** 2 * (min(rel, 1.0) + (SELF_BEAT_SCATTER * (1.0 - 1.0 / least)) ** 2)
+            # what is taken out beyond the extract stage's prediction, (least - 1) of it: its lines' noise,
+            # and the prediction's scatter about c (SCATTER*(1 - c)/c of it); not the first prediction's
+            # noise, which the chi2 of lines it left corrupted reads (widening all of it unflagged the envelope
+            # probe's scene 8143: echoes far above the LO, a static point on the mover's range, 722 sigmas)
+            noise += ((least - 1.0) * size) ** 2 * (min(rel, 1.0) + SELF_BEAT_SCATTER ** 2)
             rest += (most - least) * size
         usable = np.isfinite(f.phase_var)
         if not np.any(extra[:, usable]) and not np.any(rest[usable]):
