@@ -518,6 +518,8 @@ def test_an_echo_above_the_los_power_has_its_self_beat_taken_out_whole(monkeypat
     from mtcw_core.scene import load_scene, scene_variant
     from mtcw_core.simulate import Simulator
 
+    from mtcw_core.dsp import extract
+
     seen = []
     real = extract._self_beats
 
@@ -629,10 +631,22 @@ class TestNoiseRings:
 
 
 @pytest.mark.parametrize("receiver", ["single", "iq"])
-def test_the_static_lines_keep_each_movers_predicted_self_beat_on_one_photodiode(receiver):
+def test_the_static_lines_keep_each_movers_predicted_self_beat_on_one_photodiode(receiver, monkeypatch):
     """One photodiode: the static lines carry, per found mover, the self-beat its LO beats predict
     and the extract stage took out at scale 1 (:attr:`LineFamily.self_beats`; the resolve stage
     takes out the rest its coherence kept from the prediction); no other receiver sees self-beats."""
+    from mtcw_core.dsp import extract
+
+    seen = []
+    real = extract._self_beats
+
+    def spy(zs, *a):
+        before = zs[0, "S"].copy()
+        out = real(zs, *a)
+        seen.append(before - zs[0, "S"])
+        return out
+
+    monkeypatch.setattr(extract, "_self_beats", spy)
     st, _ = TestNoiseRings._families(receiver)
     static = [f for f in st.families if f.target == 0]
     if receiver == "iq":
@@ -642,3 +656,5 @@ def test_the_static_lines_keep_each_movers_predicted_self_beat_on_one_photodiode
     assert parts is not None and set(parts) == {f.target for f in st.families if f.target >= 1}
     assert all(p.shape == static[0].z.shape and np.all(np.isfinite(p)) for p in parts.values())
     assert all(f.self_beats is None for f in st.families if f.target >= 1)
+    # what was taken out of the static lines is the sum of the parts kept (a sign or a scale off fails)
+    np.testing.assert_allclose(seen[-1], sum(parts.values()), rtol=1e-12, atol=1e-18)  # the extract stage's call
