@@ -38,7 +38,7 @@ from .dsp.spectrum import LN2, Spectrum, local_floor
 from .frame import Frame
 from .profiles import ChainSettings
 from .ranging.targets import _search_interval
-from .ranging.triangulation import Observations, candidate_matrix, cost, unambiguous_range
+from .ranging.triangulation import Observations, candidate_matrix, cost, resolve_ml, unambiguous_range
 
 #: display points of the spectrum, the cost curve and the sigma_k curve at most
 MAX_POINTS = 2048
@@ -146,24 +146,24 @@ def _ghost_marks(s: FrameState, marks: list[dict]) -> list[dict]:
 def cost_view(obs: Observations, tau0_s: float, interval_m: tuple[float, float], chosen_m: float,
               points_per_cycle: int = 16, max_points: int = MAX_POINTS) -> dict:
     """``J(L)`` on the grid :func:`~mtcw_core.ranging.triangulation.resolve_ml` searches, the chosen
-    range and the runner-up (the largest other local maximum more than half the finest synthetic
-    wavelength from the chosen one; ``None`` when there is none)."""
+    range and the runner-up (the highest of its refined runners-up: local maxima more than half the
+    finest synthetic wavelength from the chosen one; ``None`` when there is none), whose J gives
+    the point's margin."""
     lo, hi = interval_m
     lam_min = float(np.min(obs.synthetic_wavelengths_m))
     step = lam_min / points_per_cycle
     grid = np.arange(lo, hi + step, step)
     vals = np.concatenate([cost(obs, grid[i: i + 65536], tau0_s) for i in range(0, grid.size, 65536)])
-    is_max = np.r_[False, (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:]), False]
-    far = np.abs(grid - chosen_m) > 0.5 * lam_min
-    cand = np.flatnonzero(is_max & far)
-    ru = int(cand[np.argmax(vals[cand])]) if cand.size else None
+    alts = np.asarray(resolve_ml(obs, tau0_s, interval_m, points_per_cycle).alternatives_m, float)
+    j_alts = cost(obs, alts, tau0_s) if alts.size else np.zeros(0)
+    ru = int(np.argmax(j_alts)) if alts.size else None
     j_best = float(cost(obs, [chosen_m], tau0_s)[0])
     gx, gy = _peak_decimate(grid, vals, max_points)
     return {"range_m": [float(v) for v in gx], "j": [round(float(v), 5) for v in gy],
             "interval_m": [float(lo), float(hi)], "step_m": step, "chosen_m": float(chosen_m), "j_chosen": j_best,
-            "runner_up_m": None if ru is None else float(grid[ru]),
-            "j_runner_up": None if ru is None else float(vals[ru]),
-            "margin": None if ru is None or j_best <= 0 else float(np.clip(1 - max(vals[ru], 0.0) / j_best, 0, 1)),
+            "runner_up_m": None if ru is None else float(alts[ru]),
+            "j_runner_up": None if ru is None else float(j_alts[ru]),
+            "margin": None if ru is None or j_best <= 0 else float(np.clip(1 - max(j_alts[ru], 0.0) / j_best, 0, 1)),
             "unambiguous_range_m": _f(unambiguous_range(obs.df_hz))}
 
 

@@ -455,7 +455,7 @@ def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndar
     # tone by tone, so the noise at the line (the Lorentzian core, inside the guard) moves them
     # apart as the ring beyond the guard does not show (a static echo at 24.4 m on one photodiode:
     # range z rms 0.85 -> 1.30, one -5.9; IQ, two static echoes with the LO 1 % of the power: 5.4,
-    # the envelope probe's scene 1689, when the ring could narrow it); but a mover's pedestal,
+    # the envelope probe's scene 1689); but a mover's pedestal,
     # flat across the static lines a few bins off, moves them together as it moves its own lines
     # (scene 9322: IQ, a 1 MHz laser, a mover 11 dB above a static echo 2 bins off, the static
     # point 6 sigmas off; the ring reads 2.5x the sigma independent lines give). Not on one
