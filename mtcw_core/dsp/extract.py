@@ -455,8 +455,8 @@ def _target_rings(spec: Spectrum, fams: list[tuple[int, str, np.ndarray, np.ndar
     # tone by tone, so the noise at the line (the Lorentzian core, inside the guard) moves them
     # apart as the ring beyond the guard does not show (a static echo at 24.4 m on one photodiode:
     # range z rms 0.85 -> 1.30, one -5.9; IQ, two static echoes with the LO 1 % of the power: 5.4,
-    # the envelope probe's scene 1689); but a mover's pedestal,
-    # flat across the static lines a few bins off, moves them together as it moves its own lines
+    # the envelope probe's scene 1689); but a mover's pedestal, flat across the static lines a few
+    # bins off, moves them together as it moves its own lines
     # (scene 9322: IQ, a 1 MHz laser, a mover 11 dB above a static echo 2 bins off, the static
     # point 6 sigmas off; the ring reads 2.5x the sigma independent lines give). Not on one
     # photodiode, where the static candidate beside strong movers is mostly their beats: its
@@ -532,12 +532,13 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             carriers = _carriers(z_all, uniq, found, dc, lo_larger)
             if not lo_larger and not np.all(carriers[1] > 1e-3 * np.abs(dc)):
                 continue  # echoes under 0.1 % of the mean: no LO below them (their self-beat is negligible)
-            pred = _predicted_self_beats(zs, *carriers)
+            each = _self_beat_parts(zs, *carriers)
+            pred = sum(each.values(), np.zeros_like(s))
             scale = self_beat_scale(s, pred)
             rest = s - scale * pred
-            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers, pred, scale))
-        _, lo_smaller, zs[0, "S"], carriers, _, scale = min(left, key=lambda t: t[:2])
-        parts = _self_beat_parts(zs, *carriers) if scale == 1.0 else None
+            left.append((float(np.sum(np.abs(rest) ** 2)), not lo_larger, rest, carriers, pred, scale, each))
+        _, lo_smaller, zs[0, "S"], carriers, _, scale, each = min(left, key=lambda t: t[:2])
+        parts = each if scale == 1.0 else None
         over_lo = lo_smaller and len(found) >= 2
         # what the prediction may have left, a part of what it took out, where that was the most of
         # the static lines (a static target's own lines outweighing it: left as they are)
