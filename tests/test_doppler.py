@@ -1543,3 +1543,48 @@ def test_a_pedestal_pins_the_low_frequency_psd_only_where_it_is_flat_on_its_ring
     if ring < 0.7 * low:
         assert not pedestal_is_flat(ring, lw, df)
     assert pedestal_is_flat(0.0, lw, df)
+
+
+class TestBeatPulls:
+    """One photodiode: the beat of two movers found, inside a mover's refinement reach, widens its
+    speed sigma by ``rho*min(x, 0.75)`` bins (the envelope probe's scene 13702)."""
+
+    FS, N = 5e9, 65536
+
+    def record(self, x_bins: float, lo: float = 1.0, a_c: float = 0.2, a_b: float = 0.02) -> tuple[np.ndarray, float,
+                                                                                                 float]:
+        rbin = self.FS / self.N
+        f_c = 2.35 * rbin
+        f_b = 2 * f_c + x_bins * rbin  # their beat at f_b - f_c lies x_bins above f_c
+        t = np.arange(self.N) / self.FS
+        x = lo + a_c * np.cos(2 * np.pi * f_c * t) + a_b * np.cos(2 * np.pi * f_b * t + 1.0)
+        x += a_c * a_b / (2 * lo) * np.cos(2 * np.pi * (f_b - f_c) * t + 0.3)
+        return x, f_c, f_b
+
+    def found(self, f_c: float, f_b: float, method: str = "phase") -> list[DopplerEstimate]:
+        return [DopplerEstimate(f_c, True, 100.0, 10.0, 1.0, method=method),
+                DopplerEstimate(f_b, True, 50.0, 10.0, 1.0, method=method)]
+
+    def test_the_pull_is_rho_times_the_distance_inside_one_bin(self):
+        from mtcw_core.dsp.doppler import beat_pulls
+
+        rbin = self.FS / self.N
+        x, f_c, f_b = self.record(0.1)
+        c, b = beat_pulls(x, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0)
+        # the beat's size over the first mover's line: A_b/(2L) with L the LO's part of the mean
+        lo = 0.5 * (1.0 + math.sqrt(1.0 - 0.2**2 - 0.02**2))
+        assert c.beat_pull_hz == pytest.approx(0.02 / (2 * lo) * 0.1 * rbin, rel=0.02)
+        assert b.beat_pull_hz == 0.0  # the beat lies 2.35 bins from the second: beyond a phase advance's reach
+
+    def test_no_pull_beyond_the_reach_nor_for_one_mover_nor_without_an_lo(self):
+        from mtcw_core.dsp.doppler import beat_pulls
+
+        rbin = self.FS / self.N
+        x, f_c, f_b = self.record(1.5)
+        assert all(d.beat_pull_hz == 0.0 for d in beat_pulls(x, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0))
+        # a reassigned line's reach is the Kaiser lobe's half width (4.57 bins): pulled, by at most 0.75 rho bins
+        c = beat_pulls(x, self.found(f_c, f_b, "reassigned"), self.FS, 8 * rbin, 14.0)[0]
+        assert 0 < c.beat_pull_hz <= 0.75 * 0.02 / 1.9 * rbin * 1.001
+        x, f_c, f_b = self.record(0.1)
+        assert beat_pulls(x, self.found(f_c, f_b)[:1], self.FS, 8 * rbin, 14.0)[0].beat_pull_hz == 0.0
+        assert all(d.beat_pull_hz == 0.0 for d in beat_pulls(x - 1.0, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0))

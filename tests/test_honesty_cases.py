@@ -1060,3 +1060,14 @@ def test_two_static_echoes_on_an_iq_record_are_flagged_by_their_sideband_sizes()
 
     counts, lines = judge_scene(10319, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_beat_of_two_movers_beside_one_of_them_widens_its_speed_sigma():
+    """The envelope probe's scene 13702: one photodiode behind an 8-bit ADC, the LO 1 % of the
+    power, movers at 34.7 and 58.3 dB of loss, 2.35 and 4.78 record bins: their beat lies 0.09 bin
+    from the first, 1.2 % of its size, and pulled its speed 44 Hz at a stated 4.7 Hz (9 sigmas,
+    unflagged, every profile). The pull's bound now enters its sigma."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(13702, 1)
+    assert counts["frames"] == 3 and counts["cw"] == 0 and counts["cf"] == 0, lines

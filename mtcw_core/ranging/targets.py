@@ -21,7 +21,7 @@ from scipy.special import chdtrc, gammaincc
 from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import Calibration
-from ..dsp.doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max, quarters_resolve_hz, within
+from ..dsp.doppler import CROSS_PULL_BINS, MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max, quarters_resolve_hz, within
 from ..dsp.extract import LineFamily
 from ..frame import Frame
 from ..phase import C
@@ -179,13 +179,6 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
 #: ~5e-6 bin (the map's "beat before its parent" case: |z| 4.9 under a floor of 1e-6)
 SPEED_FLOOR_BINS = 1e-5
 
-#: the largest frequency error (record bins) a neighbour phasor of unit relative size ``x`` bins
-#: away puts on a Doppler line's estimate: the least-squares phase slope over the record peaks at
-#: 0.42 bin (``x`` = 0.66), the Kaiser(14) reassignment's weighted mean at 0.74 (``x`` = 1.2);
-#: both below ``x`` for every ``x`` (slower wobbles are mostly a constant, faster ones average out)
-CROSS_PULL_BINS = 0.75
-
-
 def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
     """One photodiode: how far the beat of an echo among the static lines with a mover's echo can
     pull the mover's Doppler (Hz); 0 where no bound is carried (:attr:`LineFamily.cross_v`).
@@ -317,7 +310,7 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
             var_f = c * fam.phase_var * fs**2 / (np.pi**2 * n**2)
             inv_var += float(np.sum(1 / var_f))
         sig_f = math.hypot(1 / math.sqrt(inv_var) if inv_var > 0 else math.inf, dop.refine_error_hz, dop.wander_hz)
-    sig_f = max(math.hypot(sig_f, cross_pull_hz(families, fs / n)), SPEED_FLOOR_BINS * fs / n)
+    sig_f = max(math.hypot(sig_f, cross_pull_hz(families, fs / n), dop.beat_pull_hz), SPEED_FLOOR_BINS * fs / n)
     if iq or (sideband_direction and dop.motion_sign):
         # the sign of f_d = -2v/lambda: IQ carries it, one photodiode's sidebands' modulation
         # Doppler may have decided it
