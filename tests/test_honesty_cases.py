@@ -1071,3 +1071,14 @@ def test_a_beat_of_two_movers_beside_one_of_them_widens_its_speed_sigma():
 
     counts, lines = judge_scene(13702, 1)
     assert counts["frames"] == 3 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_static_echos_beat_moving_a_movers_lines_together_flags_its_range():
+    """The envelope probe's scene 10771: one photodiode, a 1 MHz laser, a static echo 7 dB over a
+    mover 0.22 m from it: their beat turned each of the mover's lines by 2.0-2.7 of its sigmas, under
+    the per-line rule's 3, but all together: the mover 3-6 range sigmas off, unflagged. Those turns
+    through the range fit bound it at 7.6-8.3 mm, over 3 of its sigmas of 1.5-2.5 mm: ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(10771, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
