@@ -1547,44 +1547,77 @@ def test_a_pedestal_pins_the_low_frequency_psd_only_where_it_is_flat_on_its_ring
 
 class TestBeatPulls:
     """One photodiode: the beat of two movers found, inside a mover's refinement reach, widens its
-    speed sigma by ``rho*min(x, 0.75)`` bins (the envelope probe's scene 13702)."""
+    speed sigma by ``margin*rho*min(x, cap)`` bins (the envelope probe's scene 13702)."""
 
     FS, N = 5e9, 65536
 
-    def record(self, x_bins: float, lo: float = 1.0, a_c: float = 0.2, a_b: float = 0.02) -> tuple[np.ndarray, float,
-                                                                                                 float]:
+    def record(self, lines: list[tuple[float, float]], lo: float = 1.0) -> np.ndarray:
+        """The LO's mean, baseband lines (frequency in record bins, amplitude V) and every pair's
+        beats at the difference and the sum, ``A_a*A_b/(2*L)`` each."""
         rbin = self.FS / self.N
-        f_c = 2.35 * rbin
-        f_b = 2 * f_c + x_bins * rbin  # their beat at f_b - f_c lies x_bins above f_c
         t = np.arange(self.N) / self.FS
-        x = lo + a_c * np.cos(2 * np.pi * f_c * t) + a_b * np.cos(2 * np.pi * f_b * t + 1.0)
-        x += a_c * a_b / (2 * lo) * np.cos(2 * np.pi * (f_b - f_c) * t + 0.3)
-        return x, f_c, f_b
+        x = np.full(self.N, lo)
+        for k, (f, a) in enumerate(lines):
+            x += a * np.cos(2 * np.pi * f * rbin * t + 0.7 * k)
+        for i, (fa, aa) in enumerate(lines):
+            for fb, ab in lines[i + 1:]:
+                for f in (abs(fa - fb), fa + fb):
+                    x += aa * ab / (2 * lo) * np.cos(2 * np.pi * f * rbin * t + 0.3)
+        return x
 
-    def found(self, f_c: float, f_b: float, method: str = "phase") -> list[DopplerEstimate]:
-        return [DopplerEstimate(f_c, True, 100.0, 10.0, 1.0, method=method),
-                DopplerEstimate(f_b, True, 50.0, 10.0, 1.0, method=method)]
+    def found(self, lines: list[tuple[float, float]], method: str) -> list[DopplerEstimate]:
+        rbin = self.FS / self.N
+        return [DopplerEstimate(f * rbin, True, 100.0, 10.0, 1.0, method=method) for f, _ in lines]
 
-    def test_the_pull_is_rho_times_the_distance_inside_one_bin(self):
-        from mtcw_core.dsp.doppler import beat_pulls
+    @staticmethod
+    def lo(amps: list[float]) -> float:
+        return 0.5 * (1.0 + math.sqrt(1.0 - sum(a * a for a in amps)))
+
+    def test_the_pull_is_rho_times_the_distance_inside_a_fits_reach(self):
+        from mtcw_core.dsp.doppler import BEAT_PULL_MARGIN, beat_pulls
 
         rbin = self.FS / self.N
-        x, f_c, f_b = self.record(0.1)
-        c, b = beat_pulls(x, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0)
+        lines = [(2.35, 0.2), (4.8, 0.02)]  # their beat at 2.45 bins: 0.1 bin from the first
+        c, b = beat_pulls(self.record(lines), self.found(lines, "fit"), self.FS, 8 * rbin, 14.0)
         # the beat's size over the first mover's line: A_b/(2L) with L the LO's part of the mean
-        lo = 0.5 * (1.0 + math.sqrt(1.0 - 0.2**2 - 0.02**2))
-        assert c.beat_pull_hz == pytest.approx(0.02 / (2 * lo) * 0.1 * rbin, rel=0.02)
-        assert b.beat_pull_hz == 0.0  # the beat lies 2.35 bins from the second: beyond a phase advance's reach
+        rho = 0.02 / (2 * self.lo([0.2, 0.02]))
+        assert c.beat_pull_hz == pytest.approx(BEAT_PULL_MARGIN * rho * 0.1 * rbin, rel=0.02)
+        assert b.beat_pull_hz == 0.0  # the beat lies 2.35 bins from the second: beyond a fit's reach
 
-    def test_no_pull_beyond_the_reach_nor_for_one_mover_nor_without_an_lo(self):
+    def test_a_third_movers_line_is_pulled_by_the_beat_of_two_others(self):
+        from mtcw_core.dsp.doppler import BEAT_PULL_MARGIN, beat_pulls
+
+        rbin = self.FS / self.N
+        lines = [(30.0, 0.1), (70.0, 0.05), (100.2, 0.04)]  # 100.2 - 70 = 30.2: 0.2 bin from the first
+        c = beat_pulls(self.record(lines), self.found(lines, "fit"), self.FS, 8 * rbin, 14.0)[0]
+        rho = 0.05 * 0.04 / (2 * self.lo([0.1, 0.05, 0.04]) * 0.1)
+        # (the fitted amplitudes carry the beats 0.2 bin from the lines, which the fit leaves out: up to 4 %)
+        assert c.beat_pull_hz == pytest.approx(BEAT_PULL_MARGIN * rho * 0.2 * rbin, rel=0.06)
+
+    def test_each_method_has_its_reach_and_cap(self):
+        from mtcw_core.dsp.doppler import BEAT_PULL_MARGIN, CROSS_PULL_BINS, PARABOLA_PULL_BINS, beat_pulls
+
+        rbin = self.FS / self.N
+        lines = [(40.0, 0.2), (83.0, 0.02)]  # their beat 3 bins from the first, their sum 83 bins above it
+        x = self.record(lines)
+        rho = BEAT_PULL_MARGIN * 0.02 / (2 * self.lo([0.2, 0.02]))
+        got = {m: beat_pulls(x, self.found(lines, m), self.FS, 8 * rbin, 14.0)[0].beat_pull_hz
+               for m in ("fit", "reassigned", "phase", "")}
+        assert got["fit"] == 0.0  # beyond one bin
+        assert got["reassigned"] == pytest.approx(rho * CROSS_PULL_BINS * rbin, rel=0.02)  # within 4.57 bins
+        assert got["phase"] == pytest.approx(rho * CROSS_PULL_BINS * rbin, rel=0.02)  # within 11 bins
+        # the parabola's bins are the search spectrum's (8 record bins here): 3/8 of one, inside its lobe
+        assert got[""] == pytest.approx(rho * min(3 / 8, PARABOLA_PULL_BINS) * 8 * rbin, rel=0.02)
+        lines = [(40.0, 0.2), (92.0, 0.02)]  # 12 bins: beyond a phase advance's reach too
+        assert beat_pulls(self.record(lines), self.found(lines, "phase"), self.FS, 8 * rbin, 14.0)[0].beat_pull_hz == 0
+
+    def test_one_mover_gives_none_and_no_lo_marks_the_movers(self):
         from mtcw_core.dsp.doppler import beat_pulls
 
         rbin = self.FS / self.N
-        x, f_c, f_b = self.record(1.5)
-        assert all(d.beat_pull_hz == 0.0 for d in beat_pulls(x, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0))
-        # a reassigned line's reach is the Kaiser lobe's half width (4.57 bins): pulled, by at most 0.75 rho bins
-        c = beat_pulls(x, self.found(f_c, f_b, "reassigned"), self.FS, 8 * rbin, 14.0)[0]
-        assert 0 < c.beat_pull_hz <= 0.75 * 0.02 / 1.9 * rbin * 1.001
-        x, f_c, f_b = self.record(0.1)
-        assert beat_pulls(x, self.found(f_c, f_b)[:1], self.FS, 8 * rbin, 14.0)[0].beat_pull_hz == 0.0
-        assert all(d.beat_pull_hz == 0.0 for d in beat_pulls(x - 1.0, self.found(f_c, f_b), self.FS, 8 * rbin, 14.0))
+        lines = [(2.35, 0.2), (4.8, 0.02)]
+        x = self.record(lines)
+        assert beat_pulls(x, self.found(lines, "fit")[:1], self.FS, 8 * rbin, 14.0)[0].beat_pull_hz == 0.0
+        # an AC-coupled front end: no LO power to predict the beat from -- which line is a beat cannot be told
+        out = beat_pulls(x - 1.0, self.found(lines, "fit"), self.FS, 8 * rbin, 14.0)
+        assert all(d.beat_ambiguous and d.beat_pull_hz == 0.0 for d in out)

@@ -110,7 +110,7 @@ class DopplerEstimate:
     #: draw of its few degrees of freedom, which that term guards against too. 0 otherwise
     shared_overlap_var_hz2: float = 0.0
     #: one photodiode: how far (Hz) the beat of two movers found, lying inside this line's
-    #: refinement lobe, can pull it (:meth:`_BeatModel.pulls`); 0 where none lies there. Last of
+    #: refinement lobe, can pull it (:func:`beat_pulls`); 0 where none lies there. Last of
     #: the fields: the constructors pass the earlier ones by position
     beat_pull_hz: float = 0.0
 
@@ -448,6 +448,14 @@ def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[t
 #: 0.42 bin (``x`` = 0.66), the Kaiser(14) reassignment's weighted mean at 0.74 (``x`` = 1.2);
 #: both below ``x`` for every ``x`` (slower wobbles are mostly a constant, faster ones average out)
 CROSS_PULL_BINS = 0.75
+
+#: ... and a parabola through the search spectrum's Kaiser(14) lobe, by up to 0.81 bin (``x`` = 1.5)
+PARABOLA_PULL_BINS = 0.85
+#: :func:`beat_pulls` takes the beat's size this many times its prediction: the record's mean, from
+#: which the LO's power is read, also holds a static echo's carrier beat at 0 Hz (``2|E_s|/|E_LO|``
+#: of it times the echo's fading, ``cos(psi)``): a static echo 12 dB under the LO moves it by up
+#: to half
+BEAT_PULL_MARGIN = 2.0
 
 #: one photodiode: a line at the beat of two movers found is taken for their beat when its power is
 #: at most this times the beat's predicted power (:class:`_BeatModel`; its own error -- the tones'
@@ -1414,7 +1422,7 @@ def estimate_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, settings: Chai
                      gated: bool = False) -> list[DopplerEstimate]:
     """The stage: Doppler lines, strongest first (``[not detected]`` when there is none), found and
     refined by :func:`find_doppler`; on one photodiode each with the pull the beats of the movers
-    found with each other can put on it (:meth:`_BeatModel.pulls`)."""
+    found with each other can put on it (:func:`beat_pulls`)."""
     found = find_doppler(x, frame, spec, settings, gated)
     return beat_pulls(x, found, frame.fs_hz, spec.df_hz, settings.window_beta) if frame.receiver == "single" else found
 
@@ -1423,31 +1431,44 @@ def beat_pulls(x: np.ndarray, found: list[DopplerEstimate], fs_hz: float, search
                ) -> list[DopplerEstimate]:
     """One photodiode: ``found``, each with the pull (Hz) the beats of every pair of the movers
     found -- at ``|f_a| +- |f_b|``, one of the pair possibly the line itself (a mover at twice its
-    speed) -- can put on its estimate, summed in quadrature: ``rho*min(x, CROSS_PULL_BINS)`` bins,
-    ``x`` their distance in bins and ``rho`` the beat's amplitude over the line's,
-    ``A_a*A_b/(2*L*A_c)`` from the movers' baseband lines ``A_k = 2R|E_LO||E_k|`` (fitted together
-    on the record with its mean) and the LO's part ``L`` of the mean (:meth:`_BeatModel.lo_w`; the
-    search spectrum's bins misread a line below the guard beside another). Only where ``x`` is
-    within the estimate's reach: one record bin for a phase advance or a line fitted below the
-    guard (a wobble of a whole cycle or more over the record averages out, and the fit holds the
-    beats half a bin or more from its line: scene 13702's first mover, fitted, was pulled by 0.03 /
-    0.06 / 0.06 / 0.20 ``rho`` bins with the beat 0.05 / 0.1 / 0.3 / 0.6 bin away, by under 0.004
-    from 1 to 16 bins), the Kaiser(``beta``) lobe's half width ``sqrt(1 + (beta/pi)^2)`` for a
-    reassigned line (the reassignment's pull peaks at 1.2 bins) and, in search bins
-    (``search_bin_hz``), for a parabola. The envelope probe's scene 13702, 8-bit: movers at 2.35 and
-    4.78 record bins, their beat 0.09 bin from the first at 1.2 % of its size: that speed 44 Hz off
-    at a stated 4.7 Hz, 9 sigmas. Nothing where the LO's part of the mean cannot be told (the
-    beats then are marked ``beat_ambiguous``)."""
+    speed, or one below the guard) -- can put on its estimate, summed over the beats (their worst
+    case adds): ``rho*min(x, cap)`` bins, ``x`` their distance in bins and ``rho`` the beat's
+    amplitude over the line's, ``A_a*A_b/(2*L*A_c)`` from the movers' baseband lines
+    ``A_k = 2R|E_LO||E_k|`` (fitted together on the record with its mean: the search spectrum's
+    bins misread a line below the guard beside another) and the LO's part ``L`` of the mean
+    (:meth:`_BeatModel.lo_w`), times :data:`BEAT_PULL_MARGIN`. Where ``x`` is within the estimate's
+    reach: for a phase advance the lobe of its parts' Kaiser(:data:`PHASE_WINDOW_BETA`) window,
+    ``sqrt(1 + (beta/pi)^2)`` part bins of its 4 quarters (a wobble aliases through the parts'
+    phases rather than averaging out: with a mover 40 record bins up, pulled by 0.05 / 0.20 /
+    0.19 / 0.24 / 0.14 / 0.07 ``rho`` bins with the beat 0.1 / 0.6 / 1 / 2 / 3 / 6 bins away, under
+    0.002 from 8 bins on; a review's simulation of the quarters' estimator: at most 0.42); one
+    record bin for a line fitted below the guard (the fit holds the beats half a bin or more from
+    its line: scene 13702's first mover was pulled by 0.03 / 0.06 / 0.06 / 0.20 ``rho`` bins with
+    the beat 0.05 / 0.1 / 0.3 / 0.6 bin away, under 0.004 from 1 to 16 bins); the
+    Kaiser(:data:`REASSIGN_BETA`) lobe's half width of the whole record for a reassigned line (its
+    pull peaks at 0.74 at 1.2 bins); that of the search spectrum's Kaiser(``beta``) in its bins
+    for a parabola (peaks at 0.81 at 1.5 bins: capped at :data:`PARABOLA_PULL_BINS`, the others
+    at :data:`CROSS_PULL_BINS`). The envelope probe's scene 13702, 8-bit: movers at 2.35 and 4.78
+    record bins, their beat 0.09 bin from the first at 1.2 % of its size: that speed 44 Hz off at
+    a stated 4.7 Hz, 9 sigmas. Where the LO's part of the mean cannot be told (an AC-coupled front
+    end, echoes holding half the mean) and a beat lies within a mover's reach, every mover is
+    marked ``beat_ambiguous`` instead."""
     movers = [d for d in found if d.detected]
     if len(movers) < 2:
         return found
-    n, half = x.size, math.sqrt(1.0 + (beta / math.pi) ** 2)
+    n = x.size
     base = np.array([abs(d.fd_hz) for d in movers])
     pairs = [(i, j, abs(base[i] + sg * base[j])) for i in range(base.size) for j in range(i + 1, base.size)
              for sg in (-1, 1)]
 
-    def bins(d: DopplerEstimate) -> tuple[float, float]:  # the estimate's bin (Hz) and its reach (bins)
-        return (fs_hz / n, 1.0 if d.method in ("phase", "fit") else half) if d.method else (search_bin_hz, half)
+    def bins(d: DopplerEstimate) -> tuple[float, float, float]:  # the estimate's bin (Hz), reach (bins), cap
+        if d.method == "phase":
+            return fs_hz / n, 4.0 * math.sqrt(1.0 + (PHASE_WINDOW_BETA / math.pi) ** 2), CROSS_PULL_BINS
+        if d.method == "fit":
+            return fs_hz / n, 1.0, CROSS_PULL_BINS
+        if d.method:
+            return fs_hz / n, math.sqrt(1.0 + (REASSIGN_BETA / math.pi) ** 2), CROSS_PULL_BINS
+        return search_bin_hz, math.sqrt(1.0 + (beta / math.pi) ** 2), PARABOLA_PULL_BINS
 
     near = [(c, i, j, f) for c, d in enumerate(movers) for i, j, f in pairs
             if abs(f - base[c]) <= bins(d)[0] * bins(d)[1]]
@@ -1458,14 +1479,14 @@ def beat_pulls(x: np.ndarray, found: list[DopplerEstimate], fs_hz: float, search
     dc = total / n
     disc = dc**2 - float(np.sum(amps**2))
     if dc <= 0 or disc <= 0:
-        return found
+        return [replace(d, beat_ambiguous=True) if d.detected else d for d in found]
     lo = 0.5 * (dc + math.sqrt(disc))
-    pull2 = np.zeros(base.size)
+    pull = np.zeros(base.size)
     for c, i, j, f in near:
-        rbin = bins(movers[c])[0]
-        rho = amps[i] * amps[j] / (2 * lo * max(amps[c], 1e-300))
-        pull2[c] += (rho * min(abs(f - base[c]) / rbin, CROSS_PULL_BINS) * rbin) ** 2
-    pulled = {id(d): math.sqrt(p2) for d, p2 in zip(movers, pull2) if p2 > 0}
+        rbin, _, cap = bins(movers[c])
+        rho = BEAT_PULL_MARGIN * amps[i] * amps[j] / (2 * lo * max(amps[c], 1e-300))
+        pull[c] += rho * min(abs(f - base[c]) / rbin, cap) * rbin
+    pulled = {id(d): float(p) for d, p in zip(movers, pull) if p > 0}
     return [replace(d, beat_pull_hz=pulled[id(d)]) if id(d) in pulled else d for d in found]
 
 

@@ -648,9 +648,12 @@ def unexplained_sigmas(fams: list[LineFamily], min_snr_db: float, attr: str = "u
 
 def range_turn_m(fams: list[LineFamily], min_snr_db: float, attr: str = "cross_v") -> float:
     """The largest range shift (m) the per-line phase turns of :func:`unexplained_sigmas` could make
-    together, through the range's fit: the lines' weighted phase slope across their tones, each
-    family with its own offset (its nuisance phase), ``c/(4*pi)*sum_i |w_i*(f_i - fbar)|*b_i/S``
-    (``w_i = 1/phase_var``, ``S = sum_i w_i*(f_i - fbar)^2``, ``b_i`` the line's turn). Each turn may
+    together, through the range's fit: the pairs of each family's lines weighted
+    ``1/(phase_var_i*phase_var_j)`` (:func:`~mtcw_core.ranging.mixing.pair_observations`), which is
+    the lines' phase slope across their tones weighted ``w_i = 1/phase_var_i``, each family with
+    its own offset (its nuisance phase) and weighted as a whole by ``W_F = sum_i w_i``:
+    ``c/(4*pi)*sum_F W_F*sum_i |w_i*(f_i - fbar_F)|*b_i / sum_F W_F*sum_i w_i*(f_i - fbar_F)^2``
+    (``b_i`` the line's turn; a family with no bound has none but weighs in). Each turn may
     stay under :data:`UNEXPLAINED_SIGMAS` of its line's sigma while they move the range together:
     the envelope probe's scene 10771, a 1 MHz laser, a static echo 7 dB over a mover 0.22 m from
     it, one photodiode: turns of 2.0-2.7 sigmas on six tones, the mover 3-6 range sigmas off, the
@@ -659,14 +662,16 @@ def range_turn_m(fams: list[LineFamily], min_snr_db: float, attr: str = "cross_v
     for f in fams:
         bound = getattr(f, attr)
         use = (f.snr_db >= min_snr_db) & np.isfinite(f.phase_var) & (f.phase_var > 0)
-        if bound is None or np.count_nonzero(use) < 2:
+        if np.count_nonzero(use) < 2:
             continue
         w, tone = 1.0 / f.phase_var[use], f.tone_hz[use]
         dev = tone - np.sum(w * tone) / np.sum(w)
-        amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
-        num += float(np.sum(np.abs(w * dev) * np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))))
-        den += float(np.sum(w * dev**2))
-    return C / (4 * math.pi) * num / den if den > 0 else 0.0
+        den += float(np.sum(w) * np.sum(w * dev**2))
+        if bound is not None:
+            amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
+            turn = np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))
+            num += float(np.sum(w) * np.sum(np.abs(w * dev) * turn))
+    return C / (4 * math.pi) * num / den if den > 0 and num > 0 else 0.0
 
 
 #: a candidate this much weaker than a mover (amplitude) may be a copy of its lines
