@@ -283,7 +283,9 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
     # noiseless and with an ideal laser (not yet explained; products of order 3 and above are not
     # modelled): stated as a floor of 1 % of a bin
     err = max(err, 0.01 * fs / n)
-    return DopplerEstimate(float(r.x), True, dop.score, dop.threshold, dop.min_detectable_hz, err, dop.wander_hz)
+    # (what the search said of the movers' beats with each other stays: one photodiode's beat_pulls)
+    return DopplerEstimate(float(r.x), True, dop.score, dop.threshold, dop.min_detectable_hz, err, dop.wander_hz,
+                           beat_ambiguous=dop.beat_ambiguous, beat_pull_hz=dop.beat_pull_hz)
 
 
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
