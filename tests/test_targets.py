@@ -600,16 +600,22 @@ class TestCrossBeaten:
 
     def test_a_mover_the_static_echo_could_turn_is_flagged_where_it_lies_elsewhere(self):
         """Lines of unit size at phase sigma 1e-3: a beat of 0.01 turns them 10 sigmas (flagged); of
-        2e-3, 2 sigmas (not). At the static point's own range the static lines are the mover's
-        self-beat left over, no second echo: not flagged."""
+        1e-3, 1 sigma (not). Of 2.5e-3, 2.5 sigmas each, under the per-line rule, but together they
+        can move the range by 0.77 mm, more than 3 of the mover's 0.2 mm (its lines' own sigma on
+        these tones: flagged), not of 1 mm. At the static
+        point's own range the static lines are the mover's self-beat left over, no second echo: not
+        flagged."""
         from mtcw_core.ranging.targets import _cross_beaten
 
         static = point(1.98, [40.0] * 3)
-        mover = replace(point(5.0, [35.0] * 3), velocity_mps=4.8, direction="unknown")
+        mover = replace(point(5.0, [35.0] * 3, sigma=2e-4), velocity_mps=4.8, direction="unknown")
         st = get_profile("balanced")
         (_, s), (_, m) = _cross_beaten([(0, static), (1, mover)], self.fams(0.01), st)
         assert m.blended and not s.blended
-        assert not _cross_beaten([(0, static), (1, mover)], self.fams(2e-3), st)[1][1].blended
+        assert not _cross_beaten([(0, static), (1, mover)], self.fams(1e-3), st)[1][1].blended
+        assert _cross_beaten([(0, static), (1, mover)], self.fams(2.5e-3), st)[1][1].blended
+        wide = replace(mover, range_sigma_m=1e-3)
+        assert not _cross_beaten([(0, static), (1, wide)], self.fams(2.5e-3), st)[1][1].blended
         twin = replace(mover, range_m=1.98 + 1e-5)
         assert not _cross_beaten([(0, static), (1, twin)], self.fams(0.01), st)[1][1].blended
         assert not _cross_beaten([(1, mover)], self.fams(0.01), st)[0][1].blended  # no static point

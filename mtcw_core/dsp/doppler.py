@@ -446,7 +446,8 @@ def _allowed(sc: _Scores, sign: int, found: list[DopplerEstimate], taken: list[t
 #: the largest frequency error (record bins) a neighbour phasor of unit relative size ``x`` bins
 #: away puts on a Doppler line's estimate: the least-squares phase slope over the record peaks at
 #: 0.42 bin (``x`` = 0.66), the Kaiser(14) reassignment's weighted mean at 0.74 (``x`` = 1.2);
-#: both below ``x`` for every ``x`` (slower wobbles are mostly a constant, faster ones average out)
+#: both below ``x`` for every ``x`` (slower wobbles are mostly a constant, faster ones average out
+#: over the whole record; a phase advance over parts aliases them instead: :func:`beat_pulls`)
 CROSS_PULL_BINS = 0.75
 
 #: ... and a parabola through the search spectrum's Kaiser(14) lobe, by up to 0.81 bin (``x`` = 1.5)
@@ -1436,7 +1437,7 @@ def beat_pulls(x: np.ndarray, found: list[DopplerEstimate], fs_hz: float, search
     amplitude over the line's, ``A_a*A_b/(2*L*A_c)`` from the movers' baseband lines
     ``A_k = 2R|E_LO||E_k|`` (fitted together on the record with its mean: the search spectrum's
     bins misread a line below the guard beside another) and the LO's part ``L`` of the mean
-    (:meth:`_BeatModel.lo_w`), times :data:`BEAT_PULL_MARGIN`. Where ``x`` is within the estimate's
+    (as :meth:`_BeatModel.lo_w`), times :data:`BEAT_PULL_MARGIN`. Where ``x`` is within the estimate's
     reach: for a phase advance the lobe of its parts' Kaiser(:data:`PHASE_WINDOW_BETA`) window,
     ``sqrt(1 + (beta/pi)^2)`` part bins of its 4 quarters (a wobble aliases through the parts'
     phases rather than averaging out: with a mover 40 record bins up, pulled by 0.05 / 0.20 /

@@ -179,6 +179,7 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
 #: ~5e-6 bin (the map's "beat before its parent" case: |z| 4.9 under a floor of 1e-6)
 SPEED_FLOOR_BINS = 1e-5
 
+
 def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
     """One photodiode: how far the beat of an echo among the static lines with a mover's echo can
     pull the mover's Doppler (Hz); 0 where no bound is carried (:attr:`LineFamily.cross_v`).
@@ -790,10 +791,11 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     """Movers whose lines a static echo's beat with them could turn by more than
     :data:`UNEXPLAINED_SIGMAS` of their phase sigmas (:attr:`LineFamily.cross_v`, one photodiode),
     or whose range those turns together could move by more than as many of its sigmas
-    (:func:`range_turn_m`), flagged ``blended`` -- where the static point lies at another range than the mover's (at its
-    range the static lines may be the mover's own self-beat, left over where its prediction missed:
-    no second echo; the envelope probe's scenes 725, 1385 and 1937, static echoes at 0-10 dB loss
-    with the LO a tenth of the power, had their movers ranged 200-1000 sigmas off, unflagged), or
+    (:func:`range_turn_m`), flagged ``blended`` -- where the static point lies at another range
+    than the mover's (at its range the static lines may be the mover's own self-beat, left over
+    where its prediction missed: no second echo; the envelope probe's scenes 725, 1385 and 1937,
+    static echoes at 0-10 dB loss with the LO a tenth of the power, had their movers ranged
+    200-1000 sigmas off, unflagged), or
     at the same range where the static lines stood mostly above what the movers' self-beats'
     prediction took out (:attr:`LineFamily.static_echo`: a static echo's own, no leftover; 725's
     first frame: two echoes at 10-12 dB under a 1 MHz laser whose corrupted lines fit one range,
