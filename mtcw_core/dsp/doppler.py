@@ -469,6 +469,15 @@ BEAT_MARGIN = 10.0
 BEAT_AMBIGUOUS = 0.1
 
 
+def lo_part(mean: float, carriers_sq: float) -> float:
+    """The LO's part ``L`` of a square-law record's mean ``DC = L + sum_k A_k^2/(4L)``, where each
+    mover's carrier line ``A_k`` (``sum_k A_k^2 = carriers_sq``, in the mean's units squared) puts
+    ``A_k^2/(4L)`` of echo power into it: ``(DC + sqrt(DC^2 - sum A_k^2))/2``, the LO the larger
+    part; 0 where the echoes hold half the mean or more, or the mean is not above 0 (no LO to tell)."""
+    disc = mean**2 - carriers_sq
+    return 0.5 * (mean + math.sqrt(disc)) if mean > 0 and disc > 0 else 0.0
+
+
 class _BeatModel:
     """One photodiode: the predicted power, in the search spectrum, of the beat of two movers.
 
@@ -501,8 +510,7 @@ class _BeatModel:
         line ``A_k`` puts ``A_k^2/(4L)`` of echo power into the mean ``DC = L + sum_k A_k^2/(4L)``,
         so ``L = (DC + sqrt(DC^2 - sum A_k^2))/2`` (the LO the larger part; in spectrum units
         ``A_k^2 W^2 = 4 P_k``); 0 where the echoes hold half the mean or more (no LO to tell)."""
-        disc = self.dc_w**2 - 4.0 * sum(self.power(d.fd_hz) for d in found)
-        return 0.5 * (self.dc_w + math.sqrt(disc)) if self.dc_w > 0 and disc > 0 else 0.0
+        return lo_part(self.dc_w, 4.0 * sum(self.power(d.fd_hz) for d in found))
 
     def beat_power(self, a: float, b: float, lo_w: float | None = None) -> float:
         lw = self.dc_w if lo_w is None else lo_w
@@ -1437,7 +1445,7 @@ def beat_pulls(x: np.ndarray, found: list[DopplerEstimate], fs_hz: float, search
     amplitude over the line's, ``A_a*A_b/(2*L*A_c)`` from the movers' baseband lines
     ``A_k = 2R|E_LO||E_k|`` (fitted together on the record with its mean: the search spectrum's
     bins misread a line below the guard beside another) and the LO's part ``L`` of the mean
-    (as :meth:`_BeatModel.lo_w`), times :data:`BEAT_PULL_MARGIN`. Where ``x`` is within the estimate's
+    (:func:`lo_part`), times :data:`BEAT_PULL_MARGIN`. Where ``x`` is within the estimate's
     reach: for a phase advance the lobe of its parts' Kaiser(:data:`PHASE_WINDOW_BETA`) window,
     ``sqrt(1 + (beta/pi)^2)`` part bins of its 4 quarters (a wobble aliases through the parts'
     phases rather than averaging out: with a mover 40 record bins up, pulled by 0.05 / 0.20 /
@@ -1477,11 +1485,9 @@ def beat_pulls(x: np.ndarray, found: list[DopplerEstimate], fs_hz: float, search
         return found
     total = float(np.sum(x))
     amps = np.abs(solve_lines(_record_dft(x, base, fs_hz), base, fs_hz, n, total, False)[1])
-    dc = total / n
-    disc = dc**2 - float(np.sum(amps**2))
-    if dc <= 0 or disc <= 0:
+    lo = lo_part(total / n, float(np.sum(amps**2)))
+    if lo <= 0:
         return [replace(d, beat_ambiguous=True) if d.detected else d for d in found]
-    lo = 0.5 * (dc + math.sqrt(disc))
     pull = np.zeros(base.size)
     for c, i, j, f in near:
         rbin, _, cap = bins(movers[c])

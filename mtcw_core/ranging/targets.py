@@ -641,10 +641,15 @@ def unexplained_sigmas(fams: list[LineFamily], min_snr_db: float, attr: str = "u
         use = f.snr_db >= min_snr_db
         if not use.any():
             continue
-        amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
-        turn = np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))
-        worst = max(worst, float(np.max(turn / np.sqrt(f.phase_var[use]))))
+        worst = max(worst, float(np.max(_turns(f, use, bound) / np.sqrt(f.phase_var[use]))))
     return worst
+
+
+def _turns(f: LineFamily, use: np.ndarray, bound: np.ndarray) -> np.ndarray:
+    """How far (rad) a phasor of size ``bound`` (per line, V) can turn each used line of ``f``:
+    ``asin(bound/|z|)``, ``|z|`` the line's rms size over the segments; shape (use.sum(),)."""
+    amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
+    return np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))
 
 
 def range_turn_m(fams: list[LineFamily], min_snr_db: float, attr: str = "cross_v") -> float:
@@ -669,9 +674,7 @@ def range_turn_m(fams: list[LineFamily], min_snr_db: float, attr: str = "cross_v
         dev = tone - np.sum(w * tone) / np.sum(w)
         den += float(np.sum(w) * np.sum(w * dev**2))
         if bound is not None:
-            amp = np.sqrt(np.mean(np.abs(f.z[:, use]) ** 2, axis=0))
-            turn = np.arcsin(np.minimum(bound[use] / np.maximum(amp, 1e-300), 1.0))
-            num += float(np.sum(w) * np.sum(np.abs(w * dev) * turn))
+            num += float(np.sum(w) * np.sum(np.abs(w * dev) * _turns(f, use, bound)))
     return C / (4 * math.pi) * num / den if den > 0 and num > 0 else 0.0
 
 
