@@ -507,8 +507,8 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
     top of the static target's (issue 12 cases 3 and 5): the found movers' are taken out of
     ``zs[0, "S"]`` (in place; the prediction holds for an unmodulated LO, a modulated reference
     adding its own sidebands to every product). Returned: the movers' predicted self-beats where
-    they were taken at scale 1 (:attr:`LineFamily.self_beats`, else None), last; the bound on those of movers the search
-    did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), per
+    they were taken at scale 1 (:attr:`LineFamily.self_beats`, else None), last; the bound on those
+    of movers the search did not find or resolve (:func:`~mtcw_core.dsp.doppler.self_beat_bound`, V, shape (T,)), per
     found mover the static echo's beat on its lines (:func:`cross_beat_bound`), and the largest
     Doppler (record bins) that echo could have where the static lines (``static_hz``) are mostly its
     own (:func:`~.spectrum.still_line_doppler_bins`, the record ``x`` read about the strongest where

@@ -171,8 +171,6 @@ def whole_self_beats(fams: list[LineFamily], movers: list[tuple[int, TargetPoint
     return out if mended else fams
 
 
-
-
 #: the smallest speed sigma, in record bins (fs/N): the errors the chain measures reach ~2.5e-6 bin
 #: (0.05 Hz on a 47.9 m/s mover, 2^18 samples at 5 GS/s, 20 dB of loss), but at such SNRs what no
 #: line statistic sees -- two strong echoes' cross-beats on one photodiode -- moves a speed by
@@ -548,6 +546,12 @@ def line_powers(fams: list[LineFamily], keep=None) -> tuple[np.ndarray, np.ndarr
             np.bincount(inv, np.concatenate(var), uniq.size) / count**2)
 
 
+def _sizable(f: LineFamily, min_snr_db: float) -> np.ndarray:
+    """The lines of ``f`` whose size can be read: at ``min_snr_db`` or more, their segments' noise
+    at most :data:`AMPLITUDE_NOISE_SHARE` of their power; shape (T,), bool."""
+    return (f.snr_db >= min_snr_db) & (2 * f.z.shape[0] * f.phase_var <= AMPLITUDE_NOISE_SHARE)
+
+
 def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, float]] | None,
                    min_snr_db: float) -> tuple[float, int]:
     """The chi2 (and its degrees of freedom) of a candidate's line sizes against one target's
@@ -573,8 +577,7 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     """
     if not amplitudes or not fams:
         return 0.0, 0
-    uniq, a2, v = line_powers(fams, lambda f: (f.snr_db >= min_snr_db)
-                              & (2 * f.z.shape[0] * f.phase_var <= AMPLITUDE_NOISE_SHARE)
+    uniq, a2, v = line_powers(fams, lambda f: _sizable(f, min_snr_db)
                               & np.array([float(t) in amplitudes for t in f.tone_hz], dtype=bool))
     if uniq.size < 2:
         return 0.0, 0
@@ -611,8 +614,7 @@ def sideband_chi2(fams: list[LineFamily], tolerance: float, min_snr_db: float) -
     sides = {f.name: f for f in fams if f.name in ("U", "L")}
     if len(sides) < 2:
         return 0.0, 0
-    got = [line_powers([sides[k]], lambda f: (f.snr_db >= min_snr_db)
-                       & (2 * f.z.shape[0] * f.phase_var <= AMPLITUDE_NOISE_SHARE)) for k in ("U", "L")]
+    got = [line_powers([sides[k]], lambda f: _sizable(f, min_snr_db)) for k in ("U", "L")]
     (tu, pu, vu), (tl, pl, vl) = got
     both, iu, il = np.intersect1d(tu, tl, return_indices=True)
     if both.size == 0:
@@ -798,11 +800,10 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     than the mover's (at its range the static lines may be the mover's own self-beat, left over
     where its prediction missed: no second echo; the envelope probe's scenes 725, 1385 and 1937,
     static echoes at 0-10 dB loss with the LO a tenth of the power, had their movers ranged
-    200-1000 sigmas off, unflagged), or
-    at the same range where the static lines stood mostly above what the movers' self-beats'
-    prediction took out (:attr:`LineFamily.static_echo`: a static echo's own, no leftover; 725's
-    first frame: two echoes at 10-12 dB under a 1 MHz laser whose corrupted lines fit one range,
-    neither's, the mover 722 sigmas off)."""
+    200-1000 sigmas off, unflagged), or at the same range where the static lines stood mostly
+    above what the movers' self-beats' prediction took out (:attr:`LineFamily.static_echo`: a
+    static echo's own, no leftover; 725's first frame: two echoes at 10-12 dB under a 1 MHz laser
+    whose corrupted lines fit one range, neither's, the mover 722 sigmas off)."""
     static = next((p for k, p in points if k == 0), None)
     if static is None:
         return points
