@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mtcw_core.dsp import tones
 from mtcw_core.dsp.tones import exact_dft, exact_dft_parts, exact_dft_tiled, fit_lines, fit_lines_segments, phasors
 
 FS = 1.0e9
@@ -230,6 +231,23 @@ def test_one_line_is_the_direct_sum(n):
         np.testing.assert_allclose(exact_dft_parts(rows, f, 5e9)[:, 0],
                                    [_direct_dft(r, f, 5e9)[0] for r in rows], rtol=0, atol=1e-10 * np.sqrt(n))
         np.testing.assert_allclose(exact_dft_parts(x[None, :], f, 5e9)[0], got, rtol=1e-13)
+
+
+@pytest.mark.parametrize("chunk", [8, 1000, 1 << 30])
+def test_rows_times_table_in_chunks_is_the_product(monkeypatch, chunk):
+    """Long products run a few rows at a time (``ROW_CHUNK_BYTES``): every row's sums are those of
+    the whole product, for real and complex rows, 2-D and batched 3-D (strided rows, a last chunk
+    shorter than the rest), and the DFTs built on them stay the direct sums."""
+    monkeypatch.setattr(tones, "ROW_CHUNK_BYTES", chunk)
+    rng = np.random.default_rng(chunk)
+    table = rng.standard_normal((50, 3)) + 1j * rng.standard_normal((50, 3))
+    record = rng.standard_normal(3 * 37 * 50 + 11)
+    for a in (record[:37 * 50].reshape(37, 50), record[:3 * 37 * 50].reshape(3, 37, 50),
+              record[5:5 + 3 * 37 * 50].reshape(3, 37, 50)[:, ::2],
+              (record + 1j * record[::-1])[:37 * 50].reshape(37, 50)):
+        np.testing.assert_allclose(tones._times_table(a, table), a @ table, rtol=1e-13, atol=1e-12)
+    f = np.array([0.0, 123.4567e6, -7.3e6, 2.4e9])
+    np.testing.assert_allclose(exact_dft(record, f, 5e9), _direct_dft(record, f, 5e9), rtol=0, atol=1e-9)
 
 
 def test_exact_dft_parts_refers_each_row_to_its_own_centre():
