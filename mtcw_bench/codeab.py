@@ -86,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (tree / "mtcw_core" / "chain.py").is_file():
             ap.error(f"--old/--new: {tree} holds no mtcw_core/chain.py")
     t0 = time.monotonic()
+    pooled: dict[tuple[str, str], dict[str, list[float]]] = {}
     for rnd in range(args.rounds):
         for prof in args.profiles:
             for tag, tree in (("old", args.old), ("new", args.new)):
@@ -95,6 +96,13 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"round {rnd + 1} {tag}: {err}", file=sys.stderr)
                     return 1
                 print(f"round {rnd + 1} {tag} {args.scene} {prof}: {summary(times)}", flush=True)
+                for k, v in times.items():
+                    pooled.setdefault((prof, tag), {}).setdefault(k, []).extend(v)
+    for prof in args.profiles:
+        old, new = pooled[(prof, "old")], pooled[(prof, "new")]
+        ratio = statistics.median(new["total"]) / statistics.median(old["total"])
+        print(f"all rounds {args.scene} {prof}: old {summary(old)}; new {summary(new)}; "
+              f"new/old total median {ratio:.3f}")
     print(f"{time.monotonic() - t0:.0f} s")
     return 0
 
