@@ -110,9 +110,13 @@ class DopplerEstimate:
     #: draw of its few degrees of freedom, which that term guards against too. 0 otherwise
     shared_overlap_var_hz2: float = 0.0
     #: one photodiode: how far (Hz) the beat of two movers found, lying inside this line's
-    #: refinement lobe, can pull it (:func:`beat_pulls`); 0 where none lies there. Last of
-    #: the fields: the constructors pass the earlier ones by position
+    #: refinement lobe, can pull it (:func:`beat_pulls`); 0 where none lies there
     beat_pull_hz: float = 0.0
+    #: a phase advance: the odds that white noise alone scattered its lines' sizes across the parts
+    #: as much as they are (:func:`_amplitude_chi2`; 1 where not measured). One mover's lines keep
+    #: their size; a second echo beating on them moves size and phase alike. Last of the fields:
+    #: the constructors pass the earlier ones by position
+    amplitude_p: float = 1.0
 
     @property
     def refined(self) -> bool:
@@ -993,7 +997,10 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
     wt = np.abs(prod).sum(axis=0)
     delta, spread, lines_chi2, sign = _combine_lines(wt, slope, d_line, var_line, shift, iq)
     spread = math.hypot(spread, _leak_bias(leak, wt, slope, segments, length / fs))
-    lines_chi2 = max(lines_chi2, _amplitude_chi2(z, s2 * wp / 2))
+    amp_chi2 = _amplitude_chi2(z, s2 * wp / 2)
+    lines_chi2 = max(lines_chi2, amp_chi2)
+    amp_dof = z.size - z.shape[1]
+    amp_p = float(chi2_dist.sf(amp_chi2 * amp_dof, amp_dof)) if amp_dof > 0 else 1.0
     overlap = ped = 0.0
     if segments >= 3:
         moved = target_lines(frame.tones_hz, fd + delta, iq)[0] if pedestal else None
@@ -1001,7 +1008,7 @@ def phase_advance(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: bool, o
                                                   segments, all_freqs, near, iq, delta, moved, pedestal)
     return replace(est, fd_hz=fd + delta, refine_error_hz=spread, lines_chi2=lines_chi2, motion_sign=sign,
                    measured_phase_gain=part_phase_gain(segments, length, fs) if segments >= 3 else 0.0,
-                   shared_overlap_var_hz2=overlap, pedestal_psd=ped)
+                   shared_overlap_var_hz2=overlap, pedestal_psd=ped, amplitude_p=amp_p)
 
 
 def _amplitude_chi2(z: np.ndarray, radial_var: np.ndarray) -> float:

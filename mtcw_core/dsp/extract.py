@@ -254,9 +254,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     -------
     list of LineFamily, the static candidate's first (target 0), then each Doppler line's U and L
     """
-    iq = np.iscomplexobj(x)
-    n = x.size
-    fs = frame.fs_hz
+    iq, n, fs = np.iscomplexobj(x), x.size, frame.fs_hz
     segmented = settings.extraction != "filter" and (windows or settings.segments > 1)
     if segmented:
         starts, length = segment_starts(n, fs, settings, windows, [d.fd_hz for d in dops if d.detected])
@@ -553,6 +551,12 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
         # floor: static lines of noise alone made a lone mover's speed sigma 1.5x its own at 2^16)
         noise = CROSS_NOISE_SIGMAS * np.sqrt(2.0 * static_s2 / frame.n)
         cross = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - taken - noise, 0.0), *carriers)
+        beating = [k for k, d in enumerate([d for d in dops if d.detected], start=1) if d.amplitude_p < BEATING_P]
+        if beating and np.any(taken):
+            # a mover's lines beat (their sizes move across the parts): a static echo may stand
+            # under the leftover the prediction may have left; all of it counts there
+            whole = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - noise, 0.0), *carriers)
+            cross.update({k: whole[k] for k in beating if k in whole})
         taken = np.maximum(taken, _other_root_left(left, lo_smaller, s))
     else:
         taken = 0.0
@@ -602,6 +606,14 @@ CROSS_NOISE_SIGMAS = 3.0
 #: are mostly a static target's own (issue 12 case 3: 9x what was taken, 80 dB over the noise,
 #: right within its sigma: 3 % of the taken part would have flagged every frame)
 SELF_BEAT_LEFT = 0.03
+#: ... but counts toward a static echo's beat with a mover (:func:`cross_beat_bound`) where that
+#: mover's lines' sizes scatter across the phase advance's parts beyond what white noise does with
+#: odds below this (``DopplerEstimate.amplitude_p``): a beat is then on them, and the static lines
+#: left under that leftover may be its echo (the envelope probe's scene 14739: a mover at 4 dB of
+#: loss on an 8-bit ADC and a static echo 33 dB under it, wholly under the leftover: the mover's
+#: speed 7 sigmas off at a stated 11 Hz; its lines' size chi2 27-120 per degree of freedom, a lone
+#: mover's 0.9-1.7)
+BEATING_P = 1e-4
 
 
 #: the static lines' envelope is taken as varying when the segments' amplitudes less their mean
