@@ -1105,3 +1105,24 @@ def test_a_static_echo_under_a_movers_self_beat_leftover_widens_its_speed_sigma(
             assert dop.detected and dop.method == "phase"
             assert (dop.amplitude_p < BEATING_P) == beats, (targets, dop.amplitude_p)
 
+
+def test_an_iq_mover_below_one_bin_read_as_static_is_flagged_not_ranged_wrong():
+    """The envelope probe's scene 15860: IQ, a mover at 0.0092 m/s (0.62 record bin of Doppler, under
+    the sub-guard search's floor of one bin) read as a static target: its carrier line, 56x its
+    sidebands, sits 0.62 bin off the DC the fit models, and its skirt turned the lines the fit reads
+    at a fraction of their size; the range 4-6 sigmas off, the lines' chi2 0.5. The two halves of
+    the record see every line turn alike: that turn bounds the leak, and the point is ``blended``.
+    The same echo standing still turns not at all and stays unflagged and right."""
+    from mtcw_bench.envelope_probe import draw, judge_scene
+
+    counts, lines = judge_scene(15860, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    changes = draw(15860)
+    for v, flagged in ((0.0, False), (0.012, True)):
+        sc = scene_variant(load_scene("moving-target"), **dict(changes, targets=[dict(changes["targets"][0],
+                                                                                      velocity_mps=v)]))
+        for fr, r, verdict in run(sc, get_profile("balanced", **declared(sc)), 2, 15860):
+            assert r.status == "ok" and len(r.targets) == 1
+            assert r.targets[0].blended == flagged, (v, r.targets[0])
+            if not flagged:
+                assert abs(verdict.points[0].range_z) < Z

@@ -250,6 +250,24 @@ def test_rows_times_table_in_chunks_is_the_product(monkeypatch, chunk):
     np.testing.assert_allclose(exact_dft(record, f, 5e9), _direct_dft(record, f, 5e9), rtol=0, atol=1e-9)
 
 
+def test_line_response_is_what_the_iq_fit_reads_of_a_line_it_models_elsewhere():
+    """Each column of ``line_response`` is the complex fit's amplitudes for a unit line at a
+    frequency it does not model: its own row the share it reads (``sinc`` of the offset for lines
+    far apart), the others the leak the fit no longer takes out."""
+    from mtcw_core.dsp.tones import line_response
+
+    n, fs = 4096, 5e9
+    freqs = np.array([0.0, 120e6, -330e6, 420e6])
+    true = freqs + np.array([0.8, 0.3, -0.5, 0.0]) * fs / n
+    got = line_response(freqs, true, fs, n)
+    k = np.arange(n) - (n - 1) / 2
+    for j, f in enumerate(true):
+        want = fit_lines(np.exp(2j * np.pi * np.mod(f / fs * k, 1.0)), freqs, fs)
+        np.testing.assert_allclose(got[:, j], want, atol=1e-9)
+    np.testing.assert_allclose(np.diag(got)[1:3], np.sinc([0.3, 0.5]), rtol=2e-3)
+    assert got[3, 3] == pytest.approx(1.0) and abs(got[1, 0]) > 1e-5
+
+
 def test_exact_dft_parts_refers_each_row_to_its_own_centre():
     rng = np.random.default_rng(2)
     parts = rng.standard_normal((4, 2501))

@@ -442,6 +442,18 @@ def solve_lines(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, tot
     return float(pc @ alpha + ps @ beta), alpha[1:] - 1j * beta
 
 
+def line_response(freqs_hz: np.ndarray, true_hz: np.ndarray, fs_hz: float, n: int) -> np.ndarray:
+    """The complex (IQ) line fit's amplitudes at ``freqs_hz`` for a unit line at each of ``true_hz``
+    (phase 0 at the record's centre), shape (K, J), real: ``G^-1 D``, ``G`` the fit's Gram matrix
+    and ``D[k, j]`` the DFT at ``freqs_hz[k]`` of the line at ``true_hz[j]`` (Dirichlet kernels of the
+    centred index). Column ``j`` is what the fit reads of a line it models elsewhere: its own row
+    the line's share, the others its leak into them."""
+    w = 2 * np.pi * np.asarray(freqs_hz, dtype=np.float64) / fs_hz
+    wt = 2 * np.pi * np.asarray(true_hz, dtype=np.float64) / fs_hz
+    return linalg.solve(_dirichlet(w[:, None] - w[None, :], n), _dirichlet(wt[None, :] - w[:, None], n),
+                        assume_a="sym")
+
+
 def solve_lines_many(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, total: float, iq: bool
                      ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`solve_lines` for several line sets of one record at once (trials of a fit), one
