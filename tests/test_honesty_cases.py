@@ -1126,3 +1126,15 @@ def test_an_iq_mover_below_one_bin_read_as_static_is_flagged_not_ranged_wrong():
             assert r.targets[0].blended == flagged, (v, r.targets[0])
             if not flagged:
                 assert abs(verdict.points[0].range_z) < Z
+
+
+def test_an_iq_static_echo_beside_a_found_mover_is_not_taken_for_a_sub_bin_one():
+    """The sub-bin leak bound reads the static lines' common turn only where no mover was found: a
+    found mover's own lines turn with its Doppler between the record's halves, and taken for a
+    sub-bin mover's they flagged a right static point beside it (a review's case, twentieth session)."""
+    sc = scene_variant(load_scene("moving-target"), receiver={"kind": "iq"}, digitizer={"samples": 65536},
+                       targets=[tgt(1.3, 0.0, 20.0), tgt(2.7, 0.35, 14.0)])
+    for fr, r, verdict in run(sc, "balanced", 3, 5):
+        assert r.status == "ok" and len(r.targets) == 2
+        assert not any(t.blended for t in r.targets), r.targets
+        assert all(abs(p.range_z) < Z for p in verdict.points)

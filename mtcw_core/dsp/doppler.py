@@ -1657,7 +1657,7 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
     return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
                     shared_phase_gain=again[i].shared_phase_gain, measured_phase_gain=again[i].measured_phase_gain,
                     pedestal_psd=again[i].pedestal_psd, shared_overlap_var_hz2=again[i].shared_overlap_var_hz2,
-                    lines_chi2=again[i].lines_chi2,
+                    lines_chi2=again[i].lines_chi2, amplitude_p=again[i].amplitude_p,
                     motion_sign=again[i].motion_sign) if i in again else m for i, m in enumerate(refined)]
 
 

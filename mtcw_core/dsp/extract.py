@@ -304,7 +304,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                                   fams[0][2], x, s2_all[:first[1]])
-    elif iq and not segmented and settings.extraction != "filter" and guard > 0:
+    elif iq and not segmented and settings.extraction != "filter" and guard > 0 and not any(t for t, *_ in fams):
         sb_bound = subbin_leak_bound(x, fs, uniq, z_all[0], [f for t, _, f, _, _ in fams if t == 0], guard, spec)
     rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
@@ -952,43 +952,52 @@ def _carriers(z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndar
 
 
 #: :func:`subbin_leak_bound` takes a mover's Doppler to lie up to this many of its sigmas beyond what
-#: the two halves' common turn measured
+#: the two halves' common turn measured ...
 SUBBIN_SIGMAS = 3.0
+#: ... and no further than this many record bins: there the fit reads a line at ``sinc`` of its size
+#: (0.1 at 0.9 bin; at 1 bin nothing, and any size would hide), and from
+#: :data:`~.doppler.SMALL_MIN_BINS` on the sub-guard search's scan looks for the carrier itself
+SUBBIN_MAX_BINS = 0.9
+#: ... at this many Doppler values on each side, evenly spaced up to it (the leak is not monotone)
+SUBBIN_STEPS = 8
 
 
 def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray, static_hz: list[np.ndarray],
                       guard_hz: float, spec: Spectrum) -> np.ndarray | None:
-    """IQ, one whole record: how much a mover the Doppler stage could not see (below ``guard_hz``)
-    could add to each static line by leaking through the fit that models it at no Doppler (V,
-    shape (T,)), or None where nothing could.
+    """IQ, one whole record, no mover found: how much a mover below the Doppler stage's floor
+    ``guard_hz`` could add to each static line by leaking through the fit that models its lines at
+    no Doppler (V, shape (T,)), or None where nothing could.
 
     Such a mover puts every line of its echo -- its carrier beside the DC, ``+-f_i`` -- ``f_d`` off the
-    static frequencies the fit models them at: each is read at a fraction of its size, and the
-    rectangular window's far skirt of the others, the carrier among them far the strongest, is
-    no longer taken out (the envelope probe's scene 15860: 0.62 bin, the carrier 56x the lines;
-    the range 4-6 sigmas off, the lines' chi2 0.5). Every line turns with ``f_d`` alike, so the
-    two halves of the record measure it: the bound takes the halves' common turn plus
-    :data:`SUBBIN_SIGMAS` of its sigma (no more than ``guard_hz``), and sums, for each static line
-    (the larger of ``+-f_i``), every other modelled line's leak at up to that Doppler, each line's
-    size read back through its own share (:func:`~.tones.line_response`). A static echo turns not
-    at all, and gets ~0.
+    frequencies the fit models them at: each is read at a fraction of its size, and the
+    rectangular window's far skirt of the others, the carrier among them far the strongest, is no
+    longer taken out (the envelope probe's scene 15860: 0.62 bin, the carrier 56x the lines; the
+    range 4-6 sigmas off, the lines' chi2 0.5). Every line turns with ``f_d`` alike, so the two
+    halves of the record measure it (each half's phase turned to the record's centre: a static
+    line turns not at all): the bound takes their weighted common turn plus :data:`SUBBIN_SIGMAS`
+    of its sigma, no more than ``guard_hz`` or :data:`SUBBIN_MAX_BINS`, and sums, for each static
+    line (the larger of ``+-f_i``), every other modelled line's leak at Doppler shifts up to that,
+    each line's size read back through its own share (:func:`~.tones.line_response`).
 
     Parameters
     ----------
     x : ndarray, shape (N,), complex128, V
-    uniq : ndarray, shape (K,), the modelled lines (Hz); ``z`` their amplitudes (V), shape (K,)
+    uniq : ndarray, shape (K,), the modelled lines (Hz, the static plan: ``+-f_i`` and 0); ``z``
+        their amplitudes (V), shape (K,)
     static_hz : the static families' lines (Hz), each shape (T,)
     """
     n = x.size
     half = n // 2
-    zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs)  # (2, K)
-    turn = zh[1] * np.conj(zh[0])
-    var = np.sum(0.5 * spec.noise_variances(uniq, uniq) / (half * np.maximum(np.abs(zh) ** 2, 1e-300)), axis=0)
-    w = 1.0 / var
+    zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs)  # (2, K), each about its half's centre
+    turn = zh[1] * np.conj(zh[0]) * np.exp(-2j * np.pi * np.mod(uniq * (half / fs), 1.0))
+    s2 = spec.noise_variances(uniq, uniq, guard=spec.line_floor_guard())
+    w = 1.0 / np.sum(0.5 * s2 / (half * np.maximum(np.abs(zh) ** 2, 1e-300)), axis=0)
     mean = complex(np.sum(w * turn / np.maximum(np.abs(turn), 1e-300)))
-    bins = min(abs(np.angle(mean)) / np.pi + SUBBIN_SIGMAS / (np.pi * math.sqrt(np.sum(w))), guard_hz * n / fs)
+    bins = min(abs(np.angle(mean)) / np.pi + SUBBIN_SIGMAS / (np.pi * math.sqrt(np.sum(w))),
+               guard_hz * n / fs, SUBBIN_MAX_BINS)
     leak = np.zeros(uniq.size)
-    for d in (bins / 3, 2 * bins / 3, bins, -bins):
+    steps = np.linspace(bins / SUBBIN_STEPS, bins, SUBBIN_STEPS)
+    for d in np.concatenate([steps, -steps]):
         r = line_response(uniq, uniq + d * fs / n, fs, n)
         size = np.abs(z) / np.maximum(np.abs(np.diag(r)), 1e-12)
         leak = np.maximum(leak, np.abs(r - np.diag(np.diag(r))) @ size)

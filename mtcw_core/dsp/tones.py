@@ -85,9 +85,9 @@ def _times_table(a: np.ndarray, table: np.ndarray) -> np.ndarray:
 def _chunked(a: np.ndarray, table: np.ndarray) -> np.ndarray:
     """``a @ table`` (``a`` (..., M), ``table`` (M, C)), :data:`ROW_CHUNK_BYTES` of ``a``'s rows
     per product (every row's sum is the same dot product, so the result is the product's)."""
-    step = max(1, ROW_CHUNK_BYTES // (a.shape[-1] * a.itemsize))
     if a.size * a.itemsize <= 2 * ROW_CHUNK_BYTES:
         return a @ table
+    step = max(1, ROW_CHUNK_BYTES // (a.shape[-1] * a.itemsize))
     out = np.empty(a.shape[:-1] + (table.shape[1],), dtype=np.result_type(a, table))
     for rows, dest in zip(a.reshape((-1,) + a.shape[-2:]), out.reshape((-1,) + out.shape[-2:])):
         for i in range(0, rows.shape[0], step):
