@@ -989,7 +989,8 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     n = x.size
     half = n // 2
     zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs)  # (2, K), each about its half's centre
-    turn = zh[1] * np.conj(zh[0]) * np.exp(-2j * np.pi * np.mod(uniq * (half / fs), 1.0))
+    turned = zh * centre_turn(2, half, 2 * half, uniq, fs)  # both about the halves' common centre
+    turn = turned[1] * np.conj(turned[0])
     s2 = spec.noise_variances(uniq, uniq, guard=spec.line_floor_guard())
     w = 1.0 / np.sum(0.5 * s2 / (half * np.maximum(np.abs(zh) ** 2, 1e-300)), axis=0)
     mean = complex(np.sum(w * turn / np.maximum(np.abs(turn), 1e-300)))
