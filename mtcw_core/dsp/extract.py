@@ -261,8 +261,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     fams, all_f = plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
                              length if segmented else None, [d.method == "fit" for d in dops if d.detected])
     uniq = np.unique(np.round(all_f, 6))
-    fading = (not iq and not windows and settings.segments == 1 and settings.extraction != "filter"
-              and not any(d.detected for d in dops))
+    fading = (not windows and settings.segments == 1 and settings.extraction != "filter"
+              and not any(d.detected for d in dops))  # IQ: the sub-bin leak bound's halves
     guard = max((d.min_detectable_hz for d in dops), default=0.0)  # the largest Doppler missed (Hz)
     seg_dft = seg_sums = None
     if settings.extraction == "filter":
@@ -278,7 +278,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
-    if seg_dft is not None:
+    if seg_dft is not None and not iq:
         # no Doppler line found: the static lines may still fade within the record (a mover below
         # the search's guard, the carrier's phase noise); their common real envelope is measured
         s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
@@ -304,8 +304,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         sb_bound, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                                   fams[0][2], x, s2_all[:first[1]])
-    elif iq and not segmented and settings.extraction != "filter" and guard > 0 and not any(t for t, *_ in fams):
-        sb_bound = subbin_leak_bound(x, fs, uniq, z_all[0], [f for t, _, f, _, _ in fams if t == 0], guard, spec)
+    elif iq and seg_dft is not None:
+        sb_bound = subbin_leak_bound(x, fs, uniq, z_all[0], [f[2] for f in fams], guard, spec, seg_dft)  # no mover
     rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
@@ -654,7 +654,8 @@ def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectru
     """What the whole-record fit needs, in as few passes as the record allows: its DFTs at ``uniq``
     (Hz), its sum (a real record's DC projection; None for IQ) and, where its static lines may fade
     (``guard_hz``: the largest Doppler the search could have missed, None when fading is not
-    fitted), the segments' DFTs and sums for :func:`fading_lines`.
+    fitted), the segments' DFTs and sums for :func:`fading_lines` -- for IQ, the two halves' DFTs
+    for :func:`subbin_leak_bound` (no sums), from the same pass as the whole record's.
 
     The whole record's DFTs then come from the envelope fit's segments (one pass for both), at
     0 Hz too: the record's sum and its segments' from the same pass. Otherwise the DFTs are left to
@@ -667,7 +668,10 @@ def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectru
     seg_dft : ndarray, shape (S, K), complex, or None; seg_sums : ndarray, shape (S,), or None
     """
     n, iq = x.size, np.iscomplexobj(x)
-    segs = fading_segments(n, fs, uniq, guard_hz) if guard_hz is not None else None
+    if iq and guard_hz:
+        whole, halves = exact_dft_tiled(x, 2, uniq, fs)
+        return whole, None, halves, None
+    segs = fading_segments(n, fs, uniq, guard_hz) if guard_hz is not None and not iq else None
     if segs:
         whole, each = exact_dft_tiled(x, segs, np.concatenate([[0.0], uniq]), fs)
         return whole[1:], float(whole[0].real), each[:, 1:], each[:, 0].real
@@ -963,7 +967,7 @@ SUBBIN_STEPS = 8
 
 
 def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray, static_hz: list[np.ndarray],
-                      guard_hz: float, spec: Spectrum) -> np.ndarray | None:
+                      guard_hz: float, spec: Spectrum, halves: np.ndarray | None = None) -> np.ndarray | None:
     """IQ, one whole record, no mover found: how much a mover below the Doppler stage's floor
     ``guard_hz`` could add to each static line by leaking through the fit that models its lines at
     no Doppler (V, shape (T,)), or None where nothing could.
@@ -985,10 +989,12 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     uniq : ndarray, shape (K,), the modelled lines (Hz, the static plan: ``+-f_i`` and 0); ``z``
         their amplitudes (V), shape (K,)
     static_hz : the static families' lines (Hz), each shape (T,)
+    halves : ndarray, shape (2, K), optional: the two halves' DFTs at ``uniq`` if already taken
+        (:func:`~.tones.exact_dft_tiled`, each about its own centre)
     """
     n = x.size
     half = n // 2
-    zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs)  # (2, K), each about its half's centre
+    zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs, dft=halves)  # (2, K), about each half's centre
     turned = zh * centre_turn(2, half, 2 * half, uniq, fs)  # both about the halves' common centre
     turn = turned[1] * np.conj(turned[0])
     s2 = spec.noise_variances(uniq, uniq, guard=spec.line_floor_guard())
@@ -996,12 +1002,14 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     mean = complex(np.sum(w * turn / np.maximum(np.abs(turn), 1e-300)))
     bins = min(abs(np.angle(mean)) / np.pi + SUBBIN_SIGMAS / (np.pi * math.sqrt(np.sum(w))),
                guard_hz * n / fs, SUBBIN_MAX_BINS)
-    leak = np.zeros(uniq.size)
     steps = np.linspace(bins / SUBBIN_STEPS, bins, SUBBIN_STEPS)
-    for d in np.concatenate([steps, -steps]):
-        r = line_response(uniq, uniq + d * fs / n, fs, n)
-        size = np.abs(z) / np.maximum(np.abs(np.diag(r)), 1e-12)
-        leak = np.maximum(leak, np.abs(r - np.diag(np.diag(r))) @ size)
+    shifts = np.concatenate([steps, -steps]) * fs / n  # Hz, (D,)
+    # every shift's response in one solve (one Gram matrix): (D, K, K), [d, k, j] line j read at k
+    r = line_response(uniq, (uniq[None, :] + shifts[:, None]).ravel(), fs, n).reshape(uniq.size, shifts.size, -1)
+    r = r.transpose(1, 0, 2)
+    own = np.abs(np.diagonal(r, axis1=1, axis2=2))  # (D, K)
+    size = np.abs(z)[None, :] / np.maximum(own, 1e-12)
+    leak = np.max(np.einsum("dkj,dj->dk", np.abs(r), size) - own * size, axis=0)
     idx = [np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1) for f in static_hz]
     out = np.max([leak[i] for i in idx], axis=0)
     return out if np.any(out > 0) else None
