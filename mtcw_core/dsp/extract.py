@@ -81,10 +81,11 @@ class LineFamily:
         Which target candidate the family belongs to: 0 the static one (Doppler 0), k >= 1 the
         k-th Doppler line.
     unexplained_v : ndarray, shape (T,), or None
-        The static lines of one photodiode: the largest amplitude (V) that the self-beats of
-        Doppler lines no found mover explains could add to each
-        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`); None where not measured (balanced, IQ,
-        quasi-CW windows).
+        The static lines: the largest amplitude (V) that what no found mover explains could add to
+        each -- on one photodiode the self-beats of Doppler lines
+        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`), on an IQ record with no mover found the
+        leak of one below one record bin (:func:`subbin_leak_bound`); None where not measured
+        (balanced, IQ beside a found mover, quasi-CW windows).
     cross_v : ndarray, shape (T,), or None
         A mover's lines on one photodiode: what a static echo's beat with it adds to each (V), if
         the static lines are one (:func:`cross_beat_bound`; they may be the mover's own self-beat
@@ -298,14 +299,14 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     s2_all = spec.noise_variances(np.concatenate([freqs for _, _, freqs, _, _ in fams]), uniq,
                                   guard=spec.line_floor_guard())
     first = np.cumsum([0] + [freqs.size for _, _, freqs, _, _ in fams])
-    sb_bound, cross, still, over_lo, own, parts = None, {}, None, False, False, None
+    unexplained, cross, still, over_lo, own, parts = None, {}, None, False, False, None
     if (frame.receiver == "single" and frame.architecture == "unmodulated_lo" and settings.extraction != "filter"
             and not windows):
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
-        sb_bound, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
-                                                                  fams[0][2], x, s2_all[:first[1]])
+        unexplained, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
+                                                                     fams[0][2], x, s2_all[:first[1]])
     elif iq and seg_dft is not None:
-        sb_bound = subbin_leak_bound(x, fs, uniq, z_all[0], [f[2] for f in fams], guard, spec, seg_dft)  # no mover
+        unexplained = subbin_leak_bound(x, fs, uniq, z_all[0], [f[2] for f in fams], guard, spec, seg_dft)  # no mover
     rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
@@ -320,7 +321,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         if ring is not None:  # in phase units: the mean of |rows|^2 is the floor's phase variance
             ring = replace(ring, rows=ring.rows * np.sqrt(kappa / (n * np.maximum(amp2, 1e-300) * spec.window_power)))
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
-                              sb_bound if target == 0 else None, cross.get(target) if target else None,
+                              unexplained if target == 0 else None, cross.get(target) if target else None,
                               still if target else None, bool(target and over_lo), bool(not target and own),
                               ring, copies[i], parts if target == 0 else None))
     return out
