@@ -210,11 +210,16 @@ def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings
     # a product line too close to a used line cannot be told apart: keep the used ones
     ex = np.asarray(extra, float)
     clear = np.abs(ex[:, None] - used[None, :]).min(axis=1, initial=np.inf) > 1.5 * res * np.asarray(sep)
-    keep: list[float] = []
+    keep: list[tuple[float, float]] = []  # (line Hz, its clearance Hz)
     for f, ok, c in zip(extra, clear, sep):
-        if ok and all(abs(f - k) > 1.5 * res * c for k in keep) and (abs(f) > 1.5 * res * c or (iq and f == 0.0)):
-            keep.append(f)
-    return fams, np.concatenate([used, np.asarray(keep, float)])
+        # IQ: a sub-guard mover's baseband line is told from the 0 Hz line as its U and L lines from
+        # the static ones, a bin apart (leaving either out leaves its carrier, 30-60x its lines,
+        # leaking its skirt onto every line: the envelope probe's scenes 17571 and 17879)
+        gap = res * c if iq and c < 1.0 else 1.5 * res * c
+        if (ok and all(abs(f - k) > (min(gap, g) if iq else gap) for k, g in keep)
+                and (abs(f) > gap or (iq and f == 0.0))):
+            keep.append((f, gap))
+    return fams, np.concatenate([used, np.asarray([k for k, _ in keep], float)])
 
 
 def segment_starts(n: int, fs: float, settings: ChainSettings, windows: list[tuple[int, int]] | None,
@@ -255,15 +260,15 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     -------
     list of LineFamily, the static candidate's first (target 0), then each Doppler line's U and L
     """
-    iq, n, fs = np.iscomplexobj(x), x.size, frame.fs_hz
+    iq, n, fs, fds = np.iscomplexobj(x), x.size, frame.fs_hz, [d.fd_hz for d in dops if d.detected]
     segmented = settings.extraction != "filter" and (windows or settings.segments > 1)
     if segmented:
-        starts, length = segment_starts(n, fs, settings, windows, [d.fd_hz for d in dops if d.detected])
-    fams, all_f = plan_lines(frame, [d.fd_hz for d in dops if d.detected], iq, settings,
+        starts, length = segment_starts(n, fs, settings, windows, fds)
+    fams, all_f = plan_lines(frame, fds, iq, settings,
                              length if segmented else None, [d.method == "fit" for d in dops if d.detected])
     uniq = np.unique(np.round(all_f, 6))
     fading = (not windows and settings.segments == 1 and settings.extraction != "filter"
-              and not any(d.detected for d in dops))  # IQ: the sub-bin leak bound's halves
+              and (iq or not fds))  # IQ: the sub-bin leak bound's halves
     guard = max((d.min_detectable_hz for d in dops), default=0.0)  # the largest Doppler missed (Hz)
     seg_dft = seg_sums = None
     if settings.extraction == "filter":
@@ -306,9 +311,9 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         unexplained, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                                      fams[0][2], x, s2_all[:first[1]])
     elif iq and seg_dft is not None:
-        unexplained = subbin_leak_bound(x, fs, uniq, z_all[0], [f[2] for f in fams], guard, spec, seg_dft)  # no mover
+        unexplained, cross = subbin_bounds(x, fs, uniq, z_all[0], fams, fds, guard, spec, seg_dft)
     rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
-    copies = quantizer_copies(spec, frame, fams, zs, uniq, [d.fd_hz for d in dops if d.detected],
+    copies = quantizer_copies(spec, frame, fams, zs, uniq, fds,
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
     out = []
     for i, (target, name, freqs, conj, bad) in enumerate(fams):
@@ -967,53 +972,113 @@ SUBBIN_MAX_BINS = 0.9
 SUBBIN_STEPS = 8
 
 
-def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray, static_hz: list[np.ndarray],
-                      guard_hz: float, spec: Spectrum, halves: np.ndarray | None = None) -> np.ndarray | None:
-    """IQ, one whole record, no mover found: how much a mover below the Doppler stage's floor
-    ``guard_hz`` could add to each static line by leaking through the fit that models its lines at
-    no Doppler (V, shape (T,)), or None where nothing could.
+def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray, static: np.ndarray,
+                      guard_hz: float, spec: Spectrum, halves: np.ndarray | None = None,
+                      ratio: np.ndarray | None = None) -> np.ndarray | None:
+    """IQ, one whole record: how much an echo among the static lines that moves below the Doppler
+    stage's floor ``guard_hz`` could add to each modelled line by leaking through the fit that models
+    its lines at no Doppler (V, shape (K,)), or None where nothing could.
 
     Such a mover puts every line of its echo -- its carrier beside the DC, ``+-f_i`` -- ``f_d`` off the
     frequencies the fit models them at: each is read at a fraction of its size, and the
     rectangular window's far skirt of the others, the carrier among them far the strongest, is no
     longer taken out (the envelope probe's scene 15860: 0.62 bin, the carrier 56x the lines; the
-    range 4-6 sigmas off, the lines' chi2 0.5). Every line turns with ``f_d`` alike, so the two
-    halves of the record measure it (each half's phase turned to the record's centre: a static
-    line turns not at all): the bound takes their weighted common turn plus :data:`SUBBIN_SIGMAS`
-    of its sigma, no more than ``guard_hz`` or :data:`SUBBIN_MAX_BINS`, and sums, for each static
-    line (the larger of ``+-f_i``), every other modelled line's leak at Doppler shifts up to that,
-    each line's size read back through its own share (:func:`~.tones.line_response`).
+    range 4-6 sigmas off, the lines' chi2 0.5) -- nor from a mover's lines the search found a few
+    bins off (scene 17879: an echo 0.3 bin up, 21 dB under a mover 2.2 bins up, the mover 6-10
+    range sigmas off; 17571: 0.13 bin, 59 dB under one 1.2 bins up, its speed 7 sigmas off). Every
+    static line turns with ``f_d`` alike, so the two halves of the record measure it (each half's
+    phase turned to the record's centre: a static line turns not at all): the bound takes their
+    weighted common turn plus :data:`SUBBIN_SIGMAS` of its sigma, no more than ``guard_hz`` or
+    :data:`SUBBIN_MAX_BINS`, and sums, for each modelled line, every other static line's leak at
+    Doppler shifts up to that, each static line's size read back through its own share
+    (:func:`~.tones.line_response`); a found mover's lines are modelled where they lie and are not
+    shifted.
 
     Parameters
     ----------
     x : ndarray, shape (N,), complex128, V
-    uniq : ndarray, shape (K,), the modelled lines (Hz, the static plan: ``+-f_i`` and 0); ``z``
-        their amplitudes (V), shape (K,)
-    static_hz : the static families' lines (Hz), each shape (T,)
+    uniq : ndarray, shape (K,), the modelled lines (Hz, sorted); ``z`` their amplitudes (V), shape (K,)
+    static : ndarray of int, indices into ``uniq`` of the static plan's lines (``+-f_i`` and 0)
     halves : ndarray, shape (2, K), optional: the two halves' DFTs at ``uniq`` if already taken
         (:func:`~.tones.exact_dft_tiled`, each about its own centre)
+    ratio : ndarray, shape (J,), optional: the largest size of each static line relative to the
+        static carrier's (the 0 Hz line, which ``static`` then holds): an echo's lines are its
+        carrier times the modulation's, as a found mover's show. Without it a static line at the
+        noise reads, shifted near a bin, as an echo ~10x its size next to the mover's lines.
     """
     n = x.size
     half = n // 2
     zh = fit_lines_segments(x, np.array([0, half]), half, uniq, fs, dft=halves)  # (2, K), about each half's centre
-    turned = zh * centre_turn(2, half, 2 * half, uniq, fs)  # both about the halves' common centre
+    turned = zh[:, static] * centre_turn(2, half, 2 * half, uniq[static], fs)  # both about the halves' common centre
     turn = turned[1] * np.conj(turned[0])
-    s2 = spec.noise_variances(uniq, uniq, guard=spec.line_floor_guard())
-    w = 1.0 / np.sum(0.5 * s2 / (half * np.maximum(np.abs(zh) ** 2, 1e-300)), axis=0)
+    s2 = spec.noise_variances(uniq[static], uniq, guard=spec.line_floor_guard())
+    w = 1.0 / np.sum(0.5 * s2 / (half * np.maximum(np.abs(zh[:, static]) ** 2, 1e-300)), axis=0)
     mean = complex(np.sum(w * turn / np.maximum(np.abs(turn), 1e-300)))
     bins = min(abs(np.angle(mean)) / np.pi + SUBBIN_SIGMAS / (np.pi * math.sqrt(np.sum(w))),
                guard_hz * n / fs, SUBBIN_MAX_BINS)
     steps = np.linspace(bins / SUBBIN_STEPS, bins, SUBBIN_STEPS)
     shifts = np.concatenate([steps, -steps]) * fs / n  # Hz, (D,)
-    # every shift's response in one solve (one Gram matrix): (D, K, K), [d, k, j] line j read at k
-    r = line_response(uniq, (uniq[None, :] + shifts[:, None]).ravel(), fs, n).reshape(uniq.size, shifts.size, -1)
-    r = r.transpose(1, 0, 2)
-    own = np.abs(np.diagonal(r, axis1=1, axis2=2))  # (D, K)
-    size = np.abs(z)[None, :] / np.maximum(own, 1e-12)
-    leak = np.max(np.einsum("dkj,dj->dk", np.abs(r), size) - own * size, axis=0)
-    idx = [np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1) for f in static_hz]
-    out = np.max([leak[i] for i in idx], axis=0)
+    # every shift's response in one solve (one Gram matrix): (D, K, J), [d, k, j] static line j read at k
+    r = line_response(uniq, (uniq[static][None, :] + shifts[:, None]).ravel(), fs, n)
+    r = np.abs(r.reshape(uniq.size, shifts.size, static.size).transpose(1, 0, 2))
+    own = r[:, static, np.arange(static.size)]  # (D, J): each static line's own share
+    # each static line's size from its share of the whole record and -- far less cut at a shift
+    # near a bin -- of the halves' (a line s record bins off is s/2 of a half's bins off), the
+    # noise's mean power taken out: a line at the noise is no echo a few times its size
+    own_h = np.abs(line_response(uniq, (uniq[static][None, :] + shifts[:, None]).ravel(), fs, half))
+    own_h = own_h.reshape(uniq.size, shifts.size, static.size).transpose(1, 0, 2)[:, static, np.arange(static.size)]
+    whole = np.sqrt(np.maximum(np.abs(z[static]) ** 2 - s2 / n, 0.0))
+    halves_rms = np.sqrt(np.maximum(np.mean(np.abs(zh[:, static]) ** 2, axis=0) - s2 / half, 0.0))
+    size = np.minimum(whole[None, :] / np.maximum(own, 1e-12), halves_rms[None, :] / np.maximum(own_h, 1e-12))
+    if ratio is not None:
+        zero = int(np.flatnonzero(uniq[static] == 0.0)[0])
+        size = np.minimum(size, size[:, zero:zero + 1] * ratio[None, :])
+    leak = np.einsum("dkj,dj->dk", r, size)
+    leak[:, static] -= own * size  # a static line's own share is no leak
+    out = np.max(leak, axis=0)
     return out if np.any(out > 0) else None
+
+
+def subbin_bounds(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
+                  fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]], fds: list[float],
+                  guard_hz: float, spec: Spectrum, halves: np.ndarray | None = None
+                  ) -> tuple[np.ndarray | None, dict[int, np.ndarray]]:
+    """:func:`subbin_leak_bound` per family: the static lines' bound (V, shape (T,), the larger of
+    ``+-f_i``; None where there is none) and each found mover's (Doppler ``fds``, Hz), by target
+    (the larger of its U and L lines), which its speed's and range's checks read as a static
+    echo's beat on it (:attr:`LineFamily.cross_v`).
+
+    The line at 0 Hz is the static echo's carrier only where every found mover's carrier is
+    modelled too (:func:`plan_lines` leaves out one within its clearance of 0 Hz): else it holds
+    that mover's carrier's leak, up to thousands of times the static lines (the envelope probe's
+    scene 17571: a mover 1.2 bins up, its carrier 30x the 0 Hz line's static share), and is
+    neither shifted nor read for the turn."""
+    idx = [np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1) for _, _, f, _, _ in fams]
+
+    def at(f: np.ndarray) -> np.ndarray:  # each line's index in uniq, -1 where it is not modelled
+        i = np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1)
+        return np.where(np.abs(uniq[i] - f) < 1e-6, i, -1)
+
+    carriers = bool(np.all(at(np.asarray(fds, float)) >= 0))
+    static = np.unique(np.concatenate([i for (t, *_), i in zip(fams, idx) if t == 0]
+                                      + [np.flatnonzero(uniq == 0.0) if carriers else np.zeros(0, int)]))
+    ratio = None
+    if fds and carriers and np.any(uniq[static] == 0.0):
+        # each static line's size against the static carrier's, as large as on any found mover
+        # (a line it does not model: no cap)
+        ratio = np.zeros(static.size)
+        for fd in fds:
+            i = at(uniq[static] + fd)
+            r = np.abs(z[i]) / max(abs(z[at(np.array([fd]))[0]]), 1e-300)
+            ratio = np.maximum(ratio, np.where(i >= 0, r, np.inf))
+    leak = subbin_leak_bound(x, fs, uniq, z, static, guard_hz, spec, halves, ratio)
+    if leak is None:
+        return None, {}
+    per: dict[int, np.ndarray] = {}
+    for (t, *_), i in zip(fams, idx):
+        per[t] = np.maximum(per[t], leak[i]) if t in per else leak[i]
+    unexplained = per.pop(0)
+    return (unexplained if np.any(unexplained > 0) else None), per
 
 
 def cross_beat_bound(s_lines: np.ndarray, z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray,
