@@ -1001,10 +1001,11 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     static : ndarray of int, indices into ``uniq`` of the static plan's lines (``+-f_i`` and 0)
     halves : ndarray, shape (2, K), optional: the two halves' DFTs at ``uniq`` if already taken
         (:func:`~.tones.exact_dft_tiled`, each about its own centre)
-    ratio : ndarray, shape (J,), optional: the largest size of each static line relative to the
-        static carrier's (the 0 Hz line, which ``static`` then holds): an echo's lines are its
-        carrier times the modulation's, as a found mover's show. Without it a static line at the
-        noise reads, shifted near a bin, as an echo ~10x its size next to the mover's lines.
+    ratio : ndarray, shape (J,), optional: each static line's size relative to the static
+        carrier's (the 0 Hz line, which ``static`` then holds), inf where unknown: an echo's lines
+        are its carrier times the modulation's, as a found mover's show, and the carrier, 30-60x
+        the lines, reads the echo's size far better than they do (a line at the noise is no echo:
+        read for one, shifted near a bin beside a mover, a lone mover's speed sigma grew 100x).
     """
     n = x.size
     half = n // 2
@@ -1022,17 +1023,19 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     r = line_response(uniq, (uniq[static][None, :] + shifts[:, None]).ravel(), fs, n)
     r = np.abs(r.reshape(uniq.size, shifts.size, static.size).transpose(1, 0, 2))
     own = r[:, static, np.arange(static.size)]  # (D, J): each static line's own share
-    # each static line's size from its share of the whole record and -- far less cut at a shift
-    # near a bin -- of the halves' (a line s record bins off is s/2 of a half's bins off), the
-    # noise's mean power taken out: a line at the noise is no echo a few times its size
+    # each static line's size from its share of the whole record or -- where that is cut more than
+    # the halves' noise is larger (a line s record bins off is s/2 of a half's bins off) -- of the
+    # halves', the noise's mean power taken out: a line at the noise, shifted near a bin, is no
+    # echo ~10x its size
     own_h = np.abs(line_response(uniq, (uniq[static][None, :] + shifts[:, None]).ravel(), fs, half))
     own_h = own_h.reshape(uniq.size, shifts.size, static.size).transpose(1, 0, 2)[:, static, np.arange(static.size)]
     whole = np.sqrt(np.maximum(np.abs(z[static]) ** 2 - s2 / n, 0.0))
     halves_rms = np.sqrt(np.maximum(np.mean(np.abs(zh[:, static]) ** 2, axis=0) - s2 / half, 0.0))
-    size = np.minimum(whole[None, :] / np.maximum(own, 1e-12), halves_rms[None, :] / np.maximum(own_h, 1e-12))
+    size = np.where(own * math.sqrt(n / half) >= own_h, whole[None, :] / np.maximum(own, 1e-12),
+                    halves_rms[None, :] / np.maximum(own_h, 1e-12))
     if ratio is not None:
         zero = int(np.flatnonzero(uniq[static] == 0.0)[0])
-        size = np.minimum(size, size[:, zero:zero + 1] * ratio[None, :])
+        size = np.where(np.isfinite(ratio)[None, :], size[:, zero:zero + 1] * ratio[None, :], size)
     leak = np.einsum("dkj,dj->dk", r, size)
     leak[:, static] -= own * size  # a static line's own share is no leak
     out = np.max(leak, axis=0)
