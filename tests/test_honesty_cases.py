@@ -1129,12 +1129,42 @@ def test_an_iq_mover_below_one_bin_read_as_static_is_flagged_not_ranged_wrong():
 
 
 def test_an_iq_static_echo_beside_a_found_mover_is_not_taken_for_a_sub_bin_one():
-    """The sub-bin leak bound reads the static lines' common turn only where no mover was found: a
-    found mover's own lines turn with its Doppler between the record's halves, and taken for a
-    sub-bin mover's they flagged a right static point beside it (a review's case, twentieth session)."""
+    """The sub-bin leak bound reads the static lines' common turn alone: a found mover's own lines
+    turn with its Doppler between the record's halves, and taken for a sub-bin mover's they flagged
+    a right static point beside it (a review's case, twentieth session)."""
     sc = scene_variant(load_scene("moving-target"), receiver={"kind": "iq"}, digitizer={"samples": 65536},
                        targets=[tgt(1.3, 0.0, 20.0), tgt(2.7, 0.35, 14.0)])
     for fr, r, verdict in run(sc, "balanced", 3, 5):
         assert r.status == "ok" and len(r.targets) == 2
         assert not any(t.blended for t in r.targets), r.targets
         assert all(abs(p.range_z) < Z for p in verdict.points)
+
+
+@pytest.mark.parametrize("scene_id", [17879, 17571])
+def test_an_iq_echo_below_one_bin_beside_a_found_mover_leaves_it_no_confident_number(scene_id):
+    """The envelope probe's scenes 17879 (an echo 0.3 bin up, 21 dB under a mover 2.2 bins up: the
+    mover's range 6-10 sigmas off) and 17571 (0.13 bin, 59 dB under one 1.2 bins up: its speed 7
+    sigmas off at a stated 1.5e-7 m/s). The static lines' leak, shifted up to their measured turn,
+    bounds what they put on the mover's lines: its speed sigma and a ``blended`` flag read it."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene_id, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_lone_slow_iq_movers_speed_sigma_is_not_widened_by_the_sub_bin_bound(monkeypatch):
+    """Scene 17571's mover alone at 50 dB: the static lines hold only noise, which read as an echo
+    shifted near a bin widened its speed sigma 100x (review of this session's first version); the
+    bound's share is now a small part of it."""
+    from mtcw_bench.envelope_probe import draw
+    from mtcw_core.dsp import extract
+
+    changes = draw(17571)
+    sc = scene_variant(load_scene("moving-target"), **dict(changes, targets=[
+        dict(changes["targets"][1], loss_db=50.0)]))
+    prof = get_profile("balanced", **declared(sc))
+    with_bound = [r.targets[0].velocity_sigma_mps for _, r, _ in run(sc, prof, 2, 17571)]
+    real = extract.subbin_bounds
+    monkeypatch.setattr(extract, "subbin_bounds", lambda *a, **k: (real(*a, **k)[0], {}))
+    without = [r.targets[0].velocity_sigma_mps for _, r, _ in run(sc, prof, 2, 17571)]
+    assert np.all(np.array(with_bound) <= 1.1 * np.array(without)), (with_bound, without)
