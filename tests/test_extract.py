@@ -764,3 +764,64 @@ class TestSubbinLeakBound:
             moved, bound, sigma = self.beside_a_mover(0.3, 0.0, seed)
             assert np.all(moved == 0.0)
             assert bound is None or np.all(bound < 0.1 * sigma), bound / sigma
+
+
+class TestEnvelopeLeakBound:
+    """A real record with a mover found: what the static lines' envelope, changing across the record,
+    leaks onto the mover's lines through the fit that models them as steady."""
+
+    FS, N = 5e9, 2**16
+    TONES = np.array([500e6, 700e6, 950e6])
+
+    def case(self, d_bins: float, seed: int):
+        """A weak mover 16.6 bins up and an echo 45 dB over it ``d_bins`` up (a real record: each line
+        ``f_i +- f_d``, a fading envelope at ``f_i``): the mover's bound, and what the echo's motion
+        really moves each of its lines by (the fit with it moving less with it still, the same
+        noise in both), per tone the larger of U and L."""
+        from mtcw_core.dsp.extract import _whole_record_dfts, envelope_leak_bound
+        from mtcw_core.dsp.spectrum import search_spectrum
+        from mtcw_core.dsp.tones import fit_lines
+
+        rng = np.random.default_rng(seed)
+        k = np.arange(self.N) - (self.N - 1) / 2
+        bin_hz = self.FS / self.N
+
+        def echo(fd_bins: float, size: float, phases) -> np.ndarray:
+            fd = fd_bins * bin_hz
+            return sum(size * np.cos(2 * np.pi * np.mod(f / self.FS * k, 1.0) + p)
+                       * np.cos(2 * np.pi * np.mod(fd / self.FS * k, 1.0) + q) for f, (p, q) in zip(self.TONES, phases))
+
+        ph_m, ph_s = rng.uniform(-np.pi, np.pi, (2, 3, 2))
+        fd = 16.6 * bin_hz
+        mover = echo(16.6, 1.0, ph_m)
+        noise = 0.05 * rng.standard_normal(self.N)
+        none = np.zeros(3, bool)
+        fams = [(0, "S", self.TONES, none, none), (1, "U", self.TONES + fd, none, none),
+                (1, "L", self.TONES - fd, none, none)]
+        uniq = np.unique(np.round(np.concatenate([[fd]] + [f for _, _, f, _, _ in fams]), 6))
+        x = mover + echo(d_bins, 180.0, ph_s) + noise
+        moved = np.abs(fit_lines(x, uniq, self.FS) - fit_lines(mover + echo(0.0, 180.0, ph_s) + noise, uniq, self.FS))
+        moved = np.maximum(moved[np.searchsorted(uniq, np.round(self.TONES + fd, 6))],
+                           moved[np.searchsorted(uniq, np.round(self.TONES - fd, 6))])
+        _, _, parts, sums = _whole_record_dfts(x, self.FS, uniq, None, 0.0, True)
+        spec = search_spectrum(x, self.FS, 14.0, 1.0, True)
+        return moved, envelope_leak_bound(x, self.FS, uniq, fams, spec, parts, sums)[1], 0.05 / np.sqrt(self.N)
+
+    @pytest.mark.parametrize("d_bins", [0.47, 0.2, -0.8])
+    def test_an_echo_fading_below_one_bin_is_covered_on_a_far_movers_lines(self, d_bins):
+        """The envelope probe's scene 16541: an echo 0.47 bin up and 49 dB over a mover 16.6 bins from
+        it outgrew the mover's lines ~4x through the rectangular window's skirt (the mover ranged at
+        the echo's range, 139 sigmas off). The halves' change of each static line bounds it."""
+        for seed in range(3):
+            moved, bound, sigma = self.case(d_bins, seed)
+            assert np.all(moved > 3 * sigma), moved / sigma  # the case is one
+            assert np.all(bound >= moved), (bound / sigma, moved / sigma)
+            assert np.all(bound < 20 * moved), (bound / sigma, moved / sigma)  # and not by far
+
+    def test_a_steady_echo_puts_nothing_on_the_movers_lines(self):
+        """A still echo's lines change between the halves by their noise alone, within
+        ENVELOPE_NOISE_SIGMAS of it: no bound (its noise read as a change tripled a strong mover's
+        speed sigma)."""
+        for seed in range(3):
+            moved, bound, sigma = self.case(0.0, seed)
+            assert np.all(moved == 0.0) and np.all(bound == 0.0), bound / sigma

@@ -1168,3 +1168,15 @@ def test_a_lone_slow_iq_movers_speed_sigma_is_not_widened_by_the_sub_bin_bound(m
     monkeypatch.setattr(extract, "subbin_bounds", lambda *a, **k: (real(*a, **k)[0], {}))
     without = [r.targets[0].velocity_sigma_mps for _, r, _ in run(sc, prof, 2, 17571)]
     assert np.all(np.array(with_bound) <= 1.1 * np.array(without)), (with_bound, without)
+
+
+def test_a_balanced_echo_fading_below_one_bin_beside_a_far_weak_mover_leaves_it_no_confident_range():
+    """The envelope probe's scene 16541: balanced, an echo 0.47 bin up (0.028 m/s, read as static)
+    49 dB over a mover 16.6 bins from it. The echo's lines fade across the record and what the
+    steady fit leaves of them leaks through the rectangular window's skirt onto the mover's lines,
+    ~4x their own: the mover was ranged at the echo's range, 139 sigmas off, in every profile. The
+    record's parts measure each static line's envelope, which bounds that leak: ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(16541, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -268,7 +268,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
                              length if segmented else None, [d.method == "fit" for d in dops if d.detected])
     uniq = np.unique(np.round(all_f, 6))
     fading = (not windows and settings.segments == 1 and settings.extraction != "filter"
-              and (iq or not fds))  # IQ: the sub-bin leak bound's halves
+              and (iq or not fds or frame.receiver == "balanced"))  # beside movers: the leak bounds' parts
     guard = max((d.min_detectable_hz for d in dops), default=0.0)  # the largest Doppler missed (Hz)
     seg_dft = seg_sums = None
     if settings.extraction == "filter":
@@ -277,14 +277,14 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         z_all, centre = seed_extract(x, fs, uniq, settings)
         z_all, centres = z_all[None, :], np.array([centre])
     elif not windows and settings.segments == 1:
-        whole, total, seg_dft, seg_sums = _whole_record_dfts(x, fs, uniq, spec, guard if fading else None)
+        whole, total, seg_dft, seg_sums = _whole_record_dfts(x, fs, uniq, spec, guard if fading else None, bool(fds))
         z_all, centres = fit_lines(x, uniq, fs, dft=whole, total=total)[None, :], np.array([(n - 1) / (2 * fs)])
     else:
         z_all = fit_lines_segments(x, starts, length, uniq, fs)
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
-    if seg_dft is not None and not iq:
+    if seg_dft is not None and not iq and not fds:
         # no Doppler line found: the static lines may still fade within the record (a mover below
         # the search's guard, the carrier's phase noise); their common real envelope is measured
         s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
@@ -310,8 +310,8 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         dc = (np.array([x[a:a + length].mean() for a in starts]) if segmented else np.array([total / n]))
         unexplained, cross, still, over_lo, own, parts = _self_beats(zs, z_all, uniq, dops, dc, spec, frame, settings,
                                                                      fams[0][2], x, s2_all[:first[1]])
-    elif iq and seg_dft is not None:
-        unexplained, cross = subbin_bounds(x, fs, uniq, z_all[0], fams, fds, guard, spec, seg_dft)
+    elif seg_dft is not None:
+        unexplained, cross = _leak_bounds(x, fs, uniq, z_all[0], fams, fds, guard, spec, seg_dft, seg_sums)
     rings = _target_rings(spec, fams, uniq, frame.receiver != "single" and any(d.detected for d in dops))
     copies = quantizer_copies(spec, frame, fams, zs, uniq, fds,
                               [s2_all[a:b] for a, b in zip(first[:-1], first[1:])])
@@ -655,13 +655,16 @@ def fading_segments(n: int, fs: float, uniq: np.ndarray, guard_hz: float) -> int
     return None if np.min(gaps) < FADING_MIN_SEPARATION_BINS * fs / (n // segs) else segs
 
 
-def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectrum, guard_hz: float | None
+def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectrum, guard_hz: float | None,
+                       parts: bool = False
                        ) -> tuple[np.ndarray | None, float | None, np.ndarray | None, np.ndarray | None]:
     """What the whole-record fit needs, in as few passes as the record allows: its DFTs at ``uniq``
     (Hz), its sum (a real record's DC projection; None for IQ) and, where its static lines may fade
     (``guard_hz``: the largest Doppler the search could have missed, None when fading is not
     fitted), the segments' DFTs and sums for :func:`fading_lines` -- for IQ, the two halves' DFTs
-    for :func:`subbin_leak_bound` (no sums), from the same pass as the whole record's.
+    for :func:`subbin_leak_bound` (no sums), and for a real record with ``parts`` (movers found)
+    its :data:`ENVELOPE_PARTS` parts' for :func:`envelope_leak_bound` -- from the same pass as the
+    whole record's.
 
     The whole record's DFTs then come from the envelope fit's segments (one pass for both), at
     0 Hz too: the record's sum and its segments' from the same pass. Otherwise the DFTs are left to
@@ -677,7 +680,8 @@ def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectru
     if iq and guard_hz:
         whole, halves = exact_dft_tiled(x, 2, uniq, fs)
         return whole, None, halves, None
-    segs = fading_segments(n, fs, uniq, guard_hz) if guard_hz is not None and not iq else None
+    segs = ((ENVELOPE_PARTS if parts else fading_segments(n, fs, uniq, guard_hz))
+            if guard_hz is not None and not iq else None)
     if segs:
         whole, each = exact_dft_tiled(x, segs, np.concatenate([[0.0], uniq]), fs)
         return whole[1:], float(whole[0].real), each[:, 1:], each[:, 0].real
@@ -961,6 +965,19 @@ def _carriers(z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndar
     return base, 0.5 * (dc + root if lo_larger else dc - root)
 
 
+def _leak_bounds(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
+                 fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]], fds: list[float], guard_hz: float,
+                 spec: Spectrum, parts: np.ndarray, sums: np.ndarray | None
+                 ) -> tuple[np.ndarray | None, dict[int, np.ndarray]]:
+    """What an echo among the static lines moving below the Doppler stage's floor could leak, from
+    the record's parts (IQ: its halves): the static lines' bound and each found mover's (IQ:
+    :func:`subbin_bounds`; a real record beside movers: :func:`envelope_leak_bound`, the movers'
+    only; a real record with none: nothing here, :func:`fading_lines` reads its envelope)."""
+    if np.iscomplexobj(x):
+        return subbin_bounds(x, fs, uniq, z, fams, fds, guard_hz, spec, parts)
+    return None, (envelope_leak_bound(x, fs, uniq, fams, spec, parts, sums) if fds else {})
+
+
 #: :func:`subbin_leak_bound` takes a mover's Doppler to lie up to this many of its sigmas beyond what
 #: the two halves' common turn measured ...
 SUBBIN_SIGMAS = 3.0
@@ -1082,6 +1099,65 @@ def subbin_bounds(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
         per[t] = np.maximum(per[t], leak[i]) if t in per else leak[i]
     unexplained = per.pop(0)
     return (unexplained if np.any(unexplained > 0) else None), per
+
+
+#: :func:`envelope_leak_bound` reads a static line's envelope on this many consecutive parts of the
+#: record (a change symmetric about the record's centre -- a fading envelope's peak -- shows to
+#: no fewer than 3)
+ENVELOPE_PARTS = 4
+#: ... states this many times the leak its deviations from its mean at the record's two ends make
+#: on a line ``d`` record bins away, ``(|b(0)| + |b(T)|)/(2*pi*d)``, each end read from its outer
+#: part and that part's slope to the next (for the envelope's curvature and the parts' means
+#: falling short of the ends)
+ENVELOPE_LEAK_MARGIN = 2.0
+#: ... with this many sigmas of the parts' noise taken out of those deviations (a steady line's
+#: noise read as a change put ~3e-4 of a 30 dB weaker mover's lines on them, tripling its speed
+#: sigma of 1e-4 bin)
+ENVELOPE_NOISE_SIGMAS = 3.0
+
+
+def envelope_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray,
+                        fams: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]], spec: Spectrum,
+                        parts_dft: np.ndarray, sums: np.ndarray) -> dict[int, np.ndarray]:
+    """A real record with movers found (balanced): how much the static lines' envelope, changing
+    across the record, could leak onto each mover's lines through the fit that models them as
+    steady (V, per mover target, shape (T,), the larger of its U and L lines).
+
+    An echo among the static lines that moves below the Doppler stage's floor puts ``f_i +- f_d``
+    on a real record: the line at ``f_i`` fades as ``cos(2*pi*f_d*t + Phi)``, and what the steady
+    fit leaves of it, ``b(t)`` (the envelope less its mean), leaks far through the rectangular
+    window's skirt, falling only as one over the distance ``d`` (record bins) -- by its values at the
+    record's ends, ``(|b(0)| + |b(T)|)/(2*pi*d)`` where the mover's lines lie off the record's bin
+    grid (the envelope probe's scene 16541: an echo 0.47 bin up, 49 dB over a mover 16.6 bins from
+    it, whose lines it outgrew ~4x: the mover ranged at the echo's range, 139 sigmas off). The
+    record's :data:`ENVELOPE_PARTS` parts, each turned to the record's centre, measure each static
+    line's envelope; the bound at a mover's line is :data:`ENVELOPE_LEAK_MARGIN` times that leak
+    summed over the static lines, ``d`` at least one.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64, V
+    uniq : ndarray, shape (K,), the modelled lines (Hz, sorted)
+    parts_dft, sums : ndarray, shapes (P, K) and (P,): the parts' DFTs at ``uniq`` and their sums
+        (:func:`~.tones.exact_dft_tiled`, P = :data:`ENVELOPE_PARTS`)
+    """
+    n, p = x.size, parts_dft.shape[0]
+    m = n // p
+    zp = fit_lines_segments(x, np.arange(p) * m, m, uniq, fs, dft=parts_dft, sums=sums)  # (P, K)
+    s_lines = fams[0][2]
+    s_idx = np.clip(np.searchsorted(uniq, np.round(s_lines, 6)), 0, uniq.size - 1)
+    q = (zp * centre_turn(p, m, p * m, uniq, fs))[:, s_idx]  # (P, J), about the record's centre
+    dev = q - q.mean(axis=0)
+    ends = (np.abs(dev[0]) + np.abs(q[0] - q[1]) / 2) + (np.abs(dev[-1]) + np.abs(q[-1] - q[-2]) / 2)
+    # a part's line: complex noise variance 4*s2/m (a real record); the two ends' reading, ~3.5x that
+    s2 = spec.noise_variances(s_lines, uniq, guard=spec.line_floor_guard())
+    ends = np.maximum(ends - ENVELOPE_NOISE_SIGMAS * np.sqrt(3.5 * 4.0 * s2 / m), 0.0)
+    out: dict[int, np.ndarray] = {}
+    for t, _, f, _, _ in fams[1:]:
+        d = np.maximum(np.abs(f[:, None] - s_lines[None, :]) * n / fs, 1.0)  # (T, J) record bins
+        leak = ENVELOPE_LEAK_MARGIN * np.sum(ends[None, :] / (2 * np.pi * d), axis=1)
+        out[t] = np.maximum(out[t], leak) if t in out else leak
+    return out
 
 
 def cross_beat_bound(s_lines: np.ndarray, z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndarray,
