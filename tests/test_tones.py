@@ -511,3 +511,21 @@ class TestPartDFTs:
         f = [1.1e6, 250e6]
         np.testing.assert_allclose(pd(9, f), self.direct(x, 9, f, FS), rtol=0, atol=1e-9)
         assert not pd._passes
+
+
+@pytest.mark.parametrize("iq", [False, True])
+def test_fit_noise_gain_is_the_fitted_amplitudes_variance_in_white_noise(iq):
+    """Lines 0.4 bin apart share the noise (their variance ~2.3x a lone line's); one far from them
+    has 4/n (real) or 1/n (IQ) per unit of the per-sample variance, as many noise draws show."""
+    from mtcw_core.dsp.tones import fit_noise_gain
+
+    fs, n = 5e9, 1024
+    f = np.array([500e6, 500e6 + 0.4 * fs / n, 700e6])
+    rng = np.random.default_rng(3)
+    noise = rng.standard_normal((3000, n)) if not iq else \
+        (rng.standard_normal((3000, n)) + 1j * rng.standard_normal((3000, n))) / np.sqrt(2)
+    z = np.array([fit_lines(x, f, fs) for x in noise])
+    gain = fit_noise_gain(f, fs, n, iq)
+    np.testing.assert_allclose(np.var(z, axis=0), gain, rtol=0.1)
+    assert gain[0] > 2.0 * gain[2]
+    np.testing.assert_allclose(gain[2] * n, 1.0 if iq else 4.0, rtol=0.01)

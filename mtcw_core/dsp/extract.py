@@ -23,7 +23,8 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
-from .tones import centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, line_response
+from .tones import (centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, fit_noise_gain,
+                    line_response)
 from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 
 
@@ -83,13 +84,15 @@ class LineFamily:
     unexplained_v : ndarray, shape (T,), or None
         The static lines: the largest amplitude (V) that what no found mover explains could add to
         each -- on one photodiode the self-beats of Doppler lines
-        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`), on an IQ record with no mover found the
-        leak of one below one record bin (:func:`subbin_leak_bound`); None where not measured
-        (balanced, IQ beside a found mover, quasi-CW windows).
+        (:func:`~mtcw_core.dsp.doppler.self_beat_bound`), on an IQ record the leak of an echo
+        among them moving below one record bin (:func:`subbin_leak_bound`); None where not
+        measured (balanced, quasi-CW windows).
     cross_v : ndarray, shape (T,), or None
-        A mover's lines on one photodiode: what a static echo's beat with it adds to each (V), if
-        the static lines are one (:func:`cross_beat_bound`; they may be the mover's own self-beat
-        left over, which adds nothing); None where not measured.
+        A mover's lines: what an echo among the static lines could add to each (V) -- on one
+        photodiode its beat with the mover, if the static lines are one (:func:`cross_beat_bound`;
+        they may be the mover's own self-beat left over, which adds nothing); on an IQ record its
+        leak, moving below one record bin (:func:`subbin_bounds`); on a balanced one its fading
+        envelope's leak (:func:`envelope_leak_bound`); None where not measured.
     cross_x : float or None
         ... and the largest Doppler (record bins) that static echo could have, as its lines' width
         shows (:func:`~.spectrum.still_line_doppler_bins`): its beat lies that far from the mover's
@@ -1149,9 +1152,12 @@ def envelope_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray,
     q = (zp * centre_turn(p, m, p * m, uniq, fs))[:, s_idx]  # (P, J), about the record's centre
     dev = q - q.mean(axis=0)
     ends = (np.abs(dev[0]) + np.abs(q[0] - q[1]) / 2) + (np.abs(dev[-1]) + np.abs(q[-1] - q[-2]) / 2)
-    # a part's line: complex noise variance 4*s2/m (a real record); the two ends' reading, ~3.5x that
+    # a part's line: complex noise variance s2 times its fit's gain (4/m far from every other line,
+    # more where a mover's line lies within a part's bin: 1.5 record bins is 0.4 of a quarter's,
+    # whose fits then share the noise); the two ends' reading, ~3.5x that
     s2 = spec.noise_variances(s_lines, uniq, guard=spec.line_floor_guard())
-    ends = np.maximum(ends - ENVELOPE_NOISE_SIGMAS * np.sqrt(3.5 * 4.0 * s2 / m), 0.0)
+    var = s2 * fit_noise_gain(uniq, fs, m, False)[s_idx]
+    ends = np.maximum(ends - ENVELOPE_NOISE_SIGMAS * np.sqrt(3.5 * var), 0.0)
     out: dict[int, np.ndarray] = {}
     for t, _, f, _, _ in fams[1:]:
         d = np.maximum(np.abs(f[:, None] - s_lines[None, :]) * n / fs, 1.0)  # (T, J) record bins

@@ -454,6 +454,18 @@ def line_response(freqs_hz: np.ndarray, true_hz: np.ndarray, fs_hz: float, n: in
                         assume_a="sym")
 
 
+def fit_noise_gain(freqs_hz: np.ndarray, fs_hz: float, n: int, iq: bool) -> np.ndarray:
+    """The variance of each line's fitted complex amplitude (:func:`fit_lines` on ``n`` samples)
+    per unit of the white noise's per-sample variance, shape (K,): the diagonal of the inverse
+    Gram matrix (both blocks of a real fit's), which grows where lines lie closer than a bin and
+    their fits share the noise (``1/n`` and ``4/n`` for lines far apart, IQ and real)."""
+    w = 2 * np.pi * np.asarray(freqs_hz, dtype=np.float64) / fs_hz
+    if iq:
+        return np.real(np.diag(linalg.inv(_dirichlet(w[:, None] - w[None, :], n))))
+    gc, gs = _gram_real(w, n)
+    return np.diag(linalg.inv(gc))[1:] + np.diag(linalg.inv(gs))
+
+
 def solve_lines_many(dft: np.ndarray, freqs_hz: np.ndarray, fs_hz: float, n: int, total: float, iq: bool
                      ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`solve_lines` for several line sets of one record at once (trials of a fit), one

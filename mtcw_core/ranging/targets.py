@@ -179,8 +179,10 @@ SPEED_FLOOR_BINS = 1e-5
 
 
 def cross_pull_hz(families: list[LineFamily], bin_hz: float) -> float:
-    """One photodiode: how far the beat of an echo among the static lines with a mover's echo can
-    pull the mover's Doppler (Hz); 0 where no bound is carried (:attr:`LineFamily.cross_v`).
+    """How far an echo among the static lines can pull a mover's Doppler (Hz) through what it adds
+    to the mover's lines -- on one photodiode its beat with the mover's echo, on IQ and balanced
+    records its leak, moving below one record bin (a phasor of relative size ``rho`` up to a bin
+    off: the same reach); 0 where no bound is carried (:attr:`LineFamily.cross_v`).
 
     That beat lies at the mover's lines less the static echo's own Doppler ``f_s``, a phasor
     ``rho = A_s/A_L`` of each line's size (the mover's carrier with the static sideband, or its
@@ -793,8 +795,9 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
 
 def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFamily], settings: ChainSettings
                   ) -> list[tuple[int, TargetPoint]]:
-    """Movers whose lines a static echo's beat with them could turn by more than
-    :data:`UNEXPLAINED_SIGMAS` of their phase sigmas (:attr:`LineFamily.cross_v`, one photodiode),
+    """Movers whose lines a static echo's beat with them (one photodiode), or its leak (IQ,
+    balanced), could turn by more than :data:`UNEXPLAINED_SIGMAS` of their phase sigmas
+    (:attr:`LineFamily.cross_v`),
     or whose range those turns together could move by more than as many of its sigmas
     (:func:`range_turn_m`), flagged ``blended`` -- where the static point lies at another range
     than the mover's (at its range the static lines may be the mover's own self-beat, left over
