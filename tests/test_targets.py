@@ -622,10 +622,16 @@ class TestCrossBeaten:
         # ... unless the static lines stood mostly above what the self-beat's prediction took out:
         # a static echo's own lines (LineFamily.static_echo), whatever range they fit
         echo = fam("S", 0, var=(1e-6,) * 3)
-        echo = replace(echo, static_echo=True)
+        echo = replace(echo, static_echo=True, self_beats={1: np.zeros_like(echo.z)})  # one photodiode's
         assert _cross_beaten([(0, static), (1, twin)], self.fams(0.01) + [echo], st)[1][1].blended
         assert not _cross_beaten([(0, static), (1, twin)], self.fams(0.01) + [replace(echo, static_echo=False)],
                                  st)[1][1].blended
+        # IQ and balanced: no self-beat (none predicted on the static lines), the bound is an echo's
+        # leak: a mover at the static point's range is flagged, and so is one with no static point
+        leak = replace(echo, static_echo=False, self_beats=None)
+        assert _cross_beaten([(0, static), (1, twin)], self.fams(0.01) + [leak], st)[1][1].blended
+        assert _cross_beaten([(1, mover)], self.fams(0.01) + [leak], st)[0][1].blended
+        assert not _cross_beaten([(1, mover)], self.fams(1e-3) + [leak], st)[0][1].blended
 
 
     def test_the_static_echos_beat_pulls_the_movers_doppler_within_the_stated_bound(self):

@@ -216,7 +216,7 @@ def plan_lines(frame: Frame, fds: list[float], iq: bool, settings: ChainSettings
     keep: list[tuple[float, float]] = []  # (line Hz, its clearance Hz)
     for f, ok, c in zip(extra, clear, sep):
         # IQ: a sub-guard mover's baseband line is told from the 0 Hz line as its U and L lines from
-        # the static ones, a bin apart (leaving either out leaves its carrier, 30-60x its lines,
+        # the static ones, FINE_CLASH_BINS apart (leaving either out leaves its carrier, 30-60x its lines,
         # leaking its skirt onto every line: the envelope probe's scenes 17571 and 17879)
         gap = res * c if iq and c < 1.0 else 1.5 * res * c
         if (ok and all(abs(f - k) > (min(gap, g) if iq else gap) for k, g in keep)
@@ -1033,7 +1033,8 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     turned = zh[:, static] * centre_turn(2, half, 2 * half, uniq[static], fs)  # both about the halves' common centre
     turn = turned[1] * np.conj(turned[0])
     s2 = spec.noise_variances(uniq[static], uniq, guard=spec.line_floor_guard())
-    w = 1.0 / np.sum(0.5 * s2 / (half * np.maximum(np.abs(zh[:, static]) ** 2, 1e-300)), axis=0)
+    var_h = s2 * fit_noise_gain(uniq, fs, half, True)[static]  # a half's line (s2/half far from others)
+    w = 1.0 / np.sum(0.5 * var_h / np.maximum(np.abs(zh[:, static]) ** 2, 1e-300), axis=0)
     mean = complex(np.sum(w * turn / np.maximum(np.abs(turn), 1e-300)))
     bins = min(abs(np.angle(mean)) / np.pi + SUBBIN_SIGMAS / (np.pi * math.sqrt(np.sum(w))),
                guard_hz * n / fs, SUBBIN_MAX_BINS)
@@ -1050,12 +1051,17 @@ def subbin_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     own_h = np.abs(line_response(uniq, (uniq[static][None, :] + shifts[:, None]).ravel(), fs, half))
     own_h = own_h.reshape(uniq.size, shifts.size, static.size).transpose(1, 0, 2)[:, static, np.arange(static.size)]
     whole = np.sqrt(np.maximum(np.abs(z[static]) ** 2 - s2 / n, 0.0))
-    halves_rms = np.sqrt(np.maximum(np.mean(np.abs(zh[:, static]) ** 2, axis=0) - s2 / half, 0.0))
+    halves_rms = np.sqrt(np.maximum(np.mean(np.abs(zh[:, static]) ** 2, axis=0) - var_h, 0.0))
     size = np.where(own * math.sqrt(n / half) >= own_h, whole[None, :] / np.maximum(own, 1e-12),
                     halves_rms[None, :] / np.maximum(own_h, 1e-12))
     if ratio is not None:
+        # the carrier's times the ratio, but never less than what the line itself shows beyond 3
+        # sigmas of its noise (two echoes' carriers may cancel at 0 Hz where their lines do not)
         zero = int(np.flatnonzero(uniq[static] == 0.0)[0])
-        size = np.where(np.isfinite(ratio)[None, :], size[:, zero:zero + 1] * ratio[None, :], size)
+        seen = np.maximum(np.abs(z[static]) - 3.0 * np.sqrt(s2 / n), 0.0)
+        by_ratio = size[:, zero:zero + 1] * np.where(np.isfinite(ratio), ratio, 0.0)[None, :]
+        size = np.where(np.isfinite(ratio)[None, :],
+                        np.maximum(by_ratio, seen[None, :] / np.maximum(own, 1e-12)), size)
     leak = np.einsum("dkj,dj->dk", r, size)
     leak[:, static] -= own * size  # a static line's own share is no leak
     out = np.max(leak, axis=0)
@@ -1134,8 +1140,8 @@ def envelope_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray,
     grid (the envelope probe's scene 16541: an echo 0.47 bin up, 49 dB over a mover 16.6 bins from
     it, whose lines it outgrew ~4x: the mover ranged at the echo's range, 139 sigmas off). The
     record's :data:`ENVELOPE_PARTS` parts, each turned to the record's centre, measure each static
-    line's envelope; the bound at a mover's line is :data:`ENVELOPE_LEAK_MARGIN` times that leak
-    summed over the static lines, ``d`` at least one.
+    line's envelope; the bound at a mover's line is :data:`ENVELOPE_LEAK_MARGIN` times that leak,
+    ``(1 + 2/d)`` times more within a few bins, summed over the static lines, ``d`` at least one.
 
     Parameters
     ----------
@@ -1154,14 +1160,17 @@ def envelope_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray,
     ends = (np.abs(dev[0]) + np.abs(q[0] - q[1]) / 2) + (np.abs(dev[-1]) + np.abs(q[-1] - q[-2]) / 2)
     # a part's line: complex noise variance s2 times its fit's gain (4/m far from every other line,
     # more where a mover's line lies within a part's bin: 1.5 record bins is 0.4 of a quarter's,
-    # whose fits then share the noise); the two ends' reading, ~3.5x that
+    # whose fits then share the noise); the two ends' reading of noise alone: mean 2.8, sd 0.95
+    # times its root, so the cut is its mean plus ~3 sd (the tail is not Gaussian: ~0.5 % beyond)
     s2 = spec.noise_variances(s_lines, uniq, guard=spec.line_floor_guard())
     var = s2 * fit_noise_gain(uniq, fs, m, False)[s_idx]
     ends = np.maximum(ends - ENVELOPE_NOISE_SIGMAS * np.sqrt(3.5 * var), 0.0)
     out: dict[int, np.ndarray] = {}
     for t, _, f, _, _ in fams[1:]:
         d = np.maximum(np.abs(f[:, None] - s_lines[None, :]) * n / fs, 1.0)  # (T, J) record bins
-        leak = ENVELOPE_LEAK_MARGIN * np.sum(ends[None, :] / (2 * np.pi * d), axis=1)
+        # (1 + 2/d): within a few bins the far skirt's formula falls short (a fine mover a bin off:
+        # 0.4-0.7 of the real shift with the margin alone, a review's measurement)
+        leak = ENVELOPE_LEAK_MARGIN * np.sum(ends[None, :] * (1.0 + 2.0 / d) / (2 * np.pi * d), axis=1)
         out[t] = np.maximum(out[t], leak) if t in out else leak
     return out
 

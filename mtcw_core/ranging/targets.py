@@ -808,9 +808,15 @@ def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFami
     static echo's own, no leftover; 725's first frame: two echoes at 10-12 dB under a 1 MHz laser
     whose corrupted lines fit one range, neither's, the mover 722 sigmas off)."""
     static = next((p for k, p in points if k == 0), None)
-    if static is None:
+    # IQ and balanced records have no self-beat: a mover's bound is an echo's leak (the static lines
+    # carry no self-beat's prediction), which needs no static point (an echo moving under a bin is
+    # read at a fraction of its size) and excuses no mover at the static lines' range (16541's mover
+    # was pulled toward the echo's)
+    statics = [f for f in families if f.target == 0]
+    leak = bool(statics) and all(f.self_beats is None for f in statics)
+    if static is None and not leak:
         return points
-    echo = any(f.static_echo for f in families if f.target == 0)
+    echo = leak or any(f.static_echo for f in families if f.target == 0)
 
     def beaten(k: int, p: TargetPoint) -> bool:
         # the static candidate, a point already flagged, and a mover at the static lines' own range
