@@ -86,7 +86,8 @@ class LineFamily:
         each -- on one photodiode the self-beats of Doppler lines
         (:func:`~mtcw_core.dsp.doppler.self_beat_bound`), on an IQ record the leak of an echo
         among them moving below one record bin (:func:`subbin_leak_bound`); None where not
-        measured (balanced, quasi-CW windows).
+        measured (balanced records, quasi-CW windows, segmented profiles, the ``filter``
+        extraction, a Doppler stage that states no floor).
     cross_v : ndarray, shape (T,), or None
         A mover's lines: what an echo among the static lines could add to each (V) -- on one
         photodiode its beat with the mover, if the static lines are one (:func:`cross_beat_bound`;
