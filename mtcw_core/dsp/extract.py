@@ -249,6 +249,12 @@ def segment_starts(n: int, fs: float, settings: ChainSettings, windows: list[tup
     return np.asarray(starts, dtype=np.int64), length
 
 
+def _line_index(uniq: np.ndarray, f_hz) -> np.ndarray:
+    """Each frequency's index in the sorted modelled lines ``uniq`` (Hz, rounded to 1e-6 Hz as
+    ``uniq`` is), clipped into range: the nearest line at or above it where it is not modelled."""
+    return np.clip(np.searchsorted(uniq, np.round(f_hz, 6)), 0, uniq.size - 1)
+
+
 def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
                   settings: ChainSettings, windows: list[tuple[int, int]] | None = None) -> list[LineFamily]:
     """The stage: complex amplitude of every used line, per segment, with its phase variance.
@@ -291,7 +297,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
     if seg_dft is not None and not iq and not fds:
         # no Doppler line found: the static lines may still fade within the record (a mover below
         # the search's guard, the carrier's phase noise); their common real envelope is measured
-        s_idx = np.clip(np.searchsorted(uniq, np.round(fams[0][2], 6)), 0, uniq.size - 1)
+        s_idx = _line_index(uniq, fams[0][2])
         s2_s = spec.noise_variances(fams[0][2], uniq)
         c = fading_lines(x, fs, uniq, s_idx, s2_s, guard, seg_dft, seg_sums)
         if c is not None:
@@ -299,7 +305,7 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
             z_all[0, s_idx] = c
     zs = {}
     for target, name, freqs, conj, bad in fams:
-        idx = np.clip(np.searchsorted(uniq, np.round(freqs, 6)), 0, uniq.size - 1)
+        idx = _line_index(uniq, freqs)
         z = z_all[:, idx].copy()
         z[:, conj] = np.conj(z[:, conj])
         z[:, bad] = 0.0
@@ -1083,10 +1089,10 @@ def subbin_bounds(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
     that mover's carrier's leak, up to thousands of times the static lines (the envelope probe's
     scene 17571: a mover 1.2 bins up, its carrier 30x the 0 Hz line's static share), and is
     neither shifted nor read for the turn."""
-    idx = [np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1) for _, _, f, _, _ in fams]
+    idx = [_line_index(uniq, f) for _, _, f, _, _ in fams]
 
     def at(f: np.ndarray) -> np.ndarray:  # each line's index in uniq, -1 where it is not modelled
-        i = np.clip(np.searchsorted(uniq, np.round(f, 6)), 0, uniq.size - 1)
+        i = _line_index(uniq, f)
         return np.where(np.abs(uniq[i] - f) < 1e-6, i, -1)
 
     carriers = bool(np.all(at(np.asarray(fds, float)) >= 0))
@@ -1155,7 +1161,7 @@ def envelope_leak_bound(x: np.ndarray, fs: float, uniq: np.ndarray,
     m = n // p
     zp = fit_lines_segments(x, np.arange(p) * m, m, uniq, fs, dft=parts_dft, sums=sums)  # (P, K)
     s_lines = fams[0][2]
-    s_idx = np.clip(np.searchsorted(uniq, np.round(s_lines, 6)), 0, uniq.size - 1)
+    s_idx = _line_index(uniq, s_lines)
     q = (zp * centre_turn(p, m, p * m, uniq, fs))[:, s_idx]  # (P, J), about the record's centre
     dev = q - q.mean(axis=0)
     ends = (np.abs(dev[0]) + np.abs(q[0] - q[1]) / 2) + (np.abs(dev[-1]) + np.abs(q[-1] - q[-2]) / 2)
