@@ -250,6 +250,32 @@ def test_rows_times_table_in_chunks_is_the_product(monkeypatch, chunk):
     np.testing.assert_allclose(exact_dft(record, f, 5e9), _direct_dft(record, f, 5e9), rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("macs, columns", [(500, 4), (20_000, 32), (10**9, 10**6)])
+def test_wide_tables_in_column_groups_and_complex_rows_as_real_are_the_product(monkeypatch, macs, columns):
+    """A real table runs at most ``PRODUCT_MAX_COLUMNS`` columns and ``PRODUCT_MAX_MACS``
+    multiply-adds at a time, and complex rows meet the table's real form (``_real_pair``): every
+    sum is the product's, for 1-21 lines, real and complex rows (contiguous, batched, strided
+    rows, a complex view whose samples are not adjacent, which keeps the complex product)."""
+    monkeypatch.setattr(tones, "ROW_CHUNK_BYTES", 4000)
+    monkeypatch.setattr(tones, "PRODUCT_MAX_MACS", macs)
+    monkeypatch.setattr(tones, "PRODUCT_MAX_COLUMNS", columns)
+    rng = np.random.default_rng(macs)
+    record = rng.standard_normal(3 * 37 * 50 + 11)
+    iq = record + 1j * record[::-1]
+    for k in (1, 2, 7, 21):
+        table = rng.standard_normal((50, k)) + 1j * rng.standard_normal((50, k))
+        for a in (record[:37 * 50].reshape(37, 50), record[5:5 + 3 * 37 * 50].reshape(3, 37, 50)[:, ::2],
+                  iq[:37 * 50].reshape(37, 50), iq[:3 * 37 * 50].reshape(3, 37, 50)[:, 1::3],
+                  iq[:2 * 37 * 50:2].reshape(37, 50)):
+            got = tones._times_table(a, table)
+            assert got.shape == a.shape[:-1] + (k,) and got.dtype == np.complex128
+            np.testing.assert_allclose(got, a @ table, rtol=1e-13, atol=1e-12)
+    table = rng.standard_normal((50, 21)) + 1j * rng.standard_normal((50, 21))
+    pair = tones._real_pair(table)
+    row = iq[:50]
+    np.testing.assert_allclose((row.view(np.float64) @ pair).view(np.complex128), row @ table, rtol=1e-13)
+
+
 def test_line_response_is_what_the_iq_fit_reads_of_a_line_it_models_elsewhere():
     """Each column of ``line_response`` is the complex fit's amplitudes for a unit line at a
     frequency it does not model: its own row the share it reads (``sinc`` of the offset for lines
