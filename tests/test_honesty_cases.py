@@ -1180,3 +1180,16 @@ def test_a_balanced_echo_fading_below_one_bin_beside_a_far_weak_mover_leaves_it_
 
     counts, lines = judge_scene(16541, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+@pytest.mark.parametrize("scene_id", [19958, 17058])
+def test_a_second_echo_on_one_line_set_shown_by_the_sizes_widens_the_range_sigma(scene_id):
+    """The envelope probe's scenes 19958 (one photodiode: a mover 0.12 bin up, read as static, and a
+    static echo 33 dB under it: sizes 2 % apart against a declared 1 %, p 0.003; the phases fit one
+    range 0.85 mm off at a sigma of 0.05 mm, z -18) and 17058 (balanced: two still echoes 28 dB
+    apart, z 6.3). The sizes' scatter beyond one target's is the phases' too
+    (``targets.blend_phase_var``): the range sigma covers the blend."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene_id, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -412,15 +412,18 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # noise the rings show moving the lines together, beyond what independent lines would give (a
     # strong echo's pedestal about a slow mover's lines), widens the cycle-slip odds as much
     together = (sigma / alone) ** 2 if 0 < alone < math.inf and math.isfinite(sigma) else 1.0
-    # do the line phases agree with one range within their noise, and the tones' declared drift?
-    # (Birge ratio)
+    # the static lines' sizes against one target's (two echoes on one Doppler-0 line set; on an IQ
+    # record also its sidebands' sizes), and the phase variance per tone such a blend may add
+    a_chi2, a_dof, blend_var, s_chi2, s_dof = _static_sizes(fams, dop, frame, ref, settings)
+    # do the line phases agree with one range within their noise and the tones' declared drift?
+    # (Birge ratio; the blend's variance stays out: the flags read the phases as they are)
     tone_var = settings.tone_phase_sigma_rad ** 2
     cfams = [replace(f, phase_var=f.phase_var + tone_var) for f in fams] if tone_var else fams
     chi2, dof = consistency(cfams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
     ratio = chi2 / dof if dof > 0 else 1.0
-    # known drift of the tone phases since calibration: independent per tone, invisible in one frame
-    # (the chi2 counts it: the Birge ratio scales both)
-    sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, settings.tone_phase_sigma_rad))
+    # known drift of the tone phases since calibration and a blend's pull: independent per tone,
+    # invisible in the phases of one frame (the chi2 counts them: the Birge ratio scales both)
+    sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, math.sqrt(tone_var + blend_var)))
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
     p_fit = chdtrc(dof, chi2) if dof > 0 else 1.0
     if p_fit < BIRGE_P:
@@ -435,11 +438,6 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     bins = (2 if frame.receiver == "iq" else 1) * fd_max(frame.tones_hz, settings) * frame.n * min(
         settings.doppler_fraction, 1.0) / frame.fs_hz
     ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold, bins) > GHOST_ODDS_MAX
-    # the static lines' sizes against one target's (two echoes on one Doppler-0 line set)
-    a_chi2, a_dof = (0.0, 0) if dop.detected else amplitude_chi2(fams, ref.tone_amplitudes, settings.min_line_snr_db)
-    # ... and, on an IQ record, its two sidebands' sizes against each other
-    s_chi2, s_dof = (0.0, 0) if dop.detected or frame.receiver != "iq" else sideband_chi2(
-        fams, settings.sideband_tolerance, settings.min_line_snr_db)
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
                                        phase_psd(settings, sol.range_m, dop, frame.receiver == "iq"),
@@ -513,6 +511,38 @@ def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: fl
     return float(min(1.0, search_bins * gammaincc(p_eff, p_eff * dop.score / lines / kappa)))
 
 
+def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, ref: Reference,
+                  settings: ChainSettings) -> tuple[float, int, float, float, int]:
+    """A static candidate's line sizes: :func:`amplitude_chi2` (chi2, dof), the phase variance per
+    tone (rad^2) a second echo on its line set may put on it (:func:`blend_phase_var`) and, on an IQ
+    record, :func:`sideband_chi2` (chi2, dof); zeros for a mover."""
+    if dop.detected:
+        return 0.0, 0, 0.0, 0.0, 0
+    a_chi2, a_dof, allowed = _amplitude_fit(fams, ref.tone_amplitudes, settings.min_line_snr_db)
+    s_chi2, s_dof = (0.0, 0) if frame.receiver != "iq" else sideband_chi2(
+        fams, settings.sideband_tolerance, settings.min_line_snr_db)
+    return a_chi2, a_dof, blend_phase_var(a_chi2, a_dof, allowed), s_chi2, s_dof
+
+
+def blend_phase_var(chi2: float, dof: int, allowed: float) -> float:
+    """The phase variance per tone (rad^2) that a second echo on one line set may put on a static
+    point's lines, read from their sizes: ``(chi2/dof - 1) * allowed`` where the sizes' chi2 against
+    one target's (:func:`amplitude_chi2`, ``allowed`` the mean relative variance it allows a size)
+    is improbable at :data:`BIRGE_P`, else 0.
+
+    A second echo of relative size ``rho`` adds ``rho*exp(j*dphi_i)`` to every line (``dphi_i`` its
+    range and carrier phase against the first's, spread over the tones): each line's size moves by
+    ``rho*cos(dphi_i)`` and its phase by ``rho*sin(dphi_i)``, the same variance ``rho^2/2`` each, so
+    the sizes' scatter beyond what one target allows is the phases' too -- and those may still fit
+    one range (the envelope probe's scene 19958: a mover 0.12 bin up on one photodiode, read as
+    static, a static echo 33 dB under it; sizes 2 % apart against a declared 1 %, chi2 13.9 on 3 dof,
+    p 0.003; the phases fit one range 0.85 mm off at a sigma of 0.05 mm, z -18).
+    """
+    if dof <= 0 or not chdtrc(dof, chi2) < BIRGE_P:
+        return 0.0
+    return max(chi2 / dof - 1.0, 0.0) * allowed
+
+
 #: :func:`amplitude_chi2` uses a line whose segments' noise (``2*S*phase_var`` of its mean power)
 #: is at most this share of it
 AMPLITUDE_NOISE_SHARE = 0.2
@@ -577,12 +607,20 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     -------
     (chi2, dof): 0, 0 where nothing is known or fewer than two tones are used
     """
+    return _amplitude_fit(fams, amplitudes, min_snr_db)[:2]
+
+
+def _amplitude_fit(fams: list[LineFamily], amplitudes: dict[float, tuple[float, float]] | None,
+                   min_snr_db: float) -> tuple[float, int, float]:
+    """:func:`amplitude_chi2`'s chi2 and dof, and the mean over its tones of the variance it allows
+    each size relative to its fitted size, ``(v_i + (rel_i*alpha*g_i)^2)/(alpha*g_i)^2`` (0, 0, 0
+    where nothing is known)."""
     if not amplitudes or not fams:
-        return 0.0, 0
+        return 0.0, 0, 0.0
     uniq, a2, v = line_powers(fams, lambda f: _sizable(f, min_snr_db)
                               & np.array([float(t) in amplitudes for t in f.tone_hz], dtype=bool))
     if uniq.size < 2:
-        return 0.0, 0
+        return 0.0, 0, 0.0
     a = np.sqrt(np.maximum(a2, 0.0))
     g, rel = np.array([amplitudes[float(t)] for t in uniq]).T
     v = np.maximum(v, 1e-24 * np.maximum(a, 1e-150) ** 2)  # a noiseless line (phase_var 0) weighs most, finitely
@@ -590,7 +628,8 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     for _ in range(3):  # alpha, then the weights with the relative sigma at that alpha
         alpha = float(np.sum(w * a * g) / np.sum(w * g * g))
         w = 1.0 / (v + (rel * alpha * g) ** 2)
-    return float(np.sum(w * (a - alpha * g) ** 2)), int(uniq.size) - 1
+    allowed = float(np.mean(1.0 / (w * (alpha * g) ** 2))) if alpha > 0 else 0.0
+    return float(np.sum(w * (a - alpha * g) ** 2)), int(uniq.size) - 1, allowed
 
 
 def sideband_chi2(fams: list[LineFamily], tolerance: float, min_snr_db: float) -> tuple[float, int]:
