@@ -1193,3 +1193,16 @@ def test_a_second_echo_on_one_line_set_shown_by_the_sizes_widens_the_range_sigma
 
     counts, lines = judge_scene(scene_id, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_sub_guard_mover_whose_lobe_fills_a_narrow_band_beside_a_found_one_is_found():
+    """The envelope probe's scene 19892: one photodiode, a mover 1.4 bins up 2.5 dB under one 6.9
+    bins up that the search found. Beside it the sub-guard band spans 1-3.9 bins, most of it the
+    weaker mover's own main lobe: its peak stood 16.5x over the scan's median, under the 25x asked,
+    and it was missed; its lines, unmodelled beside the other's, put that one's range 7.4 sigmas
+    off. The scan's median is now read outside the peak's lobe (47x): both are found."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(19892, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["missed"] == 0, lines
