@@ -122,16 +122,17 @@ def _chunked(a: np.ndarray, table: np.ndarray) -> np.ndarray:
     if a.size * a.itemsize <= 2 * ROW_CHUNK_BYTES and a.size * table.shape[1] <= max_macs:
         return a @ table
     out = np.empty(a.shape[:-1] + (table.shape[1],), dtype=np.result_type(a, table))
-    for c in range(0, table.shape[1], group):
-        cols = table if table.shape[1] <= group else np.ascontiguousarray(table[:, c:c + group])
-        width = cols.shape[1]
-        step = int(max(1, min(ROW_CHUNK_BYTES // (a.shape[-1] * a.itemsize), max_macs // (a.shape[-1] * width))))
-        for rows, dest in zip(a.reshape((-1,) + a.shape[-2:]), out.reshape((-1,) + out.shape[-2:])):
-            for i in range(0, rows.shape[0], step):
-                if width == table.shape[1]:
+    groups = [(c, table if table.shape[1] <= group else np.ascontiguousarray(table[:, c:c + group]))
+              for c in range(0, table.shape[1], group)]
+    width = groups[0][1].shape[1]
+    step = int(max(1, min(ROW_CHUNK_BYTES // (a.shape[-1] * a.itemsize), max_macs // (a.shape[-1] * width))))
+    for rows, dest in zip(a.reshape((-1,) + a.shape[-2:]), out.reshape((-1,) + out.shape[-2:])):
+        for i in range(0, rows.shape[0], step):
+            for c, cols in groups:  # every group on these rows while they are in cache
+                if len(groups) == 1:
                     np.matmul(rows[i:i + step], cols, out=dest[i:i + step])
                 else:
-                    dest[i:i + step, c:c + width] = rows[i:i + step] @ cols
+                    dest[i:i + step, c:c + cols.shape[1]] = rows[i:i + step] @ cols
     return out
 
 
