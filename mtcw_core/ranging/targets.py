@@ -416,18 +416,15 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # record also its sidebands' sizes), and the phase variance per tone such a blend may add
     a_chi2, a_dof, blend_var, s_chi2, s_dof = _static_sizes(fams, dop, frame, ref, settings)
     # do the line phases agree with one range within their noise and the tones' declared drift?
-    # (Birge ratio; the blend's variance stays out: the flags read the phases as they are)
+    # (Birge ratio; the flags and the cycle odds read the phases without the blend's variance)
     tone_var = settings.tone_phase_sigma_rad ** 2
     cfams = [replace(f, phase_var=f.phase_var + tone_var) for f in fams] if tone_var else fams
-    chi2, dof = consistency(cfams, ref.tone_phases_rad, ref.tau0_s + 2 * sol.range_m / C, settings.min_line_snr_db)
+    tau = ref.tau0_s + 2 * sol.range_m / C
+    chi2, dof = consistency(cfams, ref.tone_phases_rad, tau, settings.min_line_snr_db)
     ratio = chi2 / dof if dof > 0 else 1.0
-    # known drift of the tone phases since calibration and a blend's pull: independent per tone,
-    # invisible in the phases of one frame (the chi2 counts them: the Birge ratio scales both)
-    sigma = math.hypot(sigma, tone_phase_sigma(freqs, variances, math.sqrt(tone_var + blend_var)))
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
     p_fit = chdtrc(dof, chi2) if dof > 0 else 1.0
-    if p_fit < BIRGE_P:
-        sigma *= math.sqrt(ratio)
+    sigma = _drift_and_blend(sigma, (freqs, variances), fams, (tone_var, blend_var), (chi2, dof), ref, tau, settings)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
     p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0),
@@ -511,6 +508,26 @@ def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: fl
     return float(min(1.0, search_bins * gammaincc(p_eff, p_eff * dop.score / lines / kappa)))
 
 
+def _drift_and_blend(sigma: float, used: tuple[list, list], fams: list[LineFamily], var: tuple[float, float],
+                     fit: tuple[float, int], ref: Reference, tau: float, settings: ChainSettings) -> float:
+    """The range sigma (m) with the tones' declared drift and a blend's pull on each tone's phase
+    (``var``: their variances, rad^2; :func:`blend_phase_var`), both independent per tone and
+    invisible in one frame's phases (:func:`~.triangulation.tone_phase_sigma` through the fit's
+    weights, ``used``: its lines' tones and phase variances per family), Birge-scaled where the
+    line phases are improbable (p < :data:`BIRGE_P`) under one range with both (``fit``: their chi2
+    and dof with the drift alone; with a blend, read again with it: its pull scatters the phases,
+    and is counted once)."""
+    tone_var, blend_var = var
+    sigma = math.hypot(sigma, tone_phase_sigma(*used, math.sqrt(tone_var + blend_var)))
+    chi2, dof = fit
+    if blend_var > 0:
+        chi2, dof = consistency([replace(f, phase_var=f.phase_var + tone_var + blend_var) for f in fams],
+                                ref.tone_phases_rad, tau, settings.min_line_snr_db)
+    if dof > 0 and chdtrc(dof, chi2) < BIRGE_P:
+        sigma *= math.sqrt(chi2 / dof)
+    return sigma
+
+
 def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, ref: Reference,
                   settings: ChainSettings) -> tuple[float, int, float, float, int]:
     """A static candidate's line sizes: :func:`amplitude_chi2` (chi2, dof), the phase variance per
@@ -527,8 +544,12 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
 def blend_phase_var(chi2: float, dof: int, allowed: float) -> float:
     """The phase variance per tone (rad^2) that a second echo on one line set may put on a static
     point's lines, read from their sizes: ``(chi2/dof - 1) * allowed`` where the sizes' chi2 against
-    one target's (:func:`amplitude_chi2`, ``allowed`` the mean relative variance it allows a size)
-    is improbable at :data:`BIRGE_P`, else 0.
+    one target's (:func:`amplitude_chi2`, ``allowed`` the relative variance it allows a size: the
+    harmonic mean over the tones, as each tone's term weighs its excess) is improbable at
+    :data:`BIRGE_P`, else 0 -- and 0 where they are improbable at :data:`BLENDED_P`: the point is
+    flagged ``blended`` there, the blend may be as strong as the echo (``rho`` near 1, where sizes
+    and phases no longer move alike), and a sigma of metres (a review's scene 20085: 9.8 mm ->
+    23.7 m) moved the selections that read it (:func:`_same_range`).
 
     A second echo of relative size ``rho`` adds ``rho*exp(j*dphi_i)`` to every line (``dphi_i`` its
     range and carrier phase against the first's, spread over the tones): each line's size moves by
@@ -538,7 +559,8 @@ def blend_phase_var(chi2: float, dof: int, allowed: float) -> float:
     static, a static echo 33 dB under it; sizes 2 % apart against a declared 1 %, chi2 13.9 on 3 dof,
     p 0.003; the phases fit one range 0.85 mm off at a sigma of 0.05 mm, z -18).
     """
-    if dof <= 0 or not chdtrc(dof, chi2) < BIRGE_P:
+    p = chdtrc(dof, chi2) if dof > 0 else 1.0
+    if not BLENDED_P <= p < BIRGE_P:
         return 0.0
     return max(chi2 / dof - 1.0, 0.0) * allowed
 
@@ -612,9 +634,10 @@ def amplitude_chi2(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
 
 def _amplitude_fit(fams: list[LineFamily], amplitudes: dict[float, tuple[float, float]] | None,
                    min_snr_db: float) -> tuple[float, int, float]:
-    """:func:`amplitude_chi2`'s chi2 and dof, and the mean over its tones of the variance it allows
-    each size relative to its fitted size, ``(v_i + (rel_i*alpha*g_i)^2)/(alpha*g_i)^2`` (0, 0, 0
-    where nothing is known)."""
+    """:func:`amplitude_chi2`'s chi2 and dof, and the harmonic mean over its tones of the variance
+    it allows each size relative to its fitted size, ``(v_i + (rel_i*alpha*g_i)^2)/(alpha*g_i)^2``
+    (each tone's chi2 term is its relative excess over its own: ``chi2/dof - 1`` times this mean is
+    the excess they share; 0, 0, 0 where nothing is known)."""
     if not amplitudes or not fams:
         return 0.0, 0, 0.0
     uniq, a2, v = line_powers(fams, lambda f: _sizable(f, min_snr_db)
@@ -628,7 +651,7 @@ def _amplitude_fit(fams: list[LineFamily], amplitudes: dict[float, tuple[float, 
     for _ in range(3):  # alpha, then the weights with the relative sigma at that alpha
         alpha = float(np.sum(w * a * g) / np.sum(w * g * g))
         w = 1.0 / (v + (rel * alpha * g) ** 2)
-    allowed = float(np.mean(1.0 / (w * (alpha * g) ** 2))) if alpha > 0 else 0.0
+    allowed = 1.0 / float(np.mean(w * (alpha * g) ** 2)) if alpha > 0 else 0.0
     return float(np.sum(w * (a - alpha * g) ** 2)), int(uniq.size) - 1, allowed
 
 
