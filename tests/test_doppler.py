@@ -1621,3 +1621,28 @@ class TestBeatPulls:
         # an AC-coupled front end: no LO power to predict the beat from -- which line is a beat cannot be told
         out = beat_pulls(x - 1.0, self.found(lines, "fit"), self.FS, 8 * rbin, 14.0)
         assert all(d.beat_ambiguous and d.beat_pull_hz == 0.0 for d in out)
+
+
+def test_the_sub_guard_scans_median_leaves_out_its_peaks_lobe_and_the_blanked_points():
+    """``_scan_median``: a peak in a band a few bins wide stands out against what lies beside it, not
+    its own main lobe (scene 19892: 16.5x over the whole scan's median, 47x over the rest); points
+    blanked near the movers found (0) are no power of the scan's: counted once the lobe is out, they
+    made the median 0 and the contrast test void (a review: an IQ scan whose other sign a mover found
+    blanked, a flat scan's peak 1.8x passed)."""
+    from mtcw_core.dsp.doppler import _scan_median
+
+    dfr = 1.0
+    grid = np.arange(1.0, 4.0, 0.25)  # a band 1-3.75 bins, a peak at 1.5 bins whose lobe fills half of it
+    p = 1.0 / (1.0 + ((grid - 1.5) / 0.3) ** 2) * 100.0 + 1.0
+    k = int(np.argmax(p))
+    assert np.median(p) > 2 * _scan_median(p, grid, k, dfr, np.zeros(grid.size, bool))  # the lobe made it
+    assert _scan_median(p, grid, k, dfr, np.zeros(grid.size, bool)) == pytest.approx(np.median(p[np.abs(grid - 1.5) >= 1]))
+    iq = np.concatenate([-grid[::-1], grid])  # both signs; the negative one blanked by a mover found there
+    flat = np.ones(iq.size)
+    flat[iq == 2.0] = 1.8
+    blanked = iq < -1.1
+    q = np.where(blanked, 0.0, flat)
+    k = int(np.argmax(q))
+    assert _scan_median(q, iq, k, dfr, blanked) == pytest.approx(1.0)  # not 0: the test is not void
+    few = np.abs(iq - 2.0) < 1.1  # everything but the lobe blanked: the whole scan's median, as before
+    assert _scan_median(q, iq, k, dfr, ~few) == float(np.median(q))

@@ -811,19 +811,33 @@ class TestToneAmplitudes:
             obs = mix([f], PHI, 10.0)[0]
             if real(*tg._amplitude_fit([f], self.ref(0.01), 10.0)) == 0:
                 continue
-            flags = []
+            flags, sigmas = [], []
             for on in (True, False):
                 monkeypatch.setattr(tg, "blend_phase_var", real if on else (lambda *a: 0.0))
                 p = solve_target([f], obs, dop(0.0, False), frame(), ChainSettings(), Reference(PHI, 0.0, self.ref(0.01)),
                                  None)
                 flags.append((p.blended, p.cycle_ambiguous))
+                sigmas.append(p.range_sigma_m)
                 if not (p.blended or p.cycle_ambiguous):
                     z[on].append((p.range_m - 3.7) / p.range_sigma_m)
-            assert flags[0] == flags[1]
+            assert flags[0] == flags[1] and sigmas[0] >= sigmas[1]
         with_var, without = np.array(z[True]), np.array(z[False])
         assert with_var.size >= 30
         assert np.max(np.abs(with_var)) < 5 and 0.7 < np.sqrt(np.mean(with_var**2)) < 1.6, with_var
         assert np.sum(np.abs(without) > 5) >= 10, without
+
+    def test_the_allowed_size_variance_is_the_harmonic_mean_over_the_tones(self):
+        """``_amplitude_fit``'s ``allowed``: each tone's chi2 term is its relative excess over its own
+        allowed variance, so the excess they share is ``chi2/dof - 1`` times the harmonic mean of
+        those (the arithmetic one follows the noisiest tone: a blend's sigma ~3x wide there)."""
+        from mtcw_core.ranging import targets as tg
+        f = self.lines([(1.0, 3.7)], 1e-8, 0)
+        f = replace(f, phase_var=np.array([1e-8, 1e-8, 3e-3]))
+        _, dof, allowed = tg._amplitude_fit([f], self.ref(0.01), 10.0)
+        each = 0.01**2 + f.phase_var * (1 + f.phase_var)  # rel^2 + the size's noise (x 1 + S*v), relative
+        assert dof == 2
+        assert allowed == pytest.approx(1 / np.mean(1 / each), rel=0.05)
+        assert allowed < 0.5 * np.mean(each)
 
     def test_the_relative_sigma_widens_the_check(self):
         """The amplitudes' own error (a calibration's spread, their drift since) enters each line's

@@ -2340,7 +2340,7 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
         mask |= np.abs((grid if iq else np.abs(grid)) - fp) < SMALL_OTHER_BINS * dfr
     else:
         return None
-    if contrast is not None and not p[k] >= contrast * _scan_median(p, grid, k, dfr):
+    if contrast is not None and not p[k] >= contrast * _scan_median(p, grid, k, dfr, mask):
         return None
     if edge is None and _sidelobe(power, grid, k, dfr):
         return None
@@ -2352,17 +2352,20 @@ def _small_scan(low: LowBand, lo: float, hi: float, iq: bool, fit: "_SmallFit | 
 SCAN_LOBE_BINS = 1.0
 
 
-def _scan_median(p: np.ndarray, grid: np.ndarray, k: int, dfr: float) -> float:
-    """The median of the scan's power ``p`` (on ``grid``, Hz; 0 where blanked near the movers found,
-    as before) outside the main lobe of its peak ``grid[k]`` (:data:`SCAN_LOBE_BINS`); the whole
-    scan's where fewer than three points lie there.
+def _scan_median(p: np.ndarray, grid: np.ndarray, k: int, dfr: float, blanked: np.ndarray) -> float:
+    """The median of the scan's power ``p`` (on ``grid``, Hz) outside the main lobe of its peak
+    ``grid[k]`` (:data:`SCAN_LOBE_BINS`) and the points ``blanked`` near the movers found (0 in
+    ``p``: no power of the scan's); the whole scan's, zeros and all, where fewer than three are left.
+    The blanked points' zeros counted, the lobe out, made the median 0 and the test void where they
+    were most of the rest (a review: an IQ scan whose other sign a mover found blanked passed a peak
+    1.76x its old median).
 
     A peak stands out of the scan where it stands above what lies beside it, not above itself: in a
     band a few bins wide its own main lobe is most of the scan (the envelope probe's scene 19892: a
     mover 1.4 bins up, 2.5 dB under one 6.9 bins up on one photodiode, the band 1-3.9 bins; its peak
     stood 16.5x over a median its lobe made, under the 25x asked, 47x over the rest; it was missed,
     its lines unmodelled beside the other's, whose range came out 7.4 sigmas off)."""
-    away = np.abs(grid - grid[k]) >= SCAN_LOBE_BINS * dfr
+    away = (np.abs(grid - grid[k]) >= SCAN_LOBE_BINS * dfr) & ~blanked
     return float(np.median(p[away] if np.count_nonzero(away) >= 3 else p))
 
 

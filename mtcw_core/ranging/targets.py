@@ -516,16 +516,20 @@ def _drift_and_blend(sigma: float, used: tuple[list, list], fams: list[LineFamil
     weights, ``used``: its lines' tones and phase variances per family), Birge-scaled where the
     line phases are improbable (p < :data:`BIRGE_P`) under one range with both (``fit``: their chi2
     and dof with the drift alone; with a blend, read again with it: its pull scatters the phases,
-    and is counted once)."""
+    and is counted once) -- and never under the sigma without the blend (read again, the Birge
+    ratio may fall by more than the blend adds: a review's scene 536, 19.5 -> 12.4 mm)."""
     tone_var, blend_var = var
-    sigma = math.hypot(sigma, tone_phase_sigma(*used, math.sqrt(tone_var + blend_var)))
-    chi2, dof = fit
-    if blend_var > 0:
-        chi2, dof = consistency([replace(f, phase_var=f.phase_var + tone_var + blend_var) for f in fams],
-                                ref.tone_phases_rad, tau, settings.min_line_snr_db)
-    if dof > 0 and chdtrc(dof, chi2) < BIRGE_P:
-        sigma *= math.sqrt(chi2 / dof)
-    return sigma
+
+    def scaled(extra: float, chi2: float, dof: int) -> float:
+        out = math.hypot(sigma, tone_phase_sigma(*used, math.sqrt(tone_var + extra)))
+        return out * math.sqrt(chi2 / dof) if dof > 0 and chdtrc(dof, chi2) < BIRGE_P else out
+
+    without = scaled(0.0, *fit)
+    if blend_var <= 0:
+        return without
+    chi2, dof = consistency([replace(f, phase_var=f.phase_var + tone_var + blend_var) for f in fams],
+                            ref.tone_phases_rad, tau, settings.min_line_snr_db)
+    return max(without, scaled(blend_var, chi2, dof))
 
 
 def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, ref: Reference,
