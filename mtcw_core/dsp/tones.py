@@ -63,10 +63,10 @@ ROW_CHUNK_BYTES = 256 << 10
 #: about 1e6 multiply-adds OpenBLAS (0.3.31, Haswell kernels on the 2-core EPYC) leaves the path it
 #: takes for small products, and a product with 32-60 real columns ran 1.3-1.5x slower; wider
 #: tables, whose rows' cap would leave a few rows per product, re-read the whole table for each.
-#: Measured on a 1e6-sample record (``python`` timing of :func:`_chunked`, median of 11), 312- and
-#: 2048-sample rows: 44 columns 2.9 / 3.1 -> 1.8 / 1.9 ms (the phase advance's moments in
-#: ``balanced``), 60 columns 3.9 / 4.2 -> 2.5 / 2.6 ms, 120 columns 6.2 / 7.5 -> 4.8 / 5.2 ms
-#: (about 46 GFLOPS, near the core's peak); 24 columns and fewer within 10 % as before
+#: Measured on a 1e6-sample record (``python`` timing of :func:`_times_table`, median of 9, old and
+#: new alternated), 312- and 2048-sample rows: 44 columns 2.8 / 3.4 -> 2.0 / 2.1 ms (the phase
+#: advance's moments in ``balanced``), 80 columns 4.4 / 5.5 -> 3.7 / 3.5 ms, 120 columns 6.2 / 7.7
+#: -> 5.5 / 5.1 ms (44-47 GFLOPS, near the core's peak); 24 columns and fewer within 10 % as before
 PRODUCT_MAX_MACS = 800_000
 #: (see :data:`PRODUCT_MAX_MACS`)
 PRODUCT_MAX_COLUMNS = 32
