@@ -1206,3 +1206,16 @@ def test_a_sub_guard_mover_whose_lobe_fills_a_narrow_band_beside_a_found_one_is_
     counts, lines = judge_scene(19892, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["missed"] == 0, lines
+
+
+def test_a_faded_static_echos_beat_on_a_movers_sidebands_flags_it():
+    """The envelope probe's scene 22312: one photodiode, the LO 1 % of the power, a mover at 16 dB of
+    loss and a static echo at 35 dB faded out of its own lines (they were the mover's self-beat to
+    -60 dB). The echo's beat with the mover lay on the mover's lines and turned each tone's two
+    sidebands differently; the phases fit a near-alias of the plan 9.7 m off, 1740 sigmas, every
+    profile, unflagged. A mover's sidebands must show one carrier (``targets.sideband_split``: the
+    difference U - L is 2*psi on every tone): chi2 ~3000 on 2 dof, ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(22312, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
