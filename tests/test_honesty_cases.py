@@ -1219,3 +1219,16 @@ def test_a_faded_static_echos_beat_on_a_movers_sidebands_flags_it():
 
     counts, lines = judge_scene(22312, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_the_sidelobes_of_an_echo_moving_under_a_bin_are_no_second_mover():
+    """The envelope probe's scene 21675: one photodiode, six tones, 2^16; a mover 2.9 bins up at 30 dB
+    of loss and an echo 0.25 bin up at 53 dB. The sub-guard fit holds that echo's lines at 0 Hz and
+    ``f_i`` exactly; what it left of them rang through the rectangular window's sidelobes, and the
+    ringing 4.85 bins up, carrying the slow echo's phases, passed for a second mover: 0.29 m/s at
+    the slow echo's range, 954 sigmas off, every profile. A sub-guard mover must stay decisive with
+    the static lines let off their frequencies (``doppler._decisive_off_static``)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(21675, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
