@@ -1934,8 +1934,11 @@ SMALL_SCAN_STEP = 0.25
 #: from their beats (:func:`_small_scan`)
 SMALL_OTHER_BINS = 2.0
 #: the static lines' half-bin neighbours held in :func:`_decisive_off_static` keep this many record
-#: bins from the mover's own lines (nearer, the fit would be near-singular)
+#: bins from the mover's own lines (nearer, the fit would be near-singular) ...
 STATIC_FLANK_CLEAR_BINS = 0.75
+#: ... and with them held a sub-guard mover's baseband line and pairs must keep this part of their SNR
+#: (a slow echo's sidelobes kept 13 %, a real mover's lines nearly all)
+STATIC_FLANK_KEEP = 0.25
 #: several sub-guard movers are measured again in turn, each with the others' lines held
 #: (:func:`remeasure_small`), until none moves by more than this part of its error, at most this
 #: many rounds
@@ -2051,8 +2054,8 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     :data:`SMALL_MIN_SNR`, stronger than any of its sidebands (the carrier beat of a mover is), a
     coherent line (:data:`SMALL_MAX_WIDTH`), :data:`SMALL_MIN_PAIRS` tones with both sidebands
     above ``threshold_factor``, and, on a static intermodulation product within the guard, stronger
-    than every static line (the search's rule); all that with the static lines let off their
-    frequencies too (:func:`_decisive_off_static`).
+    than every static line (the search's rule); and its lines keeping their evidence with the
+    static lines let off their frequencies (:func:`_decisive_off_static`).
 
     Parameters
     ----------
@@ -2094,7 +2097,7 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, fd0, lo, hi)
     if not SMALL_SHAPE[0] <= shape <= SMALL_SHAPE[1] or not _small_decisive(
             spec, fd, c, snr, fit.static.size, fit.n_static, tones, guard_bins, fd_max_hz, threshold_factor,
-            width_test=not beside, low=low) or not _decisive_off_static(fit, spec, fd, fm, dm, guard_bins, fd_max_hz,
+            width_test=not beside, low=low) or not _decisive_off_static(fit, spec, fm, dm, beats, snr,
                                                                         threshold_factor):
         return None
     combined = _small_lines(fit, fd, fm, dm, c[fit.static.size:], s2, snr, beats, spec)
@@ -2106,33 +2109,44 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
                            lines_chi2=combined[2])
 
 
-def _decisive_off_static(fit: "_SmallFit", spec: Spectrum, fd: float, fm: np.ndarray, dm: np.ndarray,
-                         guard_bins: int, fd_max_hz: float, threshold_factor: float) -> bool:
-    """Whether a sub-guard mover at ``fd`` (Hz; its lines ``fm``, their exact DFTs ``dm``) stays
-    decisive (:func:`_small_decisive`, no width test) when the static lines may lie up to half a
-    record bin off their frequencies (lines half a bin either side held too, as
-    :func:`_static_offset_gap` does; none within :data:`STATIC_FLANK_CLEAR_BINS` of the mover's).
+def _decisive_off_static(fit: "_SmallFit", spec: Spectrum, fm: np.ndarray, dm: np.ndarray,
+                         beats: tuple[np.ndarray, np.ndarray] | None, snr: np.ndarray, threshold_factor: float) -> bool:
+    """Whether a sub-guard mover (its lines ``fm``, Hz, their exact DFTs ``dm``; its beats with the
+    movers already found, :meth:`_SmallFit.beat_lines`; each line's SNR in the fit, ``snr``) keeps
+    its evidence when the static lines may lie up to half a record bin off their frequencies: held
+    with lines half a bin either side too (as :func:`_static_offset_gap` does; none within
+    :data:`STATIC_FLANK_CLEAR_BINS` of the mover's lines or beats), its baseband line and at least
+    :data:`SMALL_MIN_PAIRS` of the pairs that passed ``threshold_factor`` must each keep
+    :data:`STATIC_FLANK_KEEP` of their SNR.
 
     An echo moving under a bin is held at 0 Hz and ``f_i`` exactly, and what the fit leaves of it
     rings through the rectangular window's sidelobes, ``(k + 1/2)`` bins from it, each ringing line
     carrying that echo's phases: the envelope probe's scene 21675 (one photodiode, six tones,
     2^16): an echo 0.25 bin up at 53 dB of loss beside a 30 dB mover left a line pattern 4.85 bins
-    up that passed for a second mover at 0.29 m/s, 954 sigmas off, ranged at the slow echo's range.
-    Two passes over the record, for a mover the fit would keep only."""
-    dfr = fit.fs / fit.x.size
+    up that passed for a second mover at 0.29 m/s, 954 sigmas off, ranged at the slow echo's range;
+    with the half-bin lines held its baseband line kept 13 % of its SNR and no pair stood. A real
+    mover's lines keep nearly all of theirs; the test is relative, as one at the threshold (23168:
+    77.6 dB of loss, 2.3 bins up, two pairs at 8) would lose a pair to any refit. One pass over the
+    record, for a mover the fit would keep only."""
+    dfr, t = fit.fs / fit.x.size, fit.tones.size
+    fb, db = beats if beats is not None else (np.empty(0), np.empty(0, dtype=np.complex128))
+    lines = np.concatenate([fm, fb])
     static = fit.static[:fit.n_static]
     extra = np.concatenate([static + 0.5 * dfr, static - 0.5 * dfr] + ([] if fit.iq else [[0.5 * dfr]]))
-    clear = np.min(np.abs(np.abs(extra)[:, None] - np.abs(fm)[None, :]), axis=1) > STATIC_FLANK_CLEAR_BINS * dfr
-    extra = _add_apart(fit.static, [extra[clear]], 0.25 * dfr)[fit.static.size:]
+    near = np.abs(extra[:, None] - lines[None, :]) if fit.iq else np.abs(np.abs(extra)[:, None] - np.abs(lines)[None, :])
+    extra = extra[np.min(near, axis=1) > STATIC_FLANK_CLEAR_BINS * dfr]
+    base = np.concatenate([fit.static, lines])
+    extra = _add_apart(base, [extra], 0.25 * dfr)[base.size:]
     if not extra.size:
         return True
     held = np.concatenate([fit.static, extra])
-    _, c = solve_lines(np.concatenate([fit.d_static, exact_dft(fit.x, extra, fit.fs), dm]),
-                       np.concatenate([held, fm]), fit.fs, fit.x.size, fit.total, fit.iq)
-    c = np.concatenate([c[:fit.static.size], c[held.size:]])  # the held lines' first, then the mover's
-    _, snr = _small_snr(fit, spec, c, fm)
-    return _small_decisive(spec, fd, c, snr, fit.static.size, fit.n_static, fit.tones, guard_bins, fd_max_hz,
-                           threshold_factor, width_test=False)
+    _, c = solve_lines(np.concatenate([fit.d_static, exact_dft(fit.x, extra, fit.fs), dm, db]),
+                       np.concatenate([held, lines]), fit.fs, fit.x.size, fit.total, fit.iq)
+    # the held lines' amplitudes first, then the mover's (its beats' left out), as _small_snr reads them
+    _, kept = _small_snr(fit, spec, np.concatenate([c[:fit.static.size], c[held.size:held.size + fm.size]]), fm)
+    keep = kept >= STATIC_FLANK_KEEP * snr
+    pairs = (np.minimum(snr[1:1 + t], snr[1 + t:]) >= threshold_factor) & keep[1:1 + t] & keep[1 + t:]
+    return bool(keep[0] and np.sum(pairs) >= min(SMALL_MIN_PAIRS, t))
 
 
 def _small_candidate(x: np.ndarray, fs: float, spec: Spectrum, tones: np.ndarray, others: tuple[float, ...],
