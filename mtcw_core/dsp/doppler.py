@@ -2131,8 +2131,7 @@ def _decisive_off_static(fit: "_SmallFit", spec: Spectrum, fm: np.ndarray, dm: n
     dfr, t = fit.fs / fit.x.size, fit.tones.size
     fb, db = beats if beats is not None else (np.empty(0), np.empty(0, dtype=np.complex128))
     lines = np.concatenate([fm, fb])
-    static = fit.static[:fit.n_static]
-    extra = np.concatenate([static + 0.5 * dfr, static - 0.5 * dfr] + ([] if fit.iq else [[0.5 * dfr]]))
+    extra = _static_flanks(fit)
     near = np.abs(extra[:, None] - lines[None, :]) if fit.iq else np.abs(np.abs(extra)[:, None] - np.abs(lines)[None, :])
     extra = extra[np.min(near, axis=1) > STATIC_FLANK_CLEAR_BINS * dfr]
     base = np.concatenate([fit.static, lines])
@@ -2786,6 +2785,15 @@ def _line_frequency_var(fit: _SmallFit, s2, curv):
 STATIC_OFFSET_SIGMAS = 2.0
 
 
+def _static_flanks(fit: _SmallFit) -> np.ndarray:
+    """Lines half a record bin either side of the fit's static lines (Hz; 0 Hz's upper one only on a
+    real record: its lower one is its image): held beside them, a static line's offset is taken up
+    to second order (:func:`_static_offset_gap`, :func:`_decisive_off_static`)."""
+    half = 0.5 * fit.fs / fit.x.size
+    static = fit.static[:fit.n_static]
+    return np.concatenate([static + half, static - half] + ([] if fit.iq else [[half]]))
+
+
 def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np.ndarray, d0: float,
                        s2: float) -> float:
     """How far (Hz) the baseband line's frequency moves when the static lines may lie up to half a
@@ -2804,9 +2812,7 @@ def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np
     second-order leak stays: scene 3689's line is still 38 Hz off, at 8 Hz). Three passes over the
     record, for a mover the fit reports only."""
     dfr = fit.fs / fit.x.size
-    half = 0.5 * dfr
-    static = fit.static[:fit.n_static]
-    extra = np.concatenate([static + half, static - half] + ([] if fit.iq else [[half]]))
+    extra = _static_flanks(fit)
     # none where the baseband line's trials reach (half a bin about it): the fit would be singular
     extra = _add_apart(held_f, [extra[np.abs(np.abs(extra) - abs(f0)) > 0.75 * dfr]], 0.25 * dfr)[held_f.size:]
     if not extra.size:
