@@ -965,6 +965,44 @@ class TestSmallMayPeak:
             assert snr[0] < doppler.SMALL_MIN_SNR / doppler.SMALL_SCAN_MARGIN
 
 
+class TestDecisiveOffStatic:
+    """``_decisive_off_static``: a sub-guard candidate's evidence with the static lines let off their
+    frequencies by half a bin (2^14 samples: an echo 0.3 bin up, amplitude 1, sidebands 0.3, on
+    static lines of 0.5)."""
+
+    @staticmethod
+    def decide(x: np.ndarray, fd: float) -> tuple[bool, float]:
+        """The check's verdict on a candidate at ``fd`` (Hz), and its baseband SNR in the plain fit."""
+        from mtcw_core.dsp.doppler import _decisive_off_static, _small_snr, _SmallFit
+
+        fit = _SmallFit(x, FS, np.array(TONES), np.iscomplexobj(x))
+        spec = power_spectrum(x, FS)
+        _, c, fm, dm, beats = fit.joint(fd)
+        _, snr = _small_snr(fit, spec, c, fm)
+        return _decisive_off_static(fit, spec, fm, dm, beats, snr, 8.0), float(snr[0])
+
+    @pytest.mark.parametrize("bins", [2.6, 4.6])
+    def test_a_slow_echos_sidelobes_are_rejected_on_a_real_record(self, bins):
+        ok, snr = self.decide(real_record(((0.3 * DF, 1.0, 0.3),)), bins * DF)
+        assert snr > 1e5 and not ok  # strong enough to pass the plain fit's thresholds (100)
+
+    @pytest.mark.parametrize("iq", [False, True])
+    @pytest.mark.parametrize("bins", [1.1, 2.6])
+    def test_a_real_mover_keeps_its_evidence(self, iq, bins):
+        """A mover at 40 dB under the static lines, no slow echo: its lines keep their SNR."""
+        x = iq_record(bins * DF, a0=1e-2, a1=3e-3) if iq else real_record(((bins * DF, 1e-2, 3e-3),))
+        ok, snr = self.decide(x, bins * DF)
+        assert snr > 1e5 and ok
+
+    @pytest.mark.xfail(strict=True, reason="IQ: with 0 and +-0.5 bin held, the echo's leftover (4 % of it) is shared by "
+                                           "the candidate's own column as before (its SNR kept 92-164 %); holding "
+                                           "+-1 bin too would cut it 4x (docs/benchmarks/honesty/notes.md)")
+    @pytest.mark.parametrize("bins", [2.6, 4.6])
+    def test_a_slow_echos_sidelobes_are_rejected_on_an_iq_record(self, bins):
+        ok, snr = self.decide(iq_record(0.3 * DF), bins * DF)
+        assert snr > 1e5 and not ok
+
+
 class TestSmallDopplerSimulated:
     """The sub-guard fit on the simulator's records: case 6's scene (1550 nm, 3 tones, 0.65536 GS/s,
     2^16 samples: 10 kHz bins), a 100 kHz laser whose phase noise over the echo delay is the
