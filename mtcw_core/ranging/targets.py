@@ -458,9 +458,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
                      or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous or any(f.echo_beats for f in fams) or unexplained > UNEXPLAINED_SIGMAS
                      or unexplained_sigmas(fams, settings.min_line_snr_db, "copy_v") > UNEXPLAINED_SIGMAS or ghost
-                     or (a_dof > 0 and not chdtrc(a_dof, a_chi2) >= BLENDED_P)
                      or any(d > 0 and not chdtrc(d, c) >= BLENDED_P for c, d in
-                            ((s_chi2, s_dof), (u_chi2, u_dof)))),
+                            ((a_chi2, a_dof), (s_chi2, s_dof), (u_chi2, u_dof)))),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
