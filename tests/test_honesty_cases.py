@@ -1268,3 +1268,17 @@ def test_a_sub_guard_movers_speed_sigma_reads_the_pedestal_when_the_range_aliase
 
     counts, lines = judge_scene(24014, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_static_echos_pedestal_bump_in_fast_counts_the_bins_fast_searched():
+    """The envelope probe's scene 26437: balanced, 2^16, a lone static echo at 18.4 m under a 1 MHz
+    laser (0.77 rad^2 of phase noise over its delay). One bump of its pedestal, the same beside
+    every line, passed for a mover at 3.8 m/s in ``fast``'s frame 1, 113 sigmas from 0. The
+    pedestal-ghost odds counted the Doppler bins of an eighth of the record, but a record of 2^16
+    samples is searched whole (``spectrum.search_length``): 8x the bins, and the point is
+    ``blended`` (as in ``balanced``)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(26437, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+

@@ -236,6 +236,9 @@ class TestSearchSpectrum:
         assert sp.n == 2**16 and sp.record_n is None
         np.testing.assert_array_equal(sp.power, power_spectrum(x[:2**16], FS, ("kaiser", 14.0)).power)
         assert search_spectrum(x[:4096], FS, 14.0, 0.25, False).n == 4096
+        # the rule itself, which the target stage's pedestal-ghost odds count the searched bins by
+        from mtcw_core.dsp.spectrum import search_length
+        assert [search_length(n, 1 / 8) for n in (2**20, 2**18, 2**16, 4096)] == [2**17, 2**16, 2**16, 4096]
 
     def test_windows_use_the_longest(self):
         x = np.random.default_rng(15).standard_normal(8192)

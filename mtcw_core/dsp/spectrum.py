@@ -837,6 +837,12 @@ def equivalent_width(seg: np.ndarray, dc: int | None = None) -> float | None:
 SEARCH_MIN_SAMPLES = 2**16
 
 
+def search_length(n: int, fraction: float) -> int:
+    """The samples the search spectrum of an ``n``-sample record (or echo window) transforms: the
+    first ``fraction`` of it, at least :data:`SEARCH_MIN_SAMPLES`, at most all of it."""
+    return min(n, max(SEARCH_MIN_SAMPLES, int(n * fraction)))
+
+
 def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, single: bool,
                     windows: list[tuple[int, int]] | None = None) -> Spectrum:
     """The stage: the Kaiser(``beta``) spectrum of the first ``fraction`` of the record, at least
@@ -854,7 +860,7 @@ def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, s
     if windows:
         a, b = max(windows, key=lambda w: w[1] - w[0])
         xs = x[a:b]
-    n = min(xs.size, max(SEARCH_MIN_SAMPLES, int(xs.size * fraction)))
+    n = search_length(xs.size, fraction)
     spec = power_spectrum(xs, fs_hz, ("kaiser", beta), n, single)
     return replace(spec, record_n=xs.size) if n < xs.size else spec
 

@@ -23,6 +23,7 @@ from scipy.stats import chi2 as chi2_dist
 from ..calibration import Calibration
 from ..dsp.doppler import CROSS_PULL_BINS, MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max, quarters_resolve_hz, within
 from ..dsp.extract import LineFamily
+from ..dsp.spectrum import search_length
 from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
@@ -433,9 +434,10 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
                                     settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     # a "mover" one bump of a pedestal that moves every line together could have made
-    # (the bins the search read: one sign of Doppler on a real record, both on IQ, in its part of the record)
-    bins = (2 if frame.receiver == "iq" else 1) * fd_max(frame.tones_hz, settings) * frame.n * min(
-        settings.doppler_fraction, 1.0) / frame.fs_hz
+    # (the bins the search read: one sign of Doppler on a real record, both on IQ, in its part of the
+    # record -- the whole of one up to 2^16 samples, whatever the profile's fraction)
+    bins = (2 if frame.receiver == "iq" else 1) * fd_max(frame.tones_hz, settings) * search_length(
+        frame.n, settings.doppler_fraction) / frame.fs_hz
     ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold, bins) > GHOST_ODDS_MAX
     v, vs, direction, v_min = velocity(dop, frame, fams, frame.receiver == "iq",
                                        carrier_coherence(settings, sol.range_m), fd_max(frame.tones_hz, settings),
