@@ -1565,31 +1565,6 @@ class TestSidelobeLeak:
         assert 0 < leak[0] < 1e-3  # its own image 2f away: 43 part bins
 
 
-def test_a_fitted_lines_pedestal_reads_the_shared_phase_psd():
-    """``fit_pedestal_psd`` -- the sub-guard fit's reading of the pedestal about its strongest line --
-    against a Lorentzian laser's phase difference over a delay (Monte Carlo), as
-    ``TestReassigned.test_the_pedestal_reads_the_shared_phase_psd`` reads the reassignment's: the
-    median over frames within 1.4-2.8x ``psd`` (a real record's line near 0 Hz carries its image's
-    pedestal too); a coherent line over white noise shows none. The fit's amplitude is a real
-    record's ``Re(c e^{jwk})``: ``|c|`` the cosine's amplitude."""
-    from mtcw_core.dsp.doppler import fit_pedestal_psd
-    rng = np.random.default_rng(5)
-    lw, lag = 2e5, 40
-    psd = 2 * np.pi * lw * (lag / FS) ** 2
-    fd = 7.31 * DF
-    seen, coherent = [], []
-    for _ in range(16):
-        phi = np.cumsum(rng.standard_normal(N + lag) * np.sqrt(2 * np.pi * lw / FS))
-        noise = 1e-4 * rng.standard_normal(N)
-        for dphi, out in ((phi[lag:] - phi[:-lag], seen), (0.0, coherent)):
-            x = np.cos(2 * np.pi * cyc(fd) + 0.3 + dphi) + noise
-            out.append(fit_pedestal_psd(power_spectrum(x, FS), np.array([fd, 100e6 + fd]),
-                                        np.array([np.exp(0.3j), 1e-3]), np.array([0.0, 100e6]), False))
-    ratio = float(np.median(seen)) / psd
-    assert 1.4 < ratio < 2.8, np.array(seen) / psd
-    assert np.sum(np.array(coherent) > 0) <= 1, coherent
-
-
 class TestReassignLeak:
     """``reassign_leak``: how far a stronger line anywhere in the record pulls a line's reassigned
     frequency through the Kaiser(14) window's sidelobes, against the pull measured."""

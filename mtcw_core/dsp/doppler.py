@@ -1978,22 +1978,6 @@ def pedestal_phase_psd(spec: Spectrum, line_hz: float, line_density: float, line
     return (near - white) / spec.fs_hz / line_density
 
 
-def fit_pedestal_psd(spec: Spectrum, fm: np.ndarray, cm: np.ndarray, held: np.ndarray, iq: bool) -> float:
-    """:func:`pedestal_phase_psd` about a sub-guard mover's strongest line, as
-    :func:`refine_reassigned` reads it about its own: ``fm`` (Hz) its lines, ``cm`` their amplitudes
-    in the least-squares fit (V: :func:`~.tones.solve_lines`', a real record's line ``Re(c e^{jwk})``,
-    so a quarter of ``|c|^2`` per side), ``held`` (Hz) every line the fit held. The target stage
-    takes the more of it and the declared laser's at the point's range
-    (:func:`~mtcw_core.ranging.targets.phase_psd`): a range known modulo the unambiguous range
-    leaves the echo's delay unknown. The envelope probe's scene 24014 (``fast``, one photodiode, a
-    1 MHz laser): a lone mover 1.4 bins up at 7.9 m, ranged 1.9 m in a 3 m frame, was given the
-    laser's phase noise at 1.9 m, a 17th of its PSD, and its speed was 5.8 sigmas off."""
-    top = int(np.argmax(np.abs(cm)))
-    lines = np.concatenate([held, fm])
-    return pedestal_phase_psd(spec, float(fm[top] if iq else abs(fm[top])),
-                              float(abs(cm[top]) ** 2 / (1.0 if iq else 4.0)), lines)
-
-
 # ---------------------------------------------------------------------------------------------
 # below the search's guard
 #: the sub-guard search looks down to this many record bins (fs/N) from 0 Hz: there a line's
@@ -2177,10 +2161,9 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     if combined is None:
         return None
     gain = (1.0 if iq else 1.5) * 12 * fs**3 / (4 * np.pi**2 * n**3)
-    # a coherent line (the width test): no wander of its own; the pedestal about it, for the target stage
+    # a coherent line (the width test): no wander of its own
     return DopplerEstimate(fd + combined[0], True, float(snr[0]), SMALL_MIN_SNR, lo, combined[1], 0.0, "fit", gain,
-                           lines_chi2=combined[2],
-                           pedestal_psd=fit_pedestal_psd(spec, fm, c[fit.static.size:], fit.static, iq))
+                           lines_chi2=combined[2])
 
 
 def _decisive_off_static(fit: "_SmallFit", spec: Spectrum, fm: np.ndarray, dm: np.ndarray,
