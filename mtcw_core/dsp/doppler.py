@@ -1807,7 +1807,7 @@ def refine_reassigned(x: np.ndarray, frame: Frame, est: DopplerEstimate, iq: boo
                                 (fs / (2 * np.pi)) ** 2 * sdw2 / (2 * wt), iq) \
         if pedestal and pedestal_is_flat(ped, pedestal, spec.df_hz) else 0.0
     # a far stronger line's sidelobes pull every line (reassign_leak), combined as the lines are
-    far = reassign_leak(spec, freqs[use], np.concatenate([near, freqs]), n, fs, iq, np.sqrt(var_line))
+    far = reassign_leak(rows[0], freqs[use], np.abs(zw), np.concatenate([near, freqs]), fs, iq, np.sqrt(var_line))
     return replace(est, fd_hz=fd, refine_error_hz=math.hypot(spread, pull, float(np.sum(wt * far) / np.sum(wt))),
                    method="reassigned",
                    shared_phase_gain=gain, pedestal_psd=ped, lines_chi2=lines_chi2, motion_sign=sign,
@@ -1822,38 +1822,41 @@ REASSIGN_LEAK_SHARE = 0.1
 REASSIGN_LEAK_MARGIN = 2.0
 
 
-def reassign_leak(spec: Spectrum, freqs: np.ndarray, others: np.ndarray, n: int, fs: float, iq: bool,
+def reassign_leak(xw: np.ndarray, freqs: np.ndarray, a_f: np.ndarray, others: np.ndarray, fs: float, iq: bool,
                   sigma_hz: np.ndarray) -> np.ndarray:
     """How far (Hz) the lines ``others`` (Hz; the target's own among them: a line itself is none)
-    -- and, on a real record, their images at ``-f`` -- can pull each line of ``freqs`` (Hz) in
-    :func:`refine_reassigned`, through its window's
-    sidelobes, shape (K,).
+    -- and, on a real record, their images at ``-f`` -- can pull each line of ``freqs`` (Hz, shape
+    (K,)) in :func:`refine_reassigned`, through its window's sidelobes, shape (K,).
 
-    A neighbour ``D`` Hz away, of amplitude ratio ``r`` (its amplitude over the line's, both read in
-    the search spectrum ``spec``), adds ``r*W(D)/W(0)`` to the line's windowed DFT and ``r*W'(D)/W(0)``
-    to its slope-weighted one (``W'`` the DFT of the window's slope), so the reassigned frequency
-    moves by up to ``fs/(2*pi) * r*|W'(D)|/W(0)``. The continuous window's ``|W'(D)|`` is ``2*pi*D/fs``
-    times its envelope (:func:`sidelobe_leak`'s): a pull that does not fall with distance. The
-    discrete window's slope leaks less far out, so the pull is read exactly (one DFT of the slope
-    over the record) wherever :data:`REASSIGN_LEAK_MARGIN` times the envelope's reaches
+    A neighbour ``D`` Hz away, of amplitude ratio ``r`` (its amplitude over the line's), adds
+    ``r*W(D)/W(0)`` to the line's windowed DFT and ``r*W'(D)/W(0)`` to its slope-weighted one (``W'``
+    the DFT of the window's slope), so the reassigned frequency moves by up to
+    ``fs/(2*pi) * r*|W'(D)|/W(0)``. The continuous window's ``|W'(D)|`` is ``2*pi*D/fs`` times its
+    envelope (:func:`sidelobe_leak`'s): a pull that does not fall with distance. The discrete
+    window's slope leaks less far out, so the pull is read exactly (one DFT of the slope over the
+    record) wherever :data:`REASSIGN_LEAK_MARGIN` times the envelope's reaches
     :data:`REASSIGN_LEAK_SHARE` of the line's own error ``sigma_hz`` (Hz, shape (K,)); summed over the
-    neighbours. The sizes are the spectrum's bins' (a line half a bin off reads ~8 % low through
-    Kaiser(14)), and so is the bound. The envelope probe's scene 24726 (balanced, 2^18): a mover 33 dB under another whose
-    lines lay 41 record bins from its own had its speed pulled 4-6 Hz at a stated 0.9 Hz (z 6) in
-    every profile.
+    neighbours. The sizes are the windowed record's own DFTs (a search spectrum of part of the
+    record -- ``fast``'s eighth -- reads a neighbour within its main lobe into the line's bin).
+    The envelope probe's scene 24726 (balanced, 2^18): a mover 33 dB under another whose lines lay
+    41 record bins from its own had its speed pulled 4-6 Hz at a stated 0.9 Hz (z 6) in every
+    profile.
+
+    Parameters
+    ----------
+    xw : ndarray, shape (N,), the record less its mean, windowed (V); ``a_f`` its DFTs' sizes at
+        ``freqs``
     """
+    n = xw.size
     f = np.asarray(freqs, dtype=float)
     o = np.asarray(others, dtype=float)
     o = o[np.abs(o) > 0.5 * fs / n]  # the mean is removed: 0 Hz is no line
-
-    def amp(v: np.ndarray) -> np.ndarray:
-        return np.sqrt(spec.power_at(v if spec.complex_input else np.abs(v)).astype(np.float64))
-
-    a_f = amp(f)
+    o = np.unique(o if iq else np.abs(o))  # (a real record's U and L static lines coincide)
+    a_o = np.abs(exact_dft(xw, o, fs))
     if not iq:  # a real record: every line's image at -f too (the line's own among ``others``)
-        o = np.concatenate([o, -o])
+        o, a_o = np.concatenate([o, -o]), np.concatenate([a_o, a_o])
     dist = np.abs(o[None, :] - f[:, None])
-    r = amp(o)[None, :] / np.maximum(a_f[:, None], 1e-300)
+    r = a_o[None, :] / np.maximum(np.asarray(a_f, dtype=float)[:, None], 1e-300)
     x = dist * n / fs
     beta = REASSIGN_BETA
     arg = (np.pi * x) ** 2 - beta**2

@@ -435,7 +435,8 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     # a "mover" one bump of a pedestal that moves every line together could have made
     # (the bins the search read: one sign of Doppler on a real record, both on IQ, in its part of the
-    # record -- the whole of one up to 2^16 samples, whatever the profile's fraction)
+    # record -- the whole of one up to 2^16 samples, whatever the profile's fraction; a quasi-CW
+    # record's search reads its longest echo window, fewer: counted as the record's, the odds err high)
     bins = (2 if frame.receiver == "iq" else 1) * fd_max(frame.tones_hz, settings) * search_length(
         frame.n, settings.doppler_fraction) / frame.fs_hz
     ghost = pedestal_ghost_odds(dop, fams, settings.doppler_threshold, bins) > GHOST_ODDS_MAX
