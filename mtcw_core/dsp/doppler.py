@@ -1828,10 +1828,11 @@ def _slope_leak(n: int) -> np.ndarray:
     (:func:`_window_and_slope`), on a grid of half record bins, ``D = k*fs/(2n)`` for ``k = 0..n``,
     read-only: at each point the largest root-sum-square of two points half a bin apart within a
     bin of it (a sidelobe turning once a bin, ``|a*sin(pi*D + c)|``, is ``a`` on any such two; the
-    main lobe's foot, 5-6.5 bins out, turns faster and stands up to 5.6x a narrower envelope). One zero-padded
-    FFT of the slope per record length, cached: :func:`reassign_leak`'s screen, which the continuous
-    window's envelope overstated 4-500x beyond a few tens of bins (every neighbour then read exactly,
-    ~7 ms a 2^18-sample record)."""
+    main lobe's foot, 5-6.5 bins out, turns faster and stands up to 5.6x a narrower envelope).
+
+    One zero-padded FFT of the slope per record length, cached: :func:`reassign_leak`'s screen. The
+    continuous window's envelope overstated the slope's far sidelobes 4-500x beyond a few tens of
+    bins, and every neighbour was then read exactly (~7 ms a 2^18-sample record)."""
     _, dw, sw, _ = _window_and_slope(n)
     mag2 = (np.abs(scipy.fft.rfft(dw, 2 * n)) / sw) ** 2
     pair = np.sqrt(np.concatenate([mag2[:-1] + mag2[1:], mag2[-1:]]))  # points k and k + 1
@@ -1857,9 +1858,9 @@ def reassign_leak(xw: np.ndarray, freqs: np.ndarray, a_f: np.ndarray, others: np
     window's slope leaks less far out, so the pull is read exactly (one DFT of the slope over the
     record) wherever :data:`SLOPE_LEAK_SCREEN` times the slope's own envelope (:func:`_slope_leak`)
     reaches :data:`REASSIGN_LEAK_SHARE` of the line's own error ``sigma_hz`` (Hz, shape (K,)); summed
-    over the neighbours. The sizes are the windowed record's own DFTs (a search
-    spectrum of part of the record -- ``fast``'s eighth -- reads a neighbour within its main lobe
-    into the line's bin).
+    over the neighbours. The sizes are the windowed record's own DFTs (a search spectrum of part of
+    the record -- ``fast``'s eighth -- reads a neighbour within its main lobe into the line's bin).
+
     The envelope probe's scene 24726 (balanced, 2^18): a mover 33 dB under another whose lines lay
     41 record bins from its own had its speed pulled 4-6 Hz at a stated 0.9 Hz (z 6) in every
     profile.
