@@ -2210,14 +2210,10 @@ def _decisive_off_static(fit: "_SmallFit", spec: Spectrum, fm: np.ndarray, dm: n
     mover's lines keep nearly all of theirs; the test is relative, as one at the threshold (23168:
     77.6 dB of loss, 2.3 bins up, two pairs at 8) would lose a pair to any refit. One pass over the
     record, for a mover the fit would keep only."""
-    dfr, t = fit.fs / fit.x.size, fit.tones.size
+    t = fit.tones.size
     fb, db = beats if beats is not None else (np.empty(0), np.empty(0, dtype=np.complex128))
     lines = np.concatenate([fm, fb])
-    extra = _static_flanks(fit)
-    near = np.abs(extra[:, None] - lines[None, :]) if fit.iq else np.abs(np.abs(extra)[:, None] - np.abs(lines)[None, :])
-    extra = extra[np.min(near, axis=1) > STATIC_FLANK_CLEAR_BINS * dfr]
-    base = np.concatenate([fit.static, lines])
-    extra = _add_apart(base, [extra], 0.25 * dfr)[base.size:]
+    extra = _static_flanks(fit, np.concatenate([fit.static, lines]), lines, fit.iq)
     if not extra.size:
         return True
     held = np.concatenate([fit.static, extra])
@@ -2867,13 +2863,19 @@ def _line_frequency_var(fit: _SmallFit, s2, curv):
 STATIC_OFFSET_SIGMAS = 2.0
 
 
-def _static_flanks(fit: _SmallFit) -> np.ndarray:
+def _static_flanks(fit: _SmallFit, base: np.ndarray, clear_of: np.ndarray, signed: bool) -> np.ndarray:
     """Lines half a record bin either side of the fit's static lines (Hz; 0 Hz's upper one only on a
-    real record: its lower one is its image): held beside them, a static line's offset is taken up
-    to second order (:func:`_static_offset_gap`, :func:`_decisive_off_static`)."""
-    half = 0.5 * fit.fs / fit.x.size
+    real record: its lower one is its image) to hold beside ``base`` (Hz, the lines the fit holds
+    already): held, a static line's offset is taken up to second order (:func:`_static_offset_gap`,
+    :func:`_decisive_off_static`). None within :data:`STATIC_FLANK_CLEAR_BINS` of ``clear_of`` (Hz;
+    by signed frequency with ``signed``, else by absolute) -- the fit would be near-singular -- nor
+    within a quarter bin of a line held before it."""
+    dfr = fit.fs / fit.x.size
     static = fit.static[:fit.n_static]
-    return np.concatenate([static + half, static - half] + ([] if fit.iq else [[half]]))
+    extra = np.concatenate([static + 0.5 * dfr, static - 0.5 * dfr] + ([] if fit.iq else [[0.5 * dfr]]))
+    a, b = (extra, np.asarray(clear_of, dtype=float)) if signed else (np.abs(extra), np.abs(clear_of))
+    extra = extra[np.min(np.abs(a[:, None] - b[None, :]), axis=1) > STATIC_FLANK_CLEAR_BINS * dfr]
+    return _add_apart(base, [extra], 0.25 * dfr)[len(base):]
 
 
 def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np.ndarray, d0: float,
@@ -2894,9 +2896,8 @@ def _static_offset_gap(fit: _SmallFit, f0: float, held_f: np.ndarray, held_d: np
     second-order leak stays: scene 3689's line is still 38 Hz off, at 8 Hz). Three passes over the
     record, for a mover the fit reports only."""
     dfr = fit.fs / fit.x.size
-    extra = _static_flanks(fit)
     # none where the baseband line's trials reach (half a bin about it): the fit would be singular
-    extra = _add_apart(held_f, [extra[np.abs(np.abs(extra) - abs(f0)) > 0.75 * dfr]], 0.25 * dfr)[held_f.size:]
+    extra = _static_flanks(fit, held_f, np.array([f0]), False)
     if not extra.size:
         return 0.0
     hf = np.concatenate([held_f, extra])
