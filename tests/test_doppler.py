@@ -1292,6 +1292,30 @@ class TestSmallSeveral:
         for e, f in zip(ests, (f1, f2)):
             assert abs(e.fd_hz - f) <= 5 * e.refine_error_hz and e.refine_error_hz < 0.01 * DF
 
+    def test_a_far_movers_baseband_line_is_read_less_the_records_mean(self):
+        """The baseband line of a mover found beyond the sub-guard band is taken out of the scan,
+        which reads the record less its mean; its amplitude must be read the same way. On one
+        photodiode the LO's DC leaks through the rectangular window as much as the line itself 22.2
+        bins up (the envelope probe's scene 32475: read with it, the line taken out doubled its
+        sidelobes and hid a mover 7.9 bins away)."""
+        from mtcw_core.dsp.doppler import _FarMovers, _small_residual
+        from mtcw_core.dsp.spectrum import LowBand
+
+        n, fs = 2**16, 5e9
+        t = np.arange(n)
+        for dc, bins, amp in ((0.5, 22.19, 3e-3), (2.0, 7.43, 1e-3), (0.0, 30.6, 1e-3)):
+            f0 = bins * fs / n
+            x = dc + amp * np.cos(2 * np.pi * f0 * (t - (n - 1) / 2) / fs + 0.7)
+            far = _FarMovers(x, fs, False, (f0,))
+            # (its own image's leak, 1/(2*pi*bins) of it, is what remains)
+            assert far.other_amps[0] == pytest.approx(amp * np.exp(0.7j), rel=1.5 / (2 * np.pi * bins))
+            # what is left of the line in the scan beside it: under a fifth of its sidelobes (the scan of
+            # the whole blocks only is no exact DFT of the record; read with the DC, twice them)
+            grid, xs = LowBand.of(x, fs, bins + 8).scan((bins - 6) * fs / n, (bins + 6) * fs / n, 0.25, False)
+            side = np.abs(grid - f0) > 1.5 * fs / n
+            left = np.abs(xs - _small_residual(far, grid))[side]
+            assert np.max(left) < 0.2 * np.max(np.abs(xs)[side])
+
     def test_cross_beats_of_movers_on_a_square_law_detector(self):
         """One echo is the other's LO on one photodiode: a beat at |f_a - f_b| (none for IQ, none on
         the static lines)."""

@@ -1269,3 +1269,18 @@ def test_a_static_echos_pedestal_bump_in_fast_counts_the_bins_fast_searched():
 
     counts, lines = judge_scene(26437, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_far_movers_baseband_line_taken_out_of_the_scan_uncovers_a_mover_beside_it():
+    """The envelope probe's scene 32475: one photodiode, 2^18, the LO half the power, movers at
+    22.2 and 14.3 record bins, 13 dB apart. The weaker lay inside the search lobe of the stronger,
+    and the scan beside it took the stronger's baseband line out with an amplitude read with the
+    LO's DC leak (``doppler._FarMovers``): its sidelobes doubled, the weaker stood 18.7x over the
+    scan's median (25x asked) and was missed, its lines pulling the stronger's speed 25 sigmas. Now
+    both are found and right (``blended``: closer than the phase refinement's quarters resolve)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(32475, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["missed"] == 0
+

@@ -2647,12 +2647,17 @@ def _record_dft(x: np.ndarray, freqs_hz: np.ndarray, fs: float) -> np.ndarray:
 class _FarMovers:
     """The baseband lines of movers found far from the sub-guard band, for :func:`_small_residual`:
     each line's amplitude from the record's exact DFT at it (``2X/N`` for a real record, ``X/N``
-    for IQ; referred to the record's centre, as the fit's), its image and the other lines far off."""
+    for IQ; referred to the record's centre, as the fit's), less the record mean's leak there (the
+    scan's record is the mean-free one; on one photodiode the LO's DC, through the rectangular
+    window, is as large as a mover's line 22.2 bins up: the envelope probe's scene 32475, whose
+    baseband line taken out that way doubled its sidelobes in the scan and hid a mover 7.9 bins
+    from it), its image and the other lines far off."""
 
     def __init__(self, x: np.ndarray, fs: float, iq: bool, others: tuple[float, ...]):
         self.x, self.fs, self.iq = x, fs, iq
         self.other_base = np.array([o if iq else abs(o) for o in others], dtype=float)
-        self.other_amps = _record_dft(x, self.other_base, fs) * ((1.0 if iq else 2.0) / x.size)
+        dft = _record_dft(x, self.other_base, fs) - np.mean(x) * _dirichlet(2 * np.pi * self.other_base / fs, x.size)
+        self.other_amps = dft * ((1.0 if iq else 2.0) / x.size)
 
 
 def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:
