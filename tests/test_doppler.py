@@ -1319,10 +1319,14 @@ class TestSmallSeveral:
     def test_cross_beats_of_movers_on_a_square_law_detector(self):
         """One echo is the other's LO on one photodiode: a beat at |f_a - f_b| (none for IQ, none on
         the static lines)."""
-        assert cross_beats((20e3, 65e3), False, 1e4) == [pytest.approx(45e3)]
-        assert sorted(cross_beats((20e3, 65e3, 90e3), False, 1e4)) == pytest.approx([25e3, 45e3, 70e3])
+        # one photodiode gives |f_d|: the beat lies at the difference or at the sum, both held
+        assert cross_beats((20e3, 65e3), False, 1e4) == pytest.approx([45e3, 85e3])
+        assert cross_beats((20e3, -65e3), False, 1e4) == pytest.approx([45e3, 85e3])
+        assert sorted(cross_beats((20e3, 65e3, 90e3), False, 1e4)) == pytest.approx(
+            [25e3, 45e3, 70e3, 85e3, 110e3, 155e3])
         assert cross_beats((20e3, 65e3), True, 1e4) == []
-        assert cross_beats((20e3, 30e3), False, 1e4) == []  # 1 bin from 0 Hz: on the static lines
+        # 1 bin from 0 Hz the difference lies on the static lines; the sum is held
+        assert cross_beats((20e3, 30e3), False, 1e4) == pytest.approx([50e3])
 
     def test_one_mover_is_not_counted_twice(self):
         """The strongest mover's sidelobes (rectangular window: -13 dB a bin and a half away) would

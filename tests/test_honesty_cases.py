@@ -1284,3 +1284,16 @@ def test_a_far_movers_baseband_line_taken_out_of_the_scan_uncovers_a_mover_besid
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["missed"] == 0
 
+
+def test_two_movers_on_one_photodiode_beat_at_the_sum_of_their_dopplers():
+    """The envelope probe's scene 30655: one photodiode, 2^16, movers at +2.1 and -8.6 record bins,
+    30 dB apart, both fitted below the guard. One photodiode gives ``|f_d|``: the sub-guard fit held
+    their beat at the difference (6.5 bins) only, and it lay at the sum (10.7 bins), 2.1 bins from
+    the weaker's lines: its speed 21 and 43 sigmas off (noiseless too), the stronger's 11. Both
+    beats are held now (``doppler.cross_beats``), and both speeds are right, unflagged."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(30655, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+    assert counts["missed"] == 0
+
