@@ -1297,3 +1297,18 @@ def test_two_movers_on_one_photodiode_beat_at_the_sum_of_their_dopplers():
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
     assert counts["missed"] == 0
 
+
+@pytest.mark.parametrize("scene_id, frames", [(33007, 2), (31334, 1), (30119, 1)])
+def test_what_pulls_the_line_phases_alike_widens_the_cycle_odds(scene_id, frames):
+    """The cycle odds read the line phases with what moves them beyond their noise, as the range
+    sigma does. 33007: balanced, three tones, movers at 17.8 and 50.8 m/s; 0.014 rad of tone drift
+    declared, counted apart on a mover's two sidebands, made a cycle 11 periods of its 250 MHz pair
+    off 10.4 chi2 better twice over: 11934 sigmas off, unflagged (frame 1). 31334: one photodiode,
+    a mover 44 dB under a static echo near the LO's power, whose beat could turn its lines 1.1
+    sigmas each: ranged two cycles of its 450 MHz pair off, 97 sigmas. 30119: two still echoes
+    2.4 dB apart on three tones, their sizes' chi2 p 1.6e-3 (``targets.blend_phase_var``), the
+    runner-up cycle 0.007 behind: 178 sigmas off. Each is ``cycle_ambiguous`` now."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(scene_id, frames)
+    assert counts["frames"] == 3 * frames and counts["cw"] == 0 and counts["cf"] == 0, lines

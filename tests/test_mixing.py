@@ -112,6 +112,34 @@ class TestConsistency:
         chi2, _ = consistency([family()], PHI, TAU + 2 * 0.1 / C)  # 0.3-0.5 rad off
         assert chi2 > 300
 
+    def test_tone_drift_shared_by_a_movers_sidebands(self):
+        """The tones' phase drift moves a mover's U and L lines alike (one draw per tone): counted
+        apart, the two families give its chi2 twice its 2 degrees of freedom on average -- a wrong
+        cycle's excess twice the evidence (the envelope probe's scene 33007). With the drift shared
+        its chi2 has the mean of its dof and the chi2 distribution's spread, over 400 draws."""
+        v_line, v_tone = 1e-8, 1e-4
+        rng = np.random.default_rng(7)
+        apart, shared = [], []
+        for k in range(400):
+            drift = tuple(rng.normal(0.0, np.sqrt(v_tone), 3))
+            fams = [family(var=(v_line + v_tone,) * 3, name=nm, target=1, fd=sg * 4e6, extra_phase=drift, seed=k)
+                    for nm, sg in (("U", 1), ("L", -1))]
+            c_apart, dof = consistency(fams, PHI, TAU)
+            c_shared, dof2 = consistency(fams, PHI, TAU, shared_var=v_tone)
+            assert dof == dof2 == 3
+            apart.append(c_apart)
+            shared.append(c_shared)
+        # the drift has 2 degrees of freedom here (3 tones, less their common phase): chi2_2 has mean
+        # 2 and variance 4; counted apart it reads 2 x chi2_2 (mean 4)
+        assert np.mean(shared) == pytest.approx(2.0, abs=0.35)
+        assert np.var(shared) == pytest.approx(4.0, rel=0.4)
+        assert np.mean(apart) == pytest.approx(4.0, abs=0.7)
+        np.testing.assert_allclose(np.asarray(apart), 2 * np.asarray(shared), rtol=1e-3)
+
+    def test_shared_drift_without_effect_on_one_family(self):
+        fam = family(extra_phase=(0.0, 0.1, -0.05))
+        assert consistency([fam], PHI, TAU, shared_var=1e-2) == consistency([fam], PHI, TAU)
+
     def test_family_with_one_usable_line_skipped(self):
         chi2, dof = consistency([family(var=(1e-4, 1.0, 1.0))], PHI, TAU, min_snr_db=10.0)
         assert (chi2, dof) == (0.0, -1)

@@ -71,7 +71,7 @@ def pair_observations(
 
 
 def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float], tau_s: float,
-                min_snr_db: float = -np.inf) -> tuple[float, int]:
+                min_snr_db: float = -np.inf, shared_var: float = 0.0) -> tuple[float, int]:
     """Chi-square of the line phases against one range, and its degrees of freedom.
 
     Per family, every used line is paired with the family's strongest line ``r``; the pair
@@ -79,6 +79,13 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
     covariance ``diag(v_i) + v_r`` (the reference line's noise is shared). ``chi2/dof`` near 1
     means one target explains the phases; far above, either several static targets share the
     lines (blended) or something the noise floor does not show (quantisation, spurs) moves them.
+
+    ``shared_var`` (rad^2): a phase error per tone that every family of the target carries alike --
+    the tones' own phase drift, which moves the calibration every line is read against (a mover's
+    ``f_i + f_d`` and ``f_i - f_d`` lines turn together: the envelope probe's scene 33007). Each
+    family's ``phase_var`` holds it already; this adds its covariance across the families, which
+    counted apart would weigh it as independent draws: twice the evidence from a mover's two
+    sidebands. 0: the families independent.
 
     Parameters
     ----------
@@ -88,28 +95,62 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
     -------
     (chi2, dof); dof counts independent pair phases minus one (the range)
     """
-    chi2, dof = 0.0, -1
-    for fam in families:
-        ok = np.flatnonzero(fam.snr_db >= min_snr_db)
-        if ok.size < 2:
-            continue
-        r = ok[np.argmax(fam.snr_db[ok])]
-        others = ok[ok != r]
-        d = fam.tone_hz[others] - fam.tone_hz[r]  # (O,)
-        prod = np.sum(fam.z[:, others] * np.conj(fam.z[:, r])[:, None]
-                      * np.exp((-2j * np.pi * d)[None, :] * fam.seg_centre_s[:, None]), axis=0)
-        rf = np.array([tone_phases_rad[f] for f in fam.tone_hz])
-        model = -2 * np.pi * d * tau_s + (rf[others] - rf[r])
-        res = np.angle(prod * np.exp(-1j * model))
-        v, vr = fam.phase_var[others], float(fam.phase_var[r])
+    parts = [p for p in (_pair_residuals(f, tone_phases_rad, tau_s, min_snr_db) for f in families) if p is not None]
+    dof = sum(res.size for res, *_ in parts) - 1
+    if shared_var > 0 and len(parts) > 1:
+        res = np.concatenate([r for r, *_ in parts])
+        cov = shared_var * _tone_incidence(parts)
+        at = 0
+        for r, v, vr, _ in parts:  # each family's own block, drift and all, in place of the shared part's
+            blk = slice(at, at + r.size)
+            cov[blk, blk] = np.diag(v) + vr
+            at += r.size
+        return float(res @ np.linalg.solve(cov, res)), dof
+    chi2 = 0.0
+    for res, v, vr, _ in parts:
         if np.all(v > 0):
             # res' (diag(v) + vr*1 1')^-1 res in closed form (Sherman-Morrison): no solve per call
             u = res / v
             chi2 += float(res @ u - vr * np.sum(u) ** 2 / (1.0 + vr * np.sum(1.0 / v)))
         else:
             chi2 += float(res @ np.linalg.solve(np.diag(v) + vr, res))
-        dof += others.size
     return chi2, dof
+
+
+def _pair_residuals(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: float, min_snr_db: float
+                    ) -> tuple[np.ndarray, np.ndarray, float, tuple[np.ndarray, float]] | None:
+    """:func:`consistency`'s pairs of one family: the residuals (rad, shape (O,)) of its used lines
+    against its strongest ``r`` at ``tau_s``, their variances ``v`` (O,) and ``v_r``, and the tones
+    (Hz) of the pairs, ``(f_i (O,), f_r)``; None with fewer than two used lines."""
+    ok = np.flatnonzero(fam.snr_db >= min_snr_db)
+    if ok.size < 2:
+        return None
+    r = ok[np.argmax(fam.snr_db[ok])]
+    others = ok[ok != r]
+    d = fam.tone_hz[others] - fam.tone_hz[r]  # (O,)
+    prod = np.sum(fam.z[:, others] * np.conj(fam.z[:, r])[:, None]
+                  * np.exp((-2j * np.pi * d)[None, :] * fam.seg_centre_s[:, None]), axis=0)
+    rf = np.array([tone_phases_rad[f] for f in fam.tone_hz])
+    model = -2 * np.pi * d * tau_s + (rf[others] - rf[r])
+    res = np.angle(prod * np.exp(-1j * model))
+    return res, fam.phase_var[others], float(fam.phase_var[r]), (fam.tone_hz[others], float(fam.tone_hz[r]))
+
+
+def _tone_incidence(parts: list[tuple]) -> np.ndarray:
+    """``E E'`` for the pairs of :func:`_pair_residuals` (``parts``): ``E`` has a row per pair, +1 at
+    its tone and -1 at its family's strongest; shape (P, P), the covariance of one unit of phase
+    drift per tone."""
+    tones = sorted({float(t) for *_, (fi, fr) in parts for t in (*fi, fr)})
+    index = {t: k for k, t in enumerate(tones)}
+    rows = []
+    for *_, (fi, fr) in parts:
+        for t in fi:
+            e = np.zeros(len(tones))
+            e[index[float(t)]] += 1.0
+            e[index[fr]] -= 1.0
+            rows.append(e)
+    e = np.asarray(rows)
+    return e @ e.T
 
 
 def mix(families: list[LineFamily], tone_phases_rad: dict[float, float], min_snr_db: float) -> dict[int, Observations]:

@@ -351,14 +351,15 @@ def _tone_snr(fams: list[LineFamily]) -> dict[str, float]:
 
 
 def cycle_slip_probability(fams: list[LineFamily], ref: Reference, sol: RangeSolution, chi2_best: float,
-                           scale: float, min_snr_db: float) -> float:
+                           scale: float, min_snr_db: float, shared_var: float = 0.0) -> float:
     """The odds that another cycle is the true one, from the line phases' likelihood.
 
     For each runner-up range ``L_k`` of the cycle resolution, ``exp(-(chi2(L_k) - chi2(L))/(2*s))``
     with ``chi2`` the line phases' misfit (:func:`~mtcw_core.ranging.mixing.consistency`) and ``s``
     the Birge ratio (>= 1) when the phases are less consistent than their noise; summed. Near the
     detection threshold a wrong cycle is as likely as the right one and the margin of the cost
-    alone does not say so.
+    alone does not say so. ``shared_var``: the tones' phase drift the families share
+    (:func:`~mtcw_core.ranging.mixing.consistency`; ``chi2_best`` read alike).
 
     Returns
     -------
@@ -366,7 +367,7 @@ def cycle_slip_probability(fams: list[LineFamily], ref: Reference, sol: RangeSol
     """
     total = 0.0
     for alt in sol.alternatives_m:
-        c2, _ = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * alt / C, min_snr_db)
+        c2, _ = consistency(fams, ref.tone_phases_rad, ref.tau0_s + 2 * alt / C, min_snr_db, shared_var)
         total += math.exp(-max(c2 - chi2_best, 0.0) / (2 * scale))
     return float(min(total, 1.0))
 
@@ -430,8 +431,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     sigma = _drift_and_blend(sigma, (freqs, variances), fams, (tone_var, blend_var), (chi2, dof), ref, tau, settings)
     # known timing jitter moves every tone phase as a range shift c*dt/2 (invisible in one frame)
     sigma = math.hypot(sigma, C * settings.timing_jitter_s / 2)
-    p_slip = cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0),
-                                    settings.min_line_snr_db)
+    p_slip = _slip_odds(cfams, (tone_var, blend_var), (chi2, dof), ref, sol, tau, together, settings.min_line_snr_db)
     unexplained = unexplained_sigmas(fams, settings.min_line_snr_db)
     # a "mover" one bump of a pedestal that moves every line together could have made
     # (the bins the search read: one sign of Doppler on a real record, both on IQ, in its part of the
@@ -511,6 +511,35 @@ def pedestal_ghost_odds(dop: DopplerEstimate, fams: list[LineFamily], factor: fl
     p_eff = float(np.clip(np.sum(eig) ** 2 / np.sum(eig**2), 1.0, lines))
     kappa = max(float(np.mean(np.mean(power, axis=0) / var[use])), 1.0)
     return float(min(1.0, search_bins * gammaincc(p_eff, p_eff * dop.score / lines / kappa)))
+
+
+def _slip_odds(cfams: list[LineFamily], var: tuple[float, float], fit: tuple[float, int], ref: Reference,
+               sol: RangeSolution, tau: float, together: float, min_snr_db: float) -> float:
+    """The odds of another cycle (:func:`cycle_slip_probability`) with the line phases' noise and the
+    tones' declared drift (``cfams``, their chi2 and dof at the solution ``fit``; Birge-scaled, and
+    widened by ``together``, the rings' shared noise) -- and a blend's pull on each tone's phase
+    (``blend_var``, rad^2: :func:`blend_phase_var`). Where the sizes show a second echo it pulls the
+    phases as far as it scatters the sizes, and a runner-up cycle it brings near is as likely as the
+    solution (the envelope probe's scene 30119: two still echoes 2.4 dB apart on three tones, margin
+    0.007, ranged 178 sigmas off) -- and a static echo's beat on a mover's lines (one photodiode,
+    :attr:`LineFamily.cross_v`, each line's turn as its sigma: scene 31334, a mover 44 dB under a
+    static echo near the LO's power, turns of 1.1 sigmas on three tones, ranged two cycles of its
+    finest pair off at 97 sigmas); the Birge ratio is then read with them, so each is counted once.
+    ``var``: ``(tone_var, blend_var)``; the tones' drift ``tone_var`` (rad^2, in ``cfams`` already)
+    is one draw per tone for all the families (:func:`~mtcw_core.ranging.mixing.consistency`'s
+    ``shared_var``: a mover's two sidebands are not two readings of it -- scene 33007, 0.014 rad of
+    drift declared on three tones, a wrong cycle 10.4 chi2 better counted twice, 11934 sigmas off)."""
+    tone_var, blend_var = var
+    chi2, dof = fit
+    extra = [blend_var + (0.0 if f.cross_v is None else _turns(f, np.ones(f.tone_hz.size, bool), f.cross_v) ** 2)
+             for f in cfams]
+    if any(np.any(e > 0) for e in extra):
+        cfams = [replace(f, phase_var=f.phase_var + e) for f, e in zip(cfams, extra)]
+    if tone_var > 0 or any(np.any(e > 0) for e in extra):
+        chi2 = consistency(cfams, ref.tone_phases_rad, tau, min_snr_db, tone_var)[0]
+    ratio = chi2 / dof if dof > 0 else 1.0
+    return cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0), min_snr_db,
+                                  tone_var)
 
 
 def _drift_and_blend(sigma: float, used: tuple[list, list], fams: list[LineFamily], var: tuple[float, float],
