@@ -70,6 +70,11 @@ def pair_observations(
                         np.concatenate(w).astype(float))
 
 
+#: :func:`consistency` with a shared drift takes each family's own line noise as at least this
+#: share of the drift's variance: how far two families' readings of one tone's drift may differ
+SHARED_NOISE_FLOOR = 0.01
+
+
 def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float], tau_s: float,
                 min_snr_db: float = -np.inf, shared_var: float = 0.0) -> tuple[float, int]:
     """Chi-square of the line phases against one range, and its degrees of freedom.
@@ -85,7 +90,8 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
     ``f_i + f_d`` and ``f_i - f_d`` lines turn together: the envelope probe's scene 33007). Each
     family's ``phase_var`` holds it already; this adds its covariance across the families, which
     counted apart would weigh it as independent draws: twice the evidence from a mover's two
-    sidebands. 0: the families independent.
+    sidebands. Each family's own noise beyond it is floored at :data:`SHARED_NOISE_FLOOR` of it.
+    0: the families independent.
 
     Parameters
     ----------
@@ -100,10 +106,14 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
     if shared_var > 0 and len(parts) > 1:
         res = np.concatenate([r for r, *_ in parts])
         cov = shared_var * _tone_incidence(parts)
+        # each family's own noise beyond the drift, at least SHARED_NOISE_FLOOR of it (a noiseless
+        # line's variance is the drift's to the last digit: the U and L lines would then have to
+        # agree exactly, and the covariance, of rank T - 1 for 2(T - 1) pairs, is singular)
+        floor = SHARED_NOISE_FLOOR * shared_var
         at = 0
-        for r, v, vr, _ in parts:  # each family's own block, drift and all, in place of the shared part's
+        for r, v, vr, _ in parts:
             blk = slice(at, at + r.size)
-            cov[blk, blk] = np.diag(v) + vr
+            cov[blk, blk] += np.diag(np.maximum(v - shared_var, floor)) + max(vr - shared_var, floor)
             at += r.size
         return float(res @ np.linalg.solve(cov, res)), dof
     chi2 = 0.0

@@ -521,8 +521,9 @@ def _slip_odds(cfams: list[LineFamily], var: tuple[float, float], fit: tuple[flo
     (``blend_var``, rad^2: :func:`blend_phase_var`). Where the sizes show a second echo it pulls the
     phases as far as it scatters the sizes, and a runner-up cycle it brings near is as likely as the
     solution (the envelope probe's scene 30119: two still echoes 2.4 dB apart on three tones, margin
-    0.007, ranged 178 sigmas off) -- and a static echo's beat on a mover's lines (one photodiode,
-    :attr:`LineFamily.cross_v`, each line's turn as its sigma: scene 31334, a mover 44 dB under a
+    0.007, ranged 178 sigmas off) -- and a static echo's beat (one photodiode) or leak (IQ,
+    balanced) on a mover's lines (:attr:`LineFamily.cross_v`, each line's turn as its sigma; both
+    counted per line, though a beat may move a mover's two sidebands alike: scene 31334, a mover 44 dB under a
     static echo near the LO's power, turns of 1.1 sigmas on three tones, ranged two cycles of its
     finest pair off at 97 sigmas); the Birge ratio is then read with them, so each is counted once.
     ``var``: ``(tone_var, blend_var)``; the tones' drift ``tone_var`` (rad^2, in ``cfams`` already)
@@ -536,7 +537,8 @@ def _slip_odds(cfams: list[LineFamily], var: tuple[float, float], fit: tuple[flo
     if any(np.any(e > 0) for e in extra):
         cfams = [replace(f, phase_var=f.phase_var + e) for f, e in zip(cfams, extra)]
     if tone_var > 0 or any(np.any(e > 0) for e in extra):
-        chi2 = consistency(cfams, ref.tone_phases_rad, tau, min_snr_db, tone_var)[0]
+        # (the lines a wider variance takes under the threshold leave the fit: its own dof)
+        chi2, dof = consistency(cfams, ref.tone_phases_rad, tau, min_snr_db, tone_var)
     ratio = chi2 / dof if dof > 0 else 1.0
     return cycle_slip_probability(cfams, ref, sol, chi2, max(ratio, 1.0) * max(together, 1.0), min_snr_db,
                                   tone_var)
