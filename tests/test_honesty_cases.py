@@ -1312,3 +1312,16 @@ def test_what_pulls_the_line_phases_alike_widens_the_cycle_odds(scene_id, frames
 
     counts, lines = judge_scene(scene_id, frames)
     assert counts["frames"] == 3 * frames and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_movers_self_beat_with_no_carrier_modelled_is_no_static_target():
+    """The envelope probe's scene 34883: one photodiode, 2^16, the LO half the power, a lone echo at
+    9 dB of loss moving 1.2 record bins. Its carrier line lies within its clearance of 0 Hz and is
+    not modelled, so no self-beat was predicted or taken out: the self-beat, 6 dB under its LO-beat
+    lines, stood as a static point at its range, unflagged (confident false, frame 0). Its size is
+    now bounded from the carrier read on the whole record (``extract._unmodelled_self_beats``) and
+    the static point is ``blended``."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(34883, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -23,7 +23,7 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
-from .tones import (centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, fit_noise_gain,
+from .tones import (_dirichlet, centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, fit_noise_gain,
                     line_response)
 from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 
@@ -576,10 +576,40 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             whole = _cross_beats(np.maximum(np.abs(zs[0, "S"]) - noise, 0.0), *carriers)
             cross.update({k: whole[k] for k in beating if k in whole})
         taken = np.maximum(taken, _other_root_left(left, lo_smaller, s))
+        if len(carriers[0]) < len(found):  # a mover with no carrier modelled: no prediction taken
+            taken = np.maximum(taken, np.minimum(_unmodelled_self_beats(zs, x, frame.fs_hz, found, carriers),
+                                                 np.sqrt(np.mean(np.abs(s) ** 2, axis=0))))
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
                                    found), cross, still, over_lo, bool(found) and not mostly_self, parts
+
+
+def _unmodelled_self_beats(zs: dict, x: np.ndarray, fs: float, found: list[float],
+                           carriers: tuple[list[tuple[int, np.ndarray]], np.ndarray]) -> np.ndarray:
+    """The self-beat (V, shape (T,)) of the found movers whose carrier line was not modelled (within
+    its clearance of 0 Hz: :func:`_carriers` has none for them), which no prediction took out: for
+    each, :func:`_self_beat_parts`' size ``(|U_i| + |L_i|)*|B|/(2*A_L^2)`` (rms over the segments),
+    its carrier ``|B|`` read from the whole record's exact DFT at ``|f_d|`` less the record mean's
+    leak (``2|X|/N``), times :data:`UNMODELLED_CARRIER_MARGIN` (the line's own image 2-3 bins off,
+    the other lines near 0 Hz). The envelope probe's scene 34883: a lone echo at 9 dB of loss 1.2
+    bins up on one photodiode, its self-beat 6 dB under its LO-beat lines left whole on the static
+    lines -- a static point at its range, unflagged."""
+    have = {k for k, _ in carriers[0]}
+    lo_power = float(np.mean(carriers[1]))
+    out = np.zeros(zs[0, "S"].shape[1])
+    for k, fd in enumerate(found, start=1):
+        if k in have or (k, "U") not in zs:
+            continue
+        f = np.array([abs(fd)])
+        b = 2.0 / x.size * abs(exact_dft(x, f, fs)[0] - np.mean(x) * _dirichlet(2 * np.pi * f / fs, x.size)[0])
+        sides = np.sqrt(np.mean(np.abs(zs[k, "U"]) ** 2, axis=0)) + np.sqrt(np.mean(np.abs(zs[k, "L"]) ** 2, axis=0))
+        out += UNMODELLED_CARRIER_MARGIN * sides * b / (2.0 * max(lo_power, 1e-300))
+    return out
+
+
+#: :func:`_unmodelled_self_beats` takes a carrier read from the whole record this many times its size
+UNMODELLED_CARRIER_MARGIN = 1.5
 
 
 def _other_root_left(left: list[tuple], lo_smaller: bool, s: np.ndarray) -> np.ndarray | float:
