@@ -577,8 +577,8 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
             cross.update({k: whole[k] for k in beating if k in whole})
         taken = np.maximum(taken, _other_root_left(left, lo_smaller, s))
         if len(carriers[0]) < len(found):  # a mover with no carrier modelled: no prediction taken
-            taken = np.maximum(taken, np.minimum(_unmodelled_self_beats(zs, x, frame.fs_hz, found, carriers),
-                                                 np.sqrt(np.mean(np.abs(s) ** 2, axis=0))))
+            taken = taken + np.minimum(_unmodelled_self_beats(zs, x, frame.fs_hz, found, carriers[0], dc, lo_smaller),
+                                       np.sqrt(np.mean(np.abs(s) ** 2, axis=0)))
     else:
         taken = 0.0
     return taken + self_beat_bound(spec, frame.tones_hz, fd_max(frame.tones_hz, settings), settings.doppler_min_bins,
@@ -586,25 +586,32 @@ def _self_beats(zs: dict, z_all: np.ndarray, uniq: np.ndarray, dops: list[Dopple
 
 
 def _unmodelled_self_beats(zs: dict, x: np.ndarray, fs: float, found: list[float],
-                           carriers: tuple[list[tuple[int, np.ndarray]], np.ndarray]) -> np.ndarray:
+                           base: list[tuple[int, np.ndarray]], dc: np.ndarray, lo_smaller: bool) -> np.ndarray:
     """The self-beat (V, shape (T,)) of the found movers whose carrier line was not modelled (within
-    its clearance of 0 Hz: :func:`_carriers` has none for them), which no prediction took out: for
-    each, :func:`_self_beat_parts`' size ``(|U_i| + |L_i|)*|B|/(2*A_L^2)`` (rms over the segments),
-    its carrier ``|B|`` read from the whole record's exact DFT at ``|f_d|`` less the record mean's
-    leak (``2|X|/N``), times :data:`UNMODELLED_CARRIER_MARGIN` (the line's own image 2-3 bins off,
-    the other lines near 0 Hz). The envelope probe's scene 34883: a lone echo at 9 dB of loss 1.2
-    bins up on one photodiode, its self-beat 6 dB under its LO-beat lines left whole on the static
-    lines -- a static point at its range, unflagged."""
-    have = {k for k, _ in carriers[0]}
-    lo_power = float(np.mean(carriers[1]))
+    its clearance of 0 Hz: :func:`_carriers`' ``base`` has none for them), which no prediction took
+    out: for each, :func:`_self_beat_parts`' size ``(|U_i| + |L_i|)*|B|/(2*A_L^2)`` (rms over the
+    segments; twice the one sideband where the other is unusable), its carrier ``|B|`` read from the
+    whole record's exact DFT at ``|f_d|`` less the record mean's leak (``2|X|/N``), times
+    :data:`UNMODELLED_CARRIER_MARGIN` (the line's own image 2-3 bins off, the other lines near 0 Hz:
+    0.87-1.08 of it at 1.2 bins), and ``A_L^2`` the root of :func:`_carriers` with every carrier's
+    power in the mean (the one the prediction took: ``lo_smaller``). The envelope probe's scene
+    34883: a lone echo at 9 dB of loss 1.2 bins up on one photodiode, its self-beat 6 dB under its
+    LO-beat lines left whole on the static lines -- a static point at its range, unflagged."""
+    have = {k for k, _ in base}
+    lost = [(k, abs(fd)) for k, fd in enumerate(found, start=1) if k not in have and (k, "U") in zs]
     out = np.zeros(zs[0, "S"].shape[1])
-    for k, fd in enumerate(found, start=1):
-        if k in have or (k, "U") not in zs:
-            continue
-        f = np.array([abs(fd)])
-        b = 2.0 / x.size * abs(exact_dft(x, f, fs)[0] - np.mean(x) * _dirichlet(2 * np.pi * f / fs, x.size)[0])
-        sides = np.sqrt(np.mean(np.abs(zs[k, "U"]) ** 2, axis=0)) + np.sqrt(np.mean(np.abs(zs[k, "L"]) ** 2, axis=0))
-        out += UNMODELLED_CARRIER_MARGIN * sides * b / (2.0 * max(lo_power, 1e-300))
+    if not lost:
+        return out
+    f = np.array([fd for _, fd in lost])
+    b = 2.0 / x.size * np.abs(exact_dft(x, f, fs) - np.mean(x) * _dirichlet(2 * np.pi * f / fs, x.size))
+    mean = float(np.mean(dc))
+    echo_dc = float(np.mean(sum((np.abs(c) ** 2 for _, c in base), np.zeros(1)))) + float(np.sum(b**2))
+    root = math.sqrt(max(mean**2 - echo_dc, 0.0))
+    lo_power = max(0.5 * (mean - root if lo_smaller else mean + root), 1e-300)
+    for (k, _), bk in zip(lost, b):
+        u, low = (np.sqrt(np.mean(np.abs(zs[k, side]) ** 2, axis=0)) for side in ("U", "L"))
+        sides = np.where((u > 0) & (low > 0), u + low, 2.0 * (u + low))
+        out += UNMODELLED_CARRIER_MARGIN * sides * bk / (2.0 * lo_power)
     return out
 
 
