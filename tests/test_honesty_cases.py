@@ -1325,3 +1325,16 @@ def test_a_movers_self_beat_with_no_carrier_modelled_is_no_static_target():
 
     counts, lines = judge_scene(34883, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_sub_guard_mover_beside_a_blended_line_set_is_flagged():
+    """The envelope probe's scene 22284, ``fast``, frame 1: one photodiode, 2^18, movers 3.6 and 4.8
+    record bins up, 12 dB apart, found as one Doppler line at 3.6 bins whose lines disagree (chi2
+    301: ``blended``); the sub-guard fit, holding that line set at one Doppler, found a second
+    "mover" at 6.35 bins in the blend's residual, its lines ranged as the weaker's, its speed 1.5
+    bins off (17.6 sigmas), unflagged. A fit's mover within four bins of a blend is now ``blended``
+    too (``targets._beside_a_blend``)."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(22284, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

@@ -946,7 +946,32 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
     sep = quarters_resolve_hz(frame.fs_hz, frame.n)
     points = [(k, replace(p, blended=True)) if k and moving[k - 1].unresolved and (
         moving[k - 1].beside or within(moving[k - 1], kept, sep)) else (k, p) for k, p in points]
-    return _cross_beaten(points, families, settings), l_unamb
+    return _cross_beaten(_beside_a_blend(points, moving, frame, settings), families, settings), l_unamb
+
+
+#: a sub-guard fit's mover this close (record bins, in ``|f_d|``) to a found mover whose own lines
+#: are a blend (``lines_chi2`` above the profile's ``blended_lines_chi2``) is ``blended`` too: the fit
+#: held that one's lines where no one mover's are (:func:`_beside_a_blend`)
+HELD_BLEND_BINS = 4.0
+
+
+def _beside_a_blend(points: list[tuple[int, TargetPoint]], moving: list[DopplerEstimate], frame: Frame,
+                    settings: ChainSettings) -> list[tuple[int, TargetPoint]]:
+    """Movers found by the sub-guard fit (``method == "fit"``) within :data:`HELD_BLEND_BINS` record
+    bins of another found mover whose lines disagree as no one mover's do (two movers unresolved in
+    one Doppler line), flagged ``blended``: the fit held that line set at one Doppler, the residual
+    of the blend it left can make a "mover" beside it (the envelope probe's scene 22284, ``fast``:
+    movers 3.6 and 4.8 bins up on one photodiode, found as one at 3.6 with lines chi2 301, and a
+    second "mover" at 6.35 bins whose lines ranged as the weaker's, its speed 1.5 bins off, 17.6
+    sigmas) -- a point beside a blend is not measured alone."""
+    bin_hz = frame.fs_hz / frame.n
+    blends = [d for d in moving if d.lines_chi2 > settings.blended_lines_chi2]
+
+    def beside(d: DopplerEstimate) -> bool:
+        return d.method == "fit" and any(b is not d and abs(abs(b.fd_hz) - abs(d.fd_hz)) < HELD_BLEND_BINS * bin_hz
+                                         for b in blends)
+
+    return [(k, replace(p, blended=True)) if k and beside(moving[k - 1]) else (k, p) for k, p in points]
 
 
 def _cross_beaten(points: list[tuple[int, TargetPoint]], families: list[LineFamily], settings: ChainSettings
