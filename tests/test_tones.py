@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mtcw_core.dsp import tones
-from mtcw_core.dsp.tones import exact_dft, exact_dft_parts, exact_dft_tiled, fit_lines, fit_lines_segments, phasors
+from mtcw_core.dsp.tones import (exact_dft, exact_dft_parts, exact_dft_tiled, fit_lines, fit_lines_segments, mean_leak,
+                                  phasors)
 
 FS = 1.0e9
 
@@ -555,3 +556,17 @@ def test_fit_noise_gain_is_the_fitted_amplitudes_variance_in_white_noise(iq):
     np.testing.assert_allclose(np.var(z, axis=0), gain, rtol=0.1)
     assert gain[0] > 2.0 * gain[2]
     np.testing.assert_allclose(gain[2] * n, 1.0 if iq else 4.0, rtol=0.01)
+
+
+@pytest.mark.parametrize("n", [4096, 4097])
+def test_mean_leak_is_the_exact_dft_of_the_records_mean(n):
+    """``mean_leak`` is ``exact_dft`` of a constant record: subtracted, a line's amplitude is read as
+    from the mean-free record (real and complex, even and odd lengths)."""
+    f = np.array([0.0, 3.3e5, 7.25e6, -1.1e6])
+    for mean in (0.7, 0.3 - 0.4j):
+        const = np.full(n, mean) if isinstance(mean, float) else np.full(n, mean, dtype=np.complex128)
+        np.testing.assert_allclose(mean_leak(const, f, FS), exact_dft(const, f, FS), rtol=1e-9, atol=1e-9 * n)
+        rng = np.random.default_rng(n)
+        x = const + rng.normal(0.0, 1.0, n)
+        np.testing.assert_allclose(exact_dft(x, f, FS) - mean_leak(x, f, FS), exact_dft(x - np.mean(x), f, FS),
+                                   rtol=1e-9, atol=1e-9 * n)

@@ -32,7 +32,7 @@ from ..profiles import ChainSettings
 from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
                        windowed_record,
                        window_sum)
-from .tones import (PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, lines_signal, solve_lines,
+from .tones import (PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, lines_signal, mean_leak, solve_lines,
                     solve_lines_many)
 
 
@@ -2656,8 +2656,8 @@ class _FarMovers:
     def __init__(self, x: np.ndarray, fs: float, iq: bool, others: tuple[float, ...]):
         self.x, self.fs, self.iq = x, fs, iq
         self.other_base = np.array([o if iq else abs(o) for o in others], dtype=float)
-        dft = _record_dft(x, self.other_base, fs) - np.mean(x) * _dirichlet(2 * np.pi * self.other_base / fs, x.size)
-        self.other_amps = dft * ((1.0 if iq else 2.0) / x.size)
+        self.other_amps = (_record_dft(x, self.other_base, fs) - mean_leak(x, self.other_base, fs)) * (
+            (1.0 if iq else 2.0) / x.size)
 
 
 def cross_beats(fds: tuple[float, ...], iq: bool, bin_hz: float) -> list[float]:

@@ -23,8 +23,8 @@ from ..profiles import ChainSettings
 from ..results import Rejected
 from .doppler import MIN_CARRIER_COHERENCE, DopplerEstimate, doppler_families, fd_max, self_beat_bound
 from .spectrum import Spectrum, equivalent_width, still_line_doppler_bins, width_doppler_bins, windowed_record
-from .tones import (_dirichlet, centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, fit_noise_gain,
-                    line_response)
+from .tones import (centre_turn, exact_dft, exact_dft_tiled, fit_lines, fit_lines_segments, fit_noise_gain,
+                    line_response, mean_leak)
 from .validate import MIN_RAIL_SPAN_STEPS, code_steps
 
 
@@ -603,7 +603,7 @@ def _unmodelled_self_beats(zs: dict, x: np.ndarray, fs: float, found: list[float
     if not lost:
         return out
     f = np.array([fd for _, fd in lost])
-    b = 2.0 / x.size * np.abs(exact_dft(x, f, fs) - np.mean(x) * _dirichlet(2 * np.pi * f / fs, x.size))
+    b = 2.0 / x.size * np.abs(exact_dft(x, f, fs) - mean_leak(x, f, fs))
     mean = float(np.mean(dc))
     echo_dc = float(np.mean(sum((np.abs(c) ** 2 for _, c in base), np.zeros(1)))) + float(np.sum(b**2))
     root = math.sqrt(max(mean**2 - echo_dc, 0.0))

@@ -193,6 +193,25 @@ def _tables(n: int, r_bytes: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray 
     return eb, ea, et
 
 
+def mean_leak(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
+    """The record mean's share of :func:`exact_dft` at each frequency: ``mean(x) * D_N(2*pi*f/fs)``
+    (the exact DFT of a constant, ``D_N`` the centred Dirichlet kernel); subtracted, a line's
+    amplitude is read as from the mean-free record. Near 0 Hz on one photodiode the LO's DC
+    leaks through the rectangular window as much as a line's own size.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64 or complex128
+    freqs_hz : array_like, shape (K,), Hz
+
+    Returns
+    -------
+    ndarray, shape (K,), complex128 (real for a real record)
+    """
+    f = np.atleast_1d(np.asarray(freqs_hz, dtype=np.float64))
+    return np.mean(x) * _dirichlet(2 * np.pi * f / fs_hz, x.size)
+
+
 def exact_dft(x: np.ndarray, freqs_hz, fs_hz: float) -> np.ndarray:
     """``sum_k x[k] * exp(-j*2*pi*f*(k - (N-1)/2)/fs)`` for each f.
 

@@ -534,9 +534,10 @@ def _slip_odds(cfams: list[LineFamily], var: tuple[float, float], fit: tuple[flo
     chi2, dof = fit
     extra = [blend_var + (0.0 if f.cross_v is None else _turns(f, np.ones(f.tone_hz.size, bool), f.cross_v) ** 2)
              for f in cfams]
-    if any(np.any(e > 0) for e in extra):
+    widened = any(np.any(e > 0) for e in extra)
+    if widened:
         cfams = [replace(f, phase_var=f.phase_var + e) for f, e in zip(cfams, extra)]
-    if tone_var > 0 or any(np.any(e > 0) for e in extra):
+    if tone_var > 0 or widened:
         # (the lines a wider variance takes under the threshold leave the fit: its own dof)
         chi2, dof = consistency(cfams, ref.tone_phases_rad, tau, min_snr_db, tone_var)
     ratio = chi2 / dof if dof > 0 else 1.0
