@@ -606,8 +606,7 @@ def _unmodelled_self_beats(zs: dict, x: np.ndarray, fs: float, found: list[float
     b = 2.0 / x.size * np.abs(exact_dft(x, f, fs) - mean_leak(x, f, fs))
     mean = float(np.mean(dc))
     echo_dc = float(np.mean(sum((np.abs(c) ** 2 for _, c in base), np.zeros(1)))) + float(np.sum(b**2))
-    root = math.sqrt(max(mean**2 - echo_dc, 0.0))
-    lo_power = max(0.5 * (mean - root if lo_smaller else mean + root), 1e-300)
+    lo_power = max(float(_lo_power(mean, echo_dc, not lo_smaller)), 1e-300)
     for (k, _), bk in zip(lost, b):
         u, low = (np.sqrt(np.mean(np.abs(zs[k, side]) ** 2, axis=0)) for side in ("U", "L"))
         sides = np.where((u > 0) & (low > 0), u + low, 2.0 * (u + low))
@@ -1008,8 +1007,15 @@ def _carriers(z_all: np.ndarray, uniq: np.ndarray, fds: list[float], dc: np.ndar
         if abs(uniq[i] - abs(fd)) < 1e-3:
             base.append((k, z_all[:, i]))
     echo_dc = sum(np.abs(b) ** 2 for _, b in base) if base else 0.0
+    return base, _lo_power(dc, echo_dc, lo_larger)
+
+
+def _lo_power(dc, echo_dc, lo_larger: bool):
+    """``A_L^2`` from the record's mean ``dc`` and the echoes' carrier powers ``echo_dc = sum|B|^2``
+    (V^2; arrays per segment or floats): the larger or the smaller root of
+    ``A_L^4 - DC*A_L^2 + echo_dc/4`` (:func:`_carriers`)."""
     root = np.sqrt(np.maximum(dc**2 - echo_dc, 0.0))
-    return base, 0.5 * (dc + root if lo_larger else dc - root)
+    return 0.5 * (dc + root if lo_larger else dc - root)
 
 
 def _leak_bounds(x: np.ndarray, fs: float, uniq: np.ndarray, z: np.ndarray,
