@@ -148,19 +148,15 @@ def _pair_residuals(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s:
 
 def _tone_incidence(parts: list[tuple]) -> np.ndarray:
     """``E E'`` for the pairs of :func:`_pair_residuals` (``parts``): ``E`` has a row per pair, +1 at
-    its tone and -1 at its family's strongest; shape (P, P), the covariance of one unit of phase
-    drift per tone."""
-    tones = sorted({float(t) for *_, (fi, fr) in parts for t in (*fi, fr)})
-    index = {t: k for k, t in enumerate(tones)}
-    rows = []
-    for *_, (fi, fr) in parts:
-        for t in fi:
-            e = np.zeros(len(tones))
-            e[index[float(t)]] += 1.0
-            e[index[fr]] -= 1.0
-            rows.append(e)
-    e = np.asarray(rows)
-    return e @ e.T
+    its tone and -1 at its family's strongest, so two pairs share ``[f_i = f_j] - [f_i = r_j] -
+    [r_i = f_j] + [r_i = r_j]``; shape (P, P), the covariance of one unit of phase drift per tone."""
+    tone = np.concatenate([fi for *_, (fi, _) in parts])
+    ref = np.concatenate([np.full(fi.size, fr) for *_, (fi, fr) in parts])
+
+    def same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return (a[:, None] == b[None, :]).astype(np.float64)
+
+    return same(tone, tone) - same(tone, ref) - same(ref, tone) + same(ref, ref)
 
 
 def mix(families: list[LineFamily], tone_phases_rad: dict[float, float], min_snr_db: float) -> dict[int, Observations]:
