@@ -31,13 +31,18 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
     Per frame and line family, ``z_i*conj(z_0)`` referred to the record's start and to the
     known range gives ``phi_i_eff - phi_0_eff``; products are summed over frames and families.
     The lines' sizes relative to their mean (:func:`relative_amplitudes`), averaged over the
-    frames, are the tone amplitudes the chain checks a static point's lines against.
+    frames, are the tone amplitudes the chain checks a static point's lines against. On a real
+    receiver with an unmodulated LO a still reflector's lines are real (``2*cos(psi)`` times the
+    tone's phasor): the first tone's own phase is then known modulo pi (its segments' squares) and
+    the phases are stored absolute (``Calibration.phases_absolute``).
     """
     settings = settings or get_profile("accurate")
     acc = None
     tones = None
     per_frame, amps = [], []
     n_frames = 0
+    own = 0j  # the first tone's line, squared, at the known range: its phase is 2*phi_0_eff (mod 2*pi)
+    absolute = True
     for fr in frames:
         fams = run_stages(fr, settings, None, until="extract").families  # raises Rejected
         t = np.asarray(fr.tones_hz, float)
@@ -48,9 +53,11 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
             raise CalibrationError(f"frame seq {fr.seq}: tone plan differs from the first frame")
         frame_sum = np.zeros(t.size, complex)
         amps.append(relative_amplitudes(fams))
+        absolute = absolute and fr.receiver != "iq" and fr.architecture == "unmodulated_lo"
+        tau = 2 * known_range_m / C
         for fam in (f for f in fams if f.target == 0):  # the static reflector's lines
             d = t - t[0]
-            tau = 2 * known_range_m / C
+            own += np.sum((fam.z[:, 0] * np.exp(-2j * np.pi * t[0] * (fam.seg_centre_s - tau))) ** 2) / fam.phase_var[0]
             prod = fam.z * np.conj(fam.z[:, :1]) * np.exp(-2j * np.pi * np.outer(fam.seg_centre_s, d))
             # remove the known range: phi_i_eff - phi_0_eff = arg(prod) + 2*pi*d*tau
             frame_sum += np.sum(prod, axis=0) * np.exp(2j * np.pi * d * tau) / np.sqrt(fam.phase_var * fam.phase_var[0])
@@ -61,6 +68,8 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         raise CalibrationError("no frames to calibrate from")
     eff = np.angle(acc)
     spread = wrap_pi(np.asarray(per_frame) - eff)
+    if absolute:
+        eff = eff + 0.5 * np.angle(own)
     # split into a pure delay and residual per-tone phases
     grid = np.linspace(0, tau0_max_s, 20001)
     score = np.abs(np.exp(1j * (eff[None, :] + 2 * np.pi * np.outer(grid, tones))).sum(axis=1))
@@ -68,7 +77,7 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
     resid = wrap_pi(eff + 2 * np.pi * tones * tau0)
     return Calibration(
         tones_hz=tuple(float(f) for f in tones), tone_phases_rad=tuple(float(p) for p in resid), tau0_s=tau0,
-        known_range_m=float(known_range_m), frames_used=n_frames,
+        known_range_m=float(known_range_m), frames_used=n_frames, phases_absolute=bool(absolute),
         phase_std_rad=tuple(float(s) for s in np.std(spread, axis=0)), source=source,
         tone_amplitudes=tuple(float(a) for a in np.mean(amps, axis=0)),
         tone_amplitude_std=tuple(float(a) for a in np.std(amps, axis=0, ddof=min(1, n_frames - 1))

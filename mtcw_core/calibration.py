@@ -44,6 +44,11 @@ class Calibration(BaseModel):
         chain checks the static point's lines against them (``ChainSettings.tone_amplitudes``);
         empty in files written before they were measured
     version : the file format's version
+    phases_absolute : bool, ``tone_phases_rad`` are the tones' own phases modulo pi, not only their
+        differences: a reflector on one photodiode or a balanced pair with an unmodulated LO shows
+        them (its lines are real), and the chain then checks a still point's lines for the
+        complex sum of two echoes (:func:`~mtcw_core.ranging.mixing.realness_chi2`); False in
+        files written before, or from an IQ receiver
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
@@ -62,6 +67,7 @@ class Calibration(BaseModel):
     # AB-MTCW (mtcw_core.ranging.ab.derive_reference): a reference-only measurement's tone powers
     reference_powers_v2: tuple[float, ...] = ()
     reference_power_sigma_v2: tuple[float, ...] = ()
+    phases_absolute: bool = False
 
     @field_validator("reference_powers_v2", "reference_power_sigma_v2")
     @classmethod

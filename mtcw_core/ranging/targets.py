@@ -28,7 +28,7 @@ from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
 from ..results import TargetPoint
-from .mixing import consistency, mix
+from .mixing import consistency, mix, realness_chi2
 from .triangulation import (Observations, RangeSolution, range_sigmas, resolve_ml, resolve_seed, tone_phase_sigma,
                             unambiguous_range)
 
@@ -43,6 +43,10 @@ class Reference:
     #: each tone's line amplitude for one target (any common scale) and its relative sigma, where
     #: the calibration or the settings know them (:func:`amplitude_chi2`); None: not checked
     tone_amplitudes: dict[float, tuple[float, float]] | None = None
+    #: the phases are the tones' own at the record's first sample, not only their differences (the
+    #: frame's synthesizer phases; a calibration's relative ones are not): a still echo's lines on
+    #: a real receiver are then real against one range (:func:`~.mixing.realness_chi2`)
+    absolute: bool = False
 
     @classmethod
     def of(cls, frame: Frame, settings: ChainSettings, cal: Calibration | None) -> "Reference":
@@ -61,7 +65,8 @@ class Reference:
             amps = {f: (a, math.hypot(s / a, tol)) for f, a, s in zip(cal.tones_hz, cal.tone_amplitudes, std)}
         elif settings.tone_amplitudes is not None and len(settings.tone_amplitudes) == len(tones):
             amps = {f: (a, tol) for f, a in zip(tones, settings.tone_amplitudes)}
-        return cls(phases, tau0, amps)
+        absolute = cal.phases_absolute if cal is not None else frame.tone_phases_rad is not None
+        return cls(phases, tau0, amps, absolute)
 
 
 def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
@@ -416,14 +421,15 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     together = (sigma / alone) ** 2 if 0 < alone < math.inf and math.isfinite(sigma) else 1.0
     # the static lines' sizes against one target's (two echoes on one Doppler-0 line set; on an IQ
     # record also its sidebands' sizes), and the phase variance per tone such a blend may add
-    a_chi2, a_dof, blend_var, s_chi2, s_dof = _static_sizes(fams, dop, frame, ref, settings)
+    tau = ref.tau0_s + 2 * sol.range_m / C
+    a_chi2, a_dof, blend_var, s_chi2, s_dof = _static_sizes(
+        fams, dop, frame, ref, settings, (tau, _aliases(sol.range_m, l_unamb, (lo, settings.range_max_m), coarse)))
     u_chi2, u_dof = sideband_split(fams, dop.fd_hz, max(settings.min_line_snr_db, SPLIT_MIN_SNR_DB)) if (
         dop.detected) else (0.0, 0)  # a mover's carrier, 2*psi, on every tone
     # do the line phases agree with one range within their noise and the tones' declared drift?
     # (Birge ratio; the flags and the cycle odds read the phases without the blend's variance)
     tone_var = settings.tone_phase_sigma_rad ** 2
     cfams = [replace(f, phase_var=f.phase_var + tone_var) for f in fams] if tone_var else fams
-    tau = ref.tau0_s + 2 * sol.range_m / C
     chi2, dof = consistency(cfams, ref.tone_phases_rad, tau, settings.min_line_snr_db)
     ratio = chi2 / dof if dof > 0 else 1.0
     # chdtrc is chi2.sf itself, without scipy.stats' ~40 us of argument handling per call
@@ -569,17 +575,56 @@ def _drift_and_blend(sigma: float, used: tuple[list, list], fams: list[LineFamil
     return max(without, scaled(blend_var, chi2, dof))
 
 
+#: :func:`_aliases` lists at most this many periods of the pairs beyond the solution (a range with
+#: no declared bound: the lattice ``f_r*k/g`` of integer tones repeats long before)
+ALIAS_MAX = 4096
+
+
+def _aliases(range_m: float, l_unamb: float, bounds: tuple[float, float | None], coarse: tuple[float, float] | None
+             ) -> tuple[float, np.ndarray]:
+    """The pairs' period in delay (s) and the whole periods ``k`` (shape (K,)) the true range may lie
+    from ``range_m`` (m): within ``bounds`` (the search's start and ``range_max_m``, None: none, at
+    most :data:`ALIAS_MAX`), only 0 where a quasi-CW coarse range picked the period."""
+    period = 2 * l_unamb / C
+    if coarse is not None or not math.isfinite(l_unamb) or l_unamb <= 0:
+        return period, np.zeros(1)
+    lo, hi = bounds
+    k_lo = -math.floor(max(range_m - lo, 0.0) / l_unamb)
+    k_hi = ALIAS_MAX if hi is None else max(math.floor((hi - range_m) / l_unamb), 0)
+    return period, np.arange(k_lo, min(k_hi, ALIAS_MAX) + 1)
+
+
 def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, ref: Reference,
-                  settings: ChainSettings) -> tuple[float, int, float, float, int]:
+                  settings: ChainSettings, at: tuple[float, tuple[float, np.ndarray]]
+                  ) -> tuple[float, int, float, float, int]:
     """A static candidate's line sizes: :func:`amplitude_chi2` (chi2, dof), the phase variance per
-    tone (rad^2) a second echo on its line set may put on it (:func:`blend_phase_var`) and, on an IQ
-    record, :func:`sideband_chi2` (chi2, dof); zeros for a mover."""
+    tone (rad^2) a second echo on its line set may put on it (:func:`blend_phase_var`) and what one
+    echo's real envelope implies, (chi2, dof): on an IQ record its sidebands' sizes
+    (:func:`sideband_chi2`), on a real one with an unmodulated LO and the tones' own phases known
+    (``ref.absolute``) its lines' common phase at ``at``: the round-trip delay (s) and its aliases
+    (:func:`_aliases`; :func:`~.mixing.realness_chi2`); zeros for a mover. The blend's phase
+    variance is read from the sizes and, where it is read, from the common phase alike: a second
+    echo of relative size ``rho`` moves the sizes by ``rho*cos(dphi_i)`` and the phases by
+    ``rho*sin(dphi_i)``, and the lines' common phase is the part of the latter one range leaves
+    (the envelope probe's scene 37755: a still echo beside a slow mover's self-beat, one
+    photodiode, chi2 7.7 on 1 dof, ranged 4.2 sigmas off); the larger is taken."""
     if dop.detected:
         return 0.0, 0, 0.0, 0.0, 0
     a_chi2, a_dof, allowed = _amplitude_fit(fams, ref.tone_amplitudes, settings.min_line_snr_db)
-    s_chi2, s_dof = (0.0, 0) if frame.receiver != "iq" else sideband_chi2(
-        fams, settings.sideband_tolerance, settings.min_line_snr_db)
-    return a_chi2, a_dof, blend_phase_var(a_chi2, a_dof, allowed), s_chi2, s_dof
+    blend = blend_phase_var(a_chi2, a_dof, allowed)
+    s_chi2, s_dof = 0.0, 0
+    if frame.receiver == "iq":
+        s_chi2, s_dof = sideband_chi2(fams, settings.sideband_tolerance, settings.min_line_snr_db)
+    elif ref.absolute and frame.architecture == "unmodulated_lo":
+        tone_var = settings.tone_phase_sigma_rad**2
+        weight = []
+        for f in fams:
+            c, d = realness_chi2(f, ref.tone_phases_rad, at[0], settings.min_line_snr_db, tone_var, at[1])
+            s_chi2, s_dof = s_chi2 + c, s_dof + d
+            weight.append(1.0 / (f.phase_var[f.snr_db >= settings.min_line_snr_db] + tone_var))
+        if s_dof:  # the harmonic mean of the lines' variances: each weighs its own excess
+            blend = max(blend, blend_phase_var(s_chi2, s_dof, 1.0 / float(np.mean(np.concatenate(weight)))))
+    return a_chi2, a_dof, blend, s_chi2, s_dof
 
 
 def blend_phase_var(chi2: float, dof: int, allowed: float) -> float:
