@@ -1,7 +1,8 @@
 """Deriving a calibration from frames of a reflector at a known range (uses the chain's stages).
 
 A measurement of a reflector at a known range ``L_cal`` gives, per tone, the effective phase
-``phi_i_eff = phi_i - 2*pi*f_i*tau0`` (only phase *differences* are observable). It is
+``phi_i_eff = phi_i - 2*pi*f_i*tau0`` (their differences; on a real receiver with an unmodulated
+LO, whose still lines are real, their own values modulo pi too). It is
 stored split into a linear part (``tau0``, the delay that best explains the offsets as a pure
 delay, searched over ``[0, tau0_max]``) and per-tone residual phases; applying
 ``(phi_i, tau0)`` reproduces ``phi_i_eff`` exactly, so the split costs no accuracy.

@@ -3,7 +3,8 @@
 Derived by :func:`mtcw_core.calibrate.derive_calibration`; applied by the chain to every frame.
 
 A measurement of a reflector at a known range ``L_cal`` gives, per tone, the effective phase
-``phi_i_eff = phi_i - 2*pi*f_i*tau0`` (only phase *differences* are observable). It is
+``phi_i_eff = phi_i - 2*pi*f_i*tau0`` (their differences; on a real receiver with an unmodulated
+LO their own values modulo pi too, ``phases_absolute``). It is
 stored split into a linear part (``tau0``, the delay that best explains the offsets as a pure
 delay, searched over ``[0, tau0_max]``) and per-tone residual phases; applying
 ``(phi_i, tau0)`` reproduces ``phi_i_eff`` exactly, so the split costs no accuracy.

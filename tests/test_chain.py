@@ -194,6 +194,15 @@ def test_reported_sigma_is_calibrated_and_ml_reaches_the_crb_over_200_frames():
     assert 0.8 < np.median(sig) / crb < 1.25  # the reported sigma is the bound from estimated SNR
 
 
+def test_calibration_on_an_iq_record_keeps_only_phase_differences():
+    """An IQ receiver's still line carries the carrier's phase: a reflector shows no tone's own
+    phase, and a still point is then not checked for its common phase."""
+    mod = {"tones": [{"frequency_hz": f, "phase_rad": p} for f, p in zip((500e6, 700e6, 950e6), (0.7, -2.1, 1.3))]}
+    sc = make_scene(modulator=mod, receiver={"kind": "iq"}, targets=[{"range_m": 0.065}], frames={"count": 2})
+    cal = derive_calibration(list(Simulator(sc).frames()), 0.065)
+    assert not cal.phases_absolute
+
+
 def test_calibration_round_trip(tmp_path):
     phases = [0.7, -2.1, 1.3]
     mod = {"tones": [{"frequency_hz": f, "phase_rad": p} for f, p in zip((500e6, 700e6, 950e6), phases)]}
@@ -210,11 +219,33 @@ def test_calibration_round_trip(tmp_path):
     loaded = Calibration.load(tmp_path / "cal.json")
     ok = process_frame(fr, "balanced", loaded)
     assert ok.calibrated and abs(ok.targets[0].range_m - 2.345) < 1e-4
+    assert loaded.phases_absolute  # one photodiode: the reflector's lines are real
     raw = process_frame(fr, "balanced")
     assert abs(raw.targets[0].range_m - 2.345) > 1e-2  # without calibration the range is wrong
     # the reflector's tone amplitudes, relative to their mean, and their spread over the frames
     np.testing.assert_allclose(loaded.tone_amplitudes, 1.0, atol=1e-2)  # equal drives
     assert len(loaded.tone_amplitude_std) == 3 and max(loaded.tone_amplitude_std) < 1e-2  # noiseless frames
+
+
+def test_a_still_echo_read_with_a_calibrations_own_tone_phases_is_real(monkeypatch):
+    """The calibration stores the tones' own phases (modulo pi) where the reflector's lines are real;
+    a still echo elsewhere, read with them and no phases of its own, is one echo's real envelope:
+    its lines' common phase (``mixing.realness_chi2``) within its noise -- read with the first
+    tone's phase only as a difference it would be anywhere."""
+    import mtcw_core.ranging.targets as targets
+
+    mod = {"tones": [{"frequency_hz": f, "phase_rad": p} for f, p in zip((500e6, 700e6, 950e6), (0.7, -2.1, 1.3))]}
+    cal_scene = make_scene(modulator=mod, paths={"tau0_s": 3.3e-9}, targets=[{"range_m": 0.065}], frames={"count": 3})
+    cal = derive_calibration([f.with_(tone_phases_rad=None) for f in Simulator(cal_scene).frames()], 0.065)
+    seen = []
+    real = targets.realness_chi2
+    monkeypatch.setattr(targets, "realness_chi2", lambda *a, **k: seen.append(real(*a, **k)) or seen[-1])
+    for seed in range(4):
+        meas = make_scene(modulator=mod, paths={"tau0_s": 3.3e-9}, noise={"shot": True, "thermal": True},
+                          targets=[{"range_m": 2.345, "loss_db": 30.0}])
+        res = process_frame(simulate_frame(meas, seed=seed).with_(tone_phases_rad=None), "balanced", cal)
+        assert res.status == "ok" and not res.targets[0].blended
+    assert len(seen) == 4 and all(d == 1 and c < 12 for c, d in seen), seen
 
 
 def test_tone_amplitudes_are_measured_and_pass_a_lone_echo():

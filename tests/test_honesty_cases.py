@@ -1338,3 +1338,17 @@ def test_a_sub_guard_mover_beside_a_blended_line_set_is_flagged():
 
     counts, lines = judge_scene(22284, 2)
     assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines
+
+
+def test_a_still_echo_beside_a_movers_self_beat_is_read_by_its_common_phase():
+    """The envelope probe's scene 37755: one photodiode, the LO 1 % of the power, 2^18, a mover at
+    -0.036 m/s 34 dB down and a still echo 1.4 m behind it at 35 dB. The mover's self-beat, left
+    over on the still echo's lines, adds a complex part their pair phases cannot see: ranged 0.6 mm
+    off at 0.11 mm (5.6 sigmas, frame 0). One echo's lines are real against one range (``2*cos(psi)``
+    times the tones' phasors); their common phase against the tones' own (``mixing.realness_chi2``)
+    reads chi2 17 and 7.7 on 1 dof: the point is ``blended`` in frame 0, its sigma widened in
+    frame 1."""
+    from mtcw_bench.envelope_probe import judge_scene
+
+    counts, lines = judge_scene(37755, 2)
+    assert counts["frames"] == 6 and counts["cw"] == 0 and counts["cf"] == 0, lines

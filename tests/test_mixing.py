@@ -9,7 +9,7 @@ import pytest
 
 from mtcw_core.dsp.extract import LineFamily
 from mtcw_core.phase import C, wrap_pi
-from mtcw_core.ranging.mixing import consistency, mix, pair_observations
+from mtcw_core.ranging.mixing import consistency, mix, pair_observations, realness_chi2
 
 TONES = np.array([100e6, 170e6, 260e6])
 PHI = {100e6: 0.3, 170e6: -1.2, 260e6: 2.5}  # RF drive phases (calibration)
@@ -194,3 +194,66 @@ def test_chi2_is_the_quadratic_form_of_the_pair_covariance(seed):
     cov = np.diag(fam.phase_var[others]) + fam.phase_var[r]
     assert dof == 1
     assert chi2 == pytest.approx(float(res @ np.linalg.solve(cov, res)), rel=1e-12)
+
+
+def still_lines(tones, ranges, factors, var, seed, segments=1):
+    """A still echo's lines on a real receiver, ``sum_k c_k*exp(j*(phi_i - 2*pi*f_i*tau_k))`` with
+    the real factors ``c_k`` (``cos(psi)``, any sign), referred to each segment's centre, plus
+    complex noise of phase variance ``var`` per line."""
+    rng = np.random.default_rng(seed)
+    tones = np.asarray(tones, float)
+    centres = (np.arange(segments) + 0.5) * 1e-6
+    phi = np.array([0.4 * k for k in range(tones.size)])
+    z = np.zeros((segments, tones.size), complex)
+    for r, c in zip(ranges, factors):
+        z += c * np.exp(1j * (phi - 2 * np.pi * np.mod(tones * 2 * r / C, 1.0)))[None, :]
+    z = z * np.exp(2j * np.pi * np.mod(np.outer(centres, tones), 1.0))
+    amp = np.abs(z).mean(axis=0)
+    z = z + amp * np.sqrt(np.asarray(var) / segments) * (rng.standard_normal(z.shape) + 1j * rng.standard_normal(z.shape))
+    return LineFamily("S", tones, tones.copy(), z, centres, np.asarray(var, float), 0), dict(zip(tones, phi))
+
+
+class TestRealness:
+    def test_one_still_echo_gives_chi2_of_one_dof(self):
+        """Over 2000 noise draws and fadings of either sign, chi2 has mean 1 and its 5 % tail."""
+        rng = np.random.default_rng(5)
+        chi = []
+        for k in range(2000):
+            c = rng.uniform(0.2, 1.0) * rng.choice([-1, 1])
+            fam, phi = still_lines(TONES, [L_M], [c], (1e-3, 2e-3, 4e-3), k)
+            chi.append(realness_chi2(fam, phi, 2 * L_M / C)[0])
+        chi = np.asarray(chi)
+        assert 0.9 < chi.mean() < 1.1
+        assert 0.035 < np.mean(chi > 3.84) < 0.065
+
+    def test_a_sign_flip_between_segments_changes_nothing(self):
+        fam, phi = still_lines(TONES, [L_M], [1.0], (1e-8,) * 3, 0, segments=4)
+        fam.z[1::2] *= -1.0  # cos(psi) changing sign from segment to segment: the lines sum to ~0
+        chi2, dof = realness_chi2(fam, phi, 2 * L_M / C)
+        assert dof == 1 and chi2 < 4.0
+
+    def test_two_still_echoes_are_complex_where_their_phases_fit_one_range(self):
+        """A second echo 0.8 as large, of the other sign, 1.23 m on: the lines' common phase is far
+        from 0 or pi at the range the pairs fit best (the one the chain would report)."""
+        fam, phi = still_lines(TONES, [L_M, L_M + 1.23], [1.0, -0.8], (1e-6,) * 3, 1)
+        grid = 2 * np.linspace(0, C / 2 / 10e6, 20001) / C
+        best = min(grid, key=lambda t: consistency([fam], phi, t)[0])
+        assert realness_chi2(fam, phi, best)[0] > 1000
+
+    def test_an_echo_a_whole_pair_period_on_turns_every_line_alike(self):
+        """220/730/880 MHz: the pairs' period is c/(2*30 MHz), 4.997 m, and an echo one period on
+        turns every line by -2*pi*(220/30 - 7) = -2*pi/3: read at the reported (folded) range its
+        lines are complex unless the period it lies on is tried (k = 1; k = -1 turns them the other
+        way, and leaves them complex)."""
+        tones = (220e6, 730e6, 880e6)
+        period = 1 / 30e6
+        fam, phi = still_lines(tones, [1.7 + C * period / 2], [0.9], (1e-6,) * 3, 2)
+        tau = 2 * 1.7 / C
+        assert realness_chi2(fam, phi, tau)[0] > 1000
+        assert realness_chi2(fam, phi, tau, aliases=(period, np.array([-1, 0])))[0] > 1000
+        chi2, dof = realness_chi2(fam, phi, tau, aliases=(period, np.arange(0, 2)))
+        assert chi2 < 10 and dof == 1
+
+    def test_one_line_gives_nothing(self):
+        fam, phi = still_lines(TONES, [L_M], [1.0], (1e-4, 1e10, 1e10), 3)
+        assert realness_chi2(fam, phi, 2 * L_M / C, min_snr_db=10.0) == (0.0, 0)

@@ -1132,3 +1132,26 @@ class TestRangeTurn:
         assert range_turn_m([self.fam(tones, [0.02] * 3, 0, None)], 10.0) == 0.0
         assert range_turn_m([self.fam(tones, [0.02] * 3, 0, [0.1] * 3, snr=5.0)], 10.0) == 0.0
         assert range_turn_m([self.fam(tones[:1], [0.02], 0, [0.1])], 10.0) == 0.0
+
+
+class TestAliases:
+    """``targets._aliases``: the whole periods of the pairs the true range may lie from the solution,
+    which the still lines' common phase is read over (``mixing.realness_chi2``)."""
+
+    def test_no_bound_reaches_every_period_up_to_the_cap(self):
+        from mtcw_core.ranging.targets import ALIAS_MAX, _aliases
+
+        period, k = _aliases(1.2, 1.5, (0.0, None), None)
+        assert period == pytest.approx(3.0 / C) and k[0] == 0 and k[-1] == ALIAS_MAX
+
+    def test_a_declared_range_bound_limits_them_both_ways(self):
+        from mtcw_core.ranging.targets import _aliases
+
+        assert list(_aliases(1.2, 1.5, (0.0, 5.0), None)[1]) == [0, 1, 2]
+        assert list(_aliases(4.0, 1.5, (0.5, 5.0), None)[1]) == [-2, -1, 0]
+
+    def test_a_coarse_range_keeps_the_periods_it_leaves_in_doubt(self):
+        from mtcw_core.ranging.targets import _aliases
+
+        assert list(_aliases(1.2, 1.5, (0.0, None), (1.0, 1.6))[1]) == [0]
+        assert list(_aliases(1.2, 1.5, (0.0, None), (0.0, 3.0))[1]) == [0, 1]

@@ -142,12 +142,13 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     ``phi_i - 2*pi*f_i*tau_s`` (each segment's at its centre; the strongest line's read from its
     segments' squares, so a sign of ``cos(psi)`` that changes between segments cancels nothing, the
     others through their pair with it) fitted by ``beta + 2*pi*f_i*dtau`` with weights ``1/(v_i +
-    tone_var)``: ``chi2 = beta^2/var(beta)`` with ``beta`` wrapped to ``(-pi/2, pi/2]`` -- the
+    tone_var)``: ``chi2 = beta^2/var(beta)`` with ``beta`` wrapped to ``[-pi/2, pi/2)`` -- the
     intercept at 0 Hz, whose variance the tones' spread against their distance from 0 Hz sets.
 
     The pairs fix the delay only modulo their period ``1/g`` (``g`` the gcd of the tone spacings):
-    at ``tau_s + k/g`` every line turns by the same ``-2*pi*f_r*k/g``, the pairs see nothing, and
-    ``beta`` moves by it. ``aliases``: ``(1/g, k)`` (s; the integers ``k`` the range may take,
+    an echo at ``tau_s + k/g`` turns every line by the same ``-2*pi*f_r*k/g`` against the model at
+    ``tau_s`` (``f_r`` any used tone: the others lie whole multiples of ``g`` from it), the pairs see
+    nothing, and ``beta`` moves by it. ``aliases``: ``(1/g, k)`` (s; the integers ``k`` the range may take,
     shape (K,)): the smallest chi2 over them is taken -- where the tones sit on ``g``'s grid
     (``f_r*k/g`` whole) the test keeps its full strength, elsewhere it weakens to the lattice the
     ``k`` reach (the envelope probe's scene 36853: 220/730/880 MHz, ``g`` 30 MHz, ``beta``
@@ -174,8 +175,9 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     slope = float(np.sum(w * u * rho) / np.sum(w * u * u))
     beta = float(np.sum(w * rho) / np.sum(w)) - slope * fbar
     var = 1.0 / float(np.sum(w)) + fbar**2 / float(np.sum(w * u * u))
+    # at tau_s + k/g every line reads -2*pi*f_r*k/g (mod 2*pi) against the model at tau_s: undone
     period, k = aliases
-    beta = beta - 2 * np.pi * ((fr * period * np.asarray(k, float)) % 1.0)
+    beta = beta + 2 * np.pi * ((fr * period * np.asarray(k, float)) % 1.0)
     beta = (beta + np.pi / 2) % np.pi - np.pi / 2
     return float(np.min(beta**2)) / var, 1
 

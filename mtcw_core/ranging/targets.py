@@ -43,9 +43,10 @@ class Reference:
     #: each tone's line amplitude for one target (any common scale) and its relative sigma, where
     #: the calibration or the settings know them (:func:`amplitude_chi2`); None: not checked
     tone_amplitudes: dict[float, tuple[float, float]] | None = None
-    #: the phases are the tones' own at the record's first sample, not only their differences (the
-    #: frame's synthesizer phases; a calibration's relative ones are not): a still echo's lines on
-    #: a real receiver are then real against one range (:func:`~.mixing.realness_chi2`)
+    #: the phases are the tones' own at the record's first sample (modulo pi), not only their
+    #: differences: the frame's, declared with no calibration, or a calibration's that says so
+    #: (``Calibration.phases_absolute``); a still echo's lines on a real receiver are then real
+    #: against one range (:func:`~.mixing.realness_chi2`)
     absolute: bool = False
 
     @classmethod
@@ -584,10 +585,14 @@ def _aliases(range_m: float, l_unamb: float, bounds: tuple[float, float | None],
              ) -> tuple[float, np.ndarray]:
     """The pairs' period in delay (s) and the whole periods ``k`` (shape (K,)) the true range may lie
     from ``range_m`` (m): within ``bounds`` (the search's start and ``range_max_m``, None: none, at
-    most :data:`ALIAS_MAX`), only 0 where a quasi-CW coarse range picked the period."""
+    most :data:`ALIAS_MAX`), or within a quasi-CW coarse range's interval (m; one period where it
+    picks one, more where it leaves the period in doubt)."""
     period = 2 * l_unamb / C
-    if coarse is not None or not math.isfinite(l_unamb) or l_unamb <= 0:
+    if not math.isfinite(l_unamb) or l_unamb <= 0:
         return period, np.zeros(1)
+    if coarse is not None:
+        k_lo, k_hi = math.ceil((coarse[0] - range_m) / l_unamb), math.floor((coarse[1] - range_m) / l_unamb)
+        return period, np.arange(min(k_lo, 0), max(k_hi, 0) + 1)
     lo, hi = bounds
     k_lo = -math.floor(max(range_m - lo, 0.0) / l_unamb)
     k_hi = ALIAS_MAX if hi is None else max(math.floor((hi - range_m) / l_unamb), 0)
@@ -621,7 +626,8 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
         for f in fams:
             c, d = realness_chi2(f, ref.tone_phases_rad, at[0], settings.min_line_snr_db, tone_var, at[1])
             s_chi2, s_dof = s_chi2 + c, s_dof + d
-            weight.append(1.0 / (f.phase_var[f.snr_db >= settings.min_line_snr_db] + tone_var))
+            if d:
+                weight.append(1.0 / (f.phase_var[f.snr_db >= settings.min_line_snr_db] + tone_var))
         if s_dof:  # the harmonic mean of the lines' variances: each weighs its own excess
             blend = max(blend, blend_phase_var(s_chi2, s_dof, 1.0 / float(np.mean(np.concatenate(weight)))))
     return a_chi2, a_dof, blend, s_chi2, s_dof
