@@ -9,7 +9,7 @@ import pytest
 
 from mtcw_core.dsp.extract import LineFamily
 from mtcw_core.phase import C, wrap_pi
-from mtcw_core.ranging.mixing import consistency, mix, pair_observations, realness_chi2
+from mtcw_core.ranging.mixing import consistency, mix, pair_observations, realness_chi2, sideband_products
 
 TONES = np.array([100e6, 170e6, 260e6])
 PHI = {100e6: 0.3, 170e6: -1.2, 260e6: 2.5}  # RF drive phases (calibration)
@@ -209,7 +209,7 @@ def still_lines(tones, ranges, factors, var, seed, segments=1):
         z += c * np.exp(1j * (phi - 2 * np.pi * np.mod(tones * 2 * r / C, 1.0)))[None, :]
     z = z * np.exp(2j * np.pi * np.mod(np.outer(centres, tones), 1.0))
     amp = np.abs(z).mean(axis=0)
-    z = z + amp * np.sqrt(np.asarray(var) / segments) * (rng.standard_normal(z.shape) + 1j * rng.standard_normal(z.shape))
+    z = z + amp * np.sqrt(np.asarray(var) * segments) * (rng.standard_normal(z.shape) + 1j * rng.standard_normal(z.shape))
     return LineFamily("S", tones, tones.copy(), z, centres, np.asarray(var, float), 0), dict(zip(tones, phi))
 
 
@@ -257,3 +257,55 @@ class TestRealness:
     def test_one_line_gives_nothing(self):
         fam, phi = still_lines(TONES, [L_M], [1.0], (1e-4, 1e10, 1e10), 3)
         assert realness_chi2(fam, phi, 2 * L_M / C, min_snr_db=10.0) == (0.0, 0)
+
+
+def iq_sides(tones, ranges, factors, var, seed, segments=4):
+    """An IQ record's still lines: upper ``sum_k c_k*exp(j*(theta_ki + psi_k))`` and lower (the
+    mirror, conjugated) ``sum_k c_k*exp(j*(theta_ki - psi_k))``, each echo's carrier phase ``psi_k``
+    random per segment, referred to each segment's centre, with complex noise of phase variance
+    ``var`` per line."""
+    rng = np.random.default_rng(seed)
+    tones = np.asarray(tones, float)
+    centres = (np.arange(segments) + 0.5) * 1e-6
+    phi = np.array([0.4 * k for k in range(tones.size)])
+    up = np.zeros((segments, tones.size), complex)
+    lo = np.zeros((segments, tones.size), complex)
+    for r, c in zip(ranges, factors):
+        theta = phi - 2 * np.pi * np.mod(tones * 2 * r / C, 1.0)
+        psi = rng.uniform(-np.pi, np.pi, segments)[:, None]
+        up += c * np.exp(1j * (theta[None, :] + psi))
+        lo += c * np.exp(1j * (theta[None, :] - psi))
+    turn = np.exp(2j * np.pi * np.mod(np.outer(centres, tones), 1.0))
+    out = []
+    for name, z in (("U", up * turn), ("L", lo * turn)):
+        amp = np.abs(z).mean(axis=0)
+        z = z + amp * np.sqrt(np.asarray(var) * segments) * (rng.standard_normal(z.shape)
+                                                              + 1j * rng.standard_normal(z.shape))
+        out.append(LineFamily(name, tones, tones.copy(), z, centres, np.asarray(var, float), 0))
+    return out[0], out[1], dict(zip(tones, phi))
+
+
+class TestSidebandProducts:
+    def test_one_echo_on_an_iq_record_is_real_whatever_its_carrier(self):
+        """Over 1000 draws of noise and carrier phases, the products' common phase gives chi2 of 1 dof."""
+        chi = []
+        for k in range(1000):
+            up, lo, phi = iq_sides(TONES, [L_M], [0.7], (1e-3, 2e-3, 4e-3), k)
+            prod = sideband_products(up, lo)
+            assert prod is not None and np.allclose(prod.seg_centre_s, 2 * up.seg_centre_s)
+            chi.append(realness_chi2(prod, phi, 2 * L_M / C, power=2)[0])
+        assert 0.85 < np.mean(chi) < 1.15
+        assert 0.03 < np.mean(np.asarray(chi) > 3.84) < 0.07
+
+    def test_two_echoes_on_an_iq_record_are_complex(self):
+        up, lo, phi = iq_sides(TONES, [L_M, L_M + 1.23], [1.0, 0.8], (1e-6,) * 3, 1)
+        prod = sideband_products(up, lo)
+        grid = 2 * np.linspace(0, C / 2 / 10e6, 20001) / C
+        best = min(grid, key=lambda t: consistency([up, lo], phi, t)[0])
+        assert realness_chi2(prod, phi, best, power=2)[0] > 1000
+
+    def test_no_common_tone_gives_none(self):
+        up, lo, _ = iq_sides(TONES, [L_M], [1.0], (1e-4,) * 3, 2)
+        lo = LineFamily("L", lo.tone_hz[:1], lo.line_hz[:1], lo.z[:, :1], lo.seg_centre_s, lo.phase_var[:1], 0)
+        up = LineFamily("U", up.tone_hz[1:], up.line_hz[1:], up.z[:, 1:], up.seg_centre_s, up.phase_var[1:], 0)
+        assert sideband_products(up, lo) is None

@@ -128,7 +128,8 @@ def consistency(families: list[LineFamily], tone_phases_rad: dict[float, float],
 
 
 def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: float, min_snr_db: float = -np.inf,
-                  tone_var: float = 0.0, aliases: tuple[float, np.ndarray] = (0.0, np.zeros(1))) -> tuple[float, int]:
+                  tone_var: float = 0.0, aliases: tuple[float, np.ndarray] = (0.0, np.zeros(1)), power: int = 1
+                  ) -> tuple[float, int]:
     """Chi-square (1 dof) of a static family's common phase against the real envelope of one echo.
 
     On one photodiode or a balanced pair with an unmodulated LO, a still echo's two LO x sideband
@@ -154,20 +155,29 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     ``k`` reach (the envelope probe's scene 36853: 220/730/880 MHz, ``g`` 30 MHz, ``beta``
     known modulo pi/3 only, and that blend fits a real echo 5 m on within its noise).
 
+    ``power`` 2: ``fam`` holds an IQ record's sideband products (:func:`sideband_products`), one
+    echo's ``|c|^2*exp(2j*theta_i)`` whatever its carrier's phase: their phases, halved, are read
+    alike (a product's sign is known, so none is squared away), with a quarter of their variance.
+
     Returns
     -------
     (chi2, dof): 0, 0 with fewer than two used lines
     """
-    parts = _pair_residuals(fam, tone_phases_rad, tau_s, min_snr_db)
+    phases = {f: power * p for f, p in tone_phases_rad.items()}
+    parts = _pair_residuals(fam, phases, power * tau_s, min_snr_db)
     if parts is None:
         return 0.0, 0
     res, v, vr, (fi, fr) = parts
     r = int(np.flatnonzero(fam.tone_hz == fr)[0])
-    model = -2 * np.pi * fr * (tau_s - fam.seg_centre_s) + tone_phases_rad[fr]
-    own = 0.5 * float(np.angle(np.sum((fam.z[:, r] * np.exp(-1j * model)) ** 2)))  # (-pi/2, pi/2]
-    rho = np.concatenate([[own], own + res])
+    model = -2 * np.pi * fr * (power * tau_s - fam.seg_centre_s) + phases[fr]
+    own = 0.5 * float(np.angle(np.sum((fam.z[:, r] * np.exp(-1j * model)) ** (3 - power))))  # (-pi/2, pi/2]
+    rho = np.concatenate([[own], own + res / power])
     f = np.concatenate([[fr], fi])
-    w = 1.0 / (np.concatenate([[vr], v]) + tone_var)
+    # a product of two noisy lines summed over S segments carries their noises' product too, S*v_a*v_b
+    # beyond v_a + v_b (the reference line's squares, the pairs with it): weak per segment, it dominates
+    segs = fam.z.shape[0]
+    var = np.concatenate([[vr * (1 + segs * vr) if power == 1 else vr], v * (1 + 2 * segs * vr)])
+    w = 1.0 / (var / power**2 + tone_var)
     if not np.all(np.isfinite(w)):
         return 0.0, 0
     fbar = float(np.sum(w * f) / np.sum(w))
@@ -180,6 +190,21 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     beta = beta + 2 * np.pi * ((fr * period * np.asarray(k, float)) % 1.0)
     beta = (beta + np.pi / 2) % np.pi - np.pi / 2
     return float(np.min(beta**2)) / var, 1
+
+
+def sideband_products(upper: LineFamily, lower: LineFamily) -> LineFamily | None:
+    """An IQ record's still lines, each tone's upper times its lower line segment by segment: one
+    echo's ``exp(j*(theta_i + psi))`` times ``exp(j*(theta_i - psi))`` (the lower conjugated as
+    a mirror image), ``|c|^2*exp(2j*theta_i)`` -- the carrier's phase gone, the tone's own phase
+    doubled. Referred to each segment's centre ``t_s`` they turn as ``2*f_i*t_s``: the family's
+    ``seg_centre_s`` is ``2*t_s``; ``phase_var`` the two lines' summed, with their noises' product
+    over the ``S`` segments, ``2*S*v_u*v_l`` (:func:`realness_chi2` with ``power`` 2). None where no tone has both lines or the segments differ."""
+    both, iu, il = np.intersect1d(upper.tone_hz, lower.tone_hz, return_indices=True)
+    if both.size == 0 or not np.array_equal(upper.seg_centre_s, lower.seg_centre_s):
+        return None
+    vu, vl = upper.phase_var[iu], lower.phase_var[il]
+    return LineFamily("UL", both, both.copy(), upper.z[:, iu] * lower.z[:, il], 2 * upper.seg_centre_s,
+                      vu + vl + 2 * upper.z.shape[0] * vu * vl, upper.target)
 
 
 def _pair_residuals(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: float, min_snr_db: float
