@@ -143,7 +143,8 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     ``phi_i - 2*pi*f_i*tau_s`` (each segment's at its centre; the strongest line's read from its
     segments' squares, so a sign of ``cos(psi)`` that changes between segments cancels nothing, the
     others through their pair with it) fitted by ``beta + 2*pi*f_i*dtau`` with weights ``1/(v_i +
-    tone_var)``: ``chi2 = beta^2/var(beta)`` with ``beta`` wrapped to ``[-pi/2, pi/2)`` -- the
+    tone_var)`` (``v_i`` with the noises' product a sum of ``S`` segments' products carries, ``S*v_i*v_r``
+    for the reference line's squares, ``2*S*v_i*v_r`` for a pair with it): ``chi2 = beta^2/var(beta)`` with ``beta`` wrapped to ``[-pi/2, pi/2)`` -- the
     intercept at 0 Hz, whose variance the tones' spread against their distance from 0 Hz sets.
 
     The pairs fix the delay only modulo their period ``1/g`` (``g`` the gcd of the tone spacings):
@@ -176,8 +177,8 @@ def realness_chi2(fam: LineFamily, tone_phases_rad: dict[float, float], tau_s: f
     # a product of two noisy lines summed over S segments carries their noises' product too, S*v_a*v_b
     # beyond v_a + v_b (the reference line's squares, the pairs with it): weak per segment, it dominates
     segs = fam.z.shape[0]
-    var = np.concatenate([[vr * (1 + segs * vr) if power == 1 else vr], v * (1 + 2 * segs * vr)])
-    w = 1.0 / (var / power**2 + tone_var)
+    line_var = np.concatenate([[vr * (1 + segs * vr) if power == 1 else vr], v * (1 + 2 * segs * vr)])
+    w = 1.0 / (line_var / power**2 + tone_var)
     if not np.all(np.isfinite(w)):
         return 0.0, 0
     fbar = float(np.sum(w * f) / np.sum(w))
@@ -198,7 +199,8 @@ def sideband_products(upper: LineFamily, lower: LineFamily) -> LineFamily | None
     a mirror image), ``|c|^2*exp(2j*theta_i)`` -- the carrier's phase gone, the tone's own phase
     doubled. Referred to each segment's centre ``t_s`` they turn as ``2*f_i*t_s``: the family's
     ``seg_centre_s`` is ``2*t_s``; ``phase_var`` the two lines' summed, with their noises' product
-    over the ``S`` segments, ``2*S*v_u*v_l`` (:func:`realness_chi2` with ``power`` 2). None where no tone has both lines or the segments differ."""
+    over the ``S`` segments, ``2*S*v_u*v_l`` (:func:`realness_chi2` with ``power`` 2). None where no
+    tone has both lines or the segments differ."""
     both, iu, il = np.intersect1d(upper.tone_hz, lower.tone_hz, return_indices=True)
     if both.size == 0 or not np.array_equal(upper.seg_centre_s, lower.seg_centre_s):
         return None
