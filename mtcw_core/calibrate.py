@@ -44,6 +44,7 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
     n_frames = 0
     own = 0j  # the first tone's line, squared, at the known range: its phase is 2*phi_0_eff (mod 2*pi)
     absolute = True
+    tau = 2 * known_range_m / C
     for fr in frames:
         fams = run_stages(fr, settings, None, until="extract").families  # raises Rejected
         t = np.asarray(fr.tones_hz, float)
@@ -55,7 +56,6 @@ def derive_calibration(frames: Iterable[Frame], known_range_m: float, settings: 
         frame_sum = np.zeros(t.size, complex)
         amps.append(relative_amplitudes(fams))
         absolute = absolute and fr.receiver != "iq" and fr.architecture == "unmodulated_lo"
-        tau = 2 * known_range_m / C
         for fam in (f for f in fams if f.target == 0):  # the static reflector's lines
             d = t - t[0]
             own += np.sum((fam.z[:, 0] * np.exp(-2j * np.pi * t[0] * (fam.seg_centre_s - tau))) ** 2) / fam.phase_var[0]
