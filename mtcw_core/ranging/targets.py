@@ -629,6 +629,11 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
     return a_chi2, a_dof, blend, s_chi2, s_dof
 
 
+def _sidebands(fams: list[LineFamily]) -> dict[str, LineFamily]:
+    """A candidate's upper (``"U"``) and lower (``"L"``) line families by name, those it has."""
+    return {f.name: f for f in fams if f.name in ("U", "L")}
+
+
 def _real_envelope(fams: list[LineFamily], iq: bool, ref: Reference, settings: ChainSettings,
                    at: tuple[float, tuple[float, np.ndarray]]) -> tuple[float, int, float]:
     """:func:`~.mixing.realness_chi2` over a static candidate's families (on an IQ record its
@@ -638,7 +643,7 @@ def _real_envelope(fams: list[LineFamily], iq: bool, ref: Reference, settings: C
     tone_var = settings.tone_phase_sigma_rad**2
     power, read = 1, fams
     if iq:
-        sides = {f.name: f for f in fams if f.name in ("U", "L")}
+        sides = _sidebands(fams)
         prod = sideband_products(sides["U"], sides["L"]) if len(sides) == 2 else None
         power, read = 2, [] if prod is None else [prod]
     chi2, dof, weight = 0.0, 0, []
@@ -784,7 +789,7 @@ def sideband_chi2(fams: list[LineFamily], tolerance: float, min_snr_db: float) -
     -------
     (chi2, dof): 0, 0 where the candidate has not both sidebands of a tone
     """
-    sides = {f.name: f for f in fams if f.name in ("U", "L")}
+    sides = _sidebands(fams)
     if len(sides) < 2:
         return 0.0, 0
     got = [line_powers([sides[k]], lambda f: _sizable(f, min_snr_db)) for k in ("U", "L")]
@@ -831,7 +836,7 @@ def sideband_split(fams: list[LineFamily], fd_hz: float, min_snr_db: float) -> t
     -------
     (chi2, dof): 0, 0 where fewer than two tones have both sidebands at ``min_snr_db`` or more
     """
-    sides = {f.name: f for f in fams if f.name in ("U", "L")}
+    sides = _sidebands(fams)
     if len(sides) < 2:
         return 0.0, 0
     u, lo = sides["U"], sides["L"]
