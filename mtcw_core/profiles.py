@@ -88,7 +88,9 @@ class ChainSettings(BaseModel):
     laser_linewidth_hz: float = Field(0.0, ge=0, le=1e12, description=(
         "the laser's Lorentzian FWHM (Hz); with lo_path_difference_m it says at which ranges the LO x echo "
         "carrier beat is a line at all: where it is not, a mover shows no Doppler line and its speed is "
-        "reported unknown, not zero. 0: assumed coherent at every range (one frame cannot tell)"))
+        "reported unknown, not zero; a static point's segments are checked against one echo's envelope only where "
+        "it is coherent. 0: assumed coherent at every range (one frame cannot tell; a partly coherent laser left "
+        "undeclared may then flag a lone still echo blended)"))
     lo_path_difference_m: float = Field(0.0, ge=-1e4, le=1e4, description="optical path of the LO minus the "
                                                                          "echo's internal path (m)")
     tone_amplitudes: tuple[Annotated[float, Field(gt=0)], ...] | None = Field(None, min_length=2, description=(

@@ -576,6 +576,71 @@ def test_a_lone_echo_above_the_lo_is_not_flagged_for_its_own_leftover():
             assert len(r.targets) == 1 and not v.points[0].flags and abs(v.points[0].range_z) < 5, v.points
 
 
+class TestEnvelopeRank:
+    """The static lines' segments against one echo's real envelope (``extract.envelope_rank_chi2``)."""
+
+    N = 2**14
+
+    @classmethod
+    def echoes(cls, echoes, noise_std, seed=0):
+        """A real record of echoes ``(amplitude, delta_hz, phi0, range_m)`` on :data:`TONES`: each
+        ``a*2*cos(2*pi*delta*t + phi0)*cos(2*pi*f_i*(t - tc) + 4*pi*f_i*r/c)``, plus white noise."""
+        rng = np.random.default_rng(seed)
+        t = np.arange(cls.N) / FS
+        tc = (cls.N - 1) / (2 * FS)
+        x = noise_std * rng.standard_normal(cls.N)
+        for a, delta, phi0, r in echoes:
+            env = 2 * np.cos(2 * np.pi * delta * (t - tc) + phi0)
+            x += sum(a * env * np.cos(2 * np.pi * f * (t - tc) + 4 * np.pi * f * r / 3e8) for f in TONES)
+        return x
+
+    def chi2(self, x, s):
+        from mtcw_core.dsp.extract import envelope_rank_chi2
+
+        return envelope_rank_chi2(x, FS, np.asarray(TONES), np.arange(3), np.full(3, s**2), 4 * FS / self.N)
+
+    def test_one_fading_echo_reads_as_chi2_of_its_degrees_of_freedom(self):
+        """One echo fading half a record bin (its phasors one real envelope on every tone): the
+        residual is noise, chi2 over ``(S - 1)*(2T - 1)`` degrees of freedom (mean 1 per degree at
+        lines ~24-30 dB a segment, where the model's tolerance adds ~1-5 % to the noise; none past
+        the flag's 1e-4, at ~57 dB a segment too)."""
+        from scipy.stats import chi2 as chi2_dist
+
+        ratios, ps = [], []
+        for k in range(40):
+            s = 2e-3 if k % 2 else 1e-3  # lines ~24 and ~30 dB a segment
+            c2, dof = self.chi2(self.echoes([(1e-3, 0.5 * FS / self.N, 0.3 + 0.1 * k, 1.7)], s, seed=k), s)
+            assert dof == 15 * 5
+            ratios.append(c2 / dof)
+            ps.append(chi2_dist.sf(c2, dof))
+        assert 0.85 < np.mean(ratios) < 1.1, np.mean(ratios)
+        for k in range(5):  # ~60 dB a segment
+            c2, dof = self.chi2(self.echoes([(1e-3, 0.5 * FS / self.N, 0.2 * k, 1.7)], 3e-5, seed=k), 3e-5)
+            ps.append(chi2_dist.sf(c2, dof))
+        assert min(ps) > 1e-4, min(ps)
+
+    def test_two_echoes_fading_apart_hold_a_second_rank(self):
+        """Two echoes of equal size 1 cm apart (a tone turned by at most 0.1 rad between them),
+        moving 0.67 and -0.32 record bins: their whole-record lines fit one range between theirs,
+        their segments do not fit one envelope."""
+        from scipy.stats import chi2 as chi2_dist
+
+        s = 3e-4  # ~40 dB a segment
+        for k in range(5):
+            x = self.echoes([(1e-3, 0.67 * FS / self.N, 0.4 * k, 7.12), (1e-3, -0.32 * FS / self.N, 1.0, 7.13)], s, k)
+            c2, dof = self.chi2(x, s)
+            assert chi2_dist.sf(c2, dof) < 1e-8, (k, c2, dof)
+
+    def test_noise_alone_reads_low(self):
+        """No line: the first singular pair takes the noise's largest direction, the rest reads
+        below its degrees of freedom (never a flag from noise)."""
+        from scipy.stats import chi2 as chi2_dist
+
+        for k in range(10):
+            c2, dof = self.chi2(np.random.default_rng(k).standard_normal(self.N), 1.0)
+            assert chi2_dist.sf(c2, dof) > 0.05, (k, c2)
+
+
 class TestNoiseRings:
     """Which families carry their lines' noise rings (:class:`~mtcw_core.dsp.extract.NoiseRing`)."""
 

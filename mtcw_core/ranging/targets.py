@@ -75,6 +75,32 @@ def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
     return abs(2 * range_m - settings.lo_path_difference_m) / C
 
 
+#: the static lines' one-envelope test (:func:`~mtcw_core.dsp.extract.envelope_rank_chi2`) is read
+#: where the declared laser keeps at least this part of the carrier beat one line at every range
+#: the echo could be (:func:`carrier_coherence`, :func:`_carrier_kept`): one echo's LO beat is one real
+#: envelope times the tones' phasors whatever the carrier's phase, but a pedestal, white out to
+#: ~1/dtau, puts on each line's segments parts the floor beside it does not show -- one echo at
+#: 0.59 m on six tones, balanced,
+#: residual per degree of freedom 0.08 / 0.3 / 0.85 / 2.2 under a 1 kHz / 10 kHz / 100 kHz / 1 MHz
+#: laser (coherence 0.99998 ... 0.976); the envelope probe's scenes 183 and 185, one echo each at
+#: coherence 0.974-0.976, right within their sigmas, read 2.2-3.6 (:func:`_carrier_kept`)
+ENVELOPE_MIN_COHERENCE = 0.99
+
+
+def _carrier_kept(settings: ChainSettings) -> bool:
+    """Whether the declared laser keeps :data:`ENVELOPE_MIN_COHERENCE` of the carrier beat one line
+    at every range an echo could be: an ideal laser (linewidth 0) anywhere, a partly coherent one
+    only within a declared ``range_max_m`` (a point's own range may be one cycle of many: the
+    envelope probe's scene 183, ranged 0.40 m, where coherence is 0.998, lay at 6.39 m, 0.974).
+    A laser left undeclared is taken as ideal: a partly coherent one then may flag one echo."""
+    if settings.laser_linewidth_hz == 0:
+        return True
+    if settings.range_max_m is None:
+        return False
+    return min(carrier_coherence(settings, r) for r in (settings.range_min_m, settings.range_max_m)
+               ) >= ENVELOPE_MIN_COHERENCE
+
+
 def carrier_coherence(settings: ChainSettings, range_m: float) -> float:
     """The part of the LO x echo carrier beat that stays one line, ``exp(-2*pi*linewidth*|dtau|)``.
 
@@ -423,7 +449,7 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
     # the static lines' sizes against one target's (two echoes on one Doppler-0 line set; on an IQ
     # record also its sidebands' sizes), and the phase variance per tone such a blend may add
     tau = ref.tau0_s + 2 * sol.range_m / C
-    a_chi2, a_dof, blend_var, s_chi2, s_dof = _static_sizes(
+    a_chi2, a_dof, blend_var, one_echo = _static_sizes(
         fams, dop, frame, ref, settings, (tau, _aliases(sol.range_m, l_unamb, (lo, settings.range_max_m), coarse)))
     u_chi2, u_dof = sideband_split(fams, dop.fd_hz, max(settings.min_line_snr_db, SPLIT_MIN_SNR_DB)) if (
         dop.detected) else (0.0, 0)  # a mover's carrier, 2*psi, on every tone
@@ -462,14 +488,15 @@ def solve_target(fams: list[LineFamily], obs: Observations, dop: DopplerEstimate
         # above it with two movers or more: ``echo_beats``), or
         # (the static lines, one photodiode) Doppler lines no mover found explains could have put
         # their self-beats on them, as large as several of their sigmas, or the static lines' sizes
-        # are not one target's, or a mover's sidebands not one carrier's (:func:`sideband_split`); a
+        # are not one target's, or their common phase or their segments not one echo's (two echoes
+        # fading apart), or a mover's sidebands not one carrier's (:func:`sideband_split`); a
         # Doppler line that hid a second mover (``dop.unresolved``) is judged in resolve_targets
         blended=bool((dof > 0 and (ratio > settings.blended_chi2 or p_fit < BLENDED_P))
                      or dop.lines_chi2 > settings.blended_lines_chi2
                      or dop.beat_ambiguous or any(f.echo_beats for f in fams) or unexplained > UNEXPLAINED_SIGMAS
                      or unexplained_sigmas(fams, settings.min_line_snr_db, "copy_v") > UNEXPLAINED_SIGMAS or ghost
                      or any(d > 0 and not chdtrc(d, c) >= BLENDED_P for c, d in
-                            ((a_chi2, a_dof), (s_chi2, s_dof), (u_chi2, u_dof)))),
+                            ((a_chi2, a_dof), *one_echo, (u_chi2, u_dof)))),
         chi2_per_dof=float(ratio), doppler_hz=dop.fd_hz,
         tone_snr_db=_tone_snr(fams), seed_sigma_k_m=sol.seed_sigma_k_m, speed_min_mps=v_min,
     )
@@ -601,20 +628,23 @@ def _aliases(range_m: float, l_unamb: float, bounds: tuple[float, float | None],
 
 def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, ref: Reference,
                   settings: ChainSettings, at: tuple[float, tuple[float, np.ndarray]]
-                  ) -> tuple[float, int, float, float, int]:
+                  ) -> tuple[float, int, float, list[tuple[float, int]]]:
     """A static candidate's line sizes: :func:`amplitude_chi2` (chi2, dof), the phase variance per
     tone (rad^2) a second echo on its line set may put on it (:func:`blend_phase_var`) and what one
-    echo's real envelope implies, (chi2, dof): on an IQ record its sidebands' sizes
+    echo's real envelope implies, as (chi2, dof) pairs: on an IQ record its sidebands' sizes
     (:func:`sideband_chi2`), and with an unmodulated LO and the tones' own phases known
     (``ref.absolute``) its lines' common phase (:func:`_real_envelope`) at ``at``: the round-trip
-    delay (s) and its aliases (:func:`_aliases`); zeros for a mover. The blend's phase
+    delay (s) and its aliases (:func:`_aliases`), pooled; and on a real record its lines' segments
+    against one envelope (:attr:`~mtcw_core.dsp.extract.LineFamily.envelope_chi2`) where the
+    declared laser keeps the carrier one line (:func:`_carrier_kept`); zeros and no pairs for a
+    mover. The blend's phase
     variance is read from the sizes and, where it is read, from the common phase alike: a second
     echo of relative size ``rho`` moves the sizes by ``rho*cos(dphi_i)`` and the phases by
     ``rho*sin(dphi_i)``, and the lines' common phase is the part of the latter one range leaves
     (the envelope probe's scene 37755: a still echo beside a slow mover's self-beat, one
     photodiode, chi2 7.7 on 1 dof, ranged 4.2 sigmas off); the larger is taken."""
     if dop.detected:
-        return 0.0, 0, 0.0, 0.0, 0
+        return 0.0, 0, 0.0, []
     a_chi2, a_dof, allowed = _amplitude_fit(fams, ref.tone_amplitudes, settings.min_line_snr_db)
     blend = blend_phase_var(a_chi2, a_dof, allowed)
     s_chi2, s_dof = 0.0, 0
@@ -626,7 +656,8 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
         r_chi2, r_dof, r_allowed = _real_envelope(fams, frame.receiver == "iq", ref, settings, at)
         blend = max(blend, blend_phase_var(r_chi2, r_dof, r_allowed))
         s_chi2, s_dof = s_chi2 + r_chi2, s_dof + r_dof
-    return a_chi2, a_dof, blend, s_chi2, s_dof
+    envelope = [f.envelope_chi2 for f in fams if f.envelope_chi2] if _carrier_kept(settings) else []
+    return a_chi2, a_dof, blend, [(s_chi2, s_dof)] + envelope[:1]
 
 
 def _sidebands(fams: list[LineFamily]) -> dict[str, LineFamily]:
