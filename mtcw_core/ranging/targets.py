@@ -80,11 +80,15 @@ def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
 #: the echo could be (:func:`carrier_coherence`, :func:`_carrier_kept`): one echo's LO beat is one real
 #: envelope times the tones' phasors whatever the carrier's phase, but a pedestal, white out to
 #: ~1/dtau, puts on each line's segments parts the floor beside it does not show -- one echo at
-#: 0.59 m on six tones, balanced,
-#: residual per degree of freedom 0.08 / 0.3 / 0.85 / 2.2 under a 1 kHz / 10 kHz / 100 kHz / 1 MHz
+#: 0.59 m on six tones, balanced, residual per degree of freedom 0.08 / 0.3 / 0.85 / 2.2 under a 1 kHz / 10 kHz / 100 kHz / 1 MHz
 #: laser (coherence 0.99998 ... 0.976); the envelope probe's scenes 183 and 185, one echo each at
 #: coherence 0.974-0.976, right within their sigmas, read 2.2-3.6 (:func:`_carrier_kept`)
 ENVELOPE_MIN_COHERENCE = 0.99
+#: ... and flags only a residual above this many times its degrees of freedom (besides p < 1e-4, as
+#: the line phases' chi2/dof 10): a laser left undeclared is taken as ideal, and ``moving-target``'s
+#: own 100 kHz laser, undeclared, put one echo fading 0.6 record bins at 2^14 samples at 2.6-6.6
+#: (the static scenes 0.1-1.2); the envelope probe's 20925 reads 19 in its frame 0, 3.6 in frame 1
+ENVELOPE_MIN_RATIO = 10.0
 
 
 def _carrier_kept(settings: ChainSettings) -> bool:
@@ -636,7 +640,8 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
     (``ref.absolute``) its lines' common phase (:func:`_real_envelope`) at ``at``: the round-trip
     delay (s) and its aliases (:func:`_aliases`), pooled; and on a real record its lines' segments
     against one envelope (:attr:`~mtcw_core.dsp.extract.LineFamily.envelope_chi2`) where the
-    declared laser keeps the carrier one line (:func:`_carrier_kept`); zeros and no pairs for a
+    declared laser keeps the carrier one line (:func:`_carrier_kept`) and the residual exceeds
+    :data:`ENVELOPE_MIN_RATIO` times its dof; zeros and no pairs for a
     mover. The blend's phase
     variance is read from the sizes and, where it is read, from the common phase alike: a second
     echo of relative size ``rho`` moves the sizes by ``rho*cos(dphi_i)`` and the phases by
@@ -656,7 +661,8 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
         r_chi2, r_dof, r_allowed = _real_envelope(fams, frame.receiver == "iq", ref, settings, at)
         blend = max(blend, blend_phase_var(r_chi2, r_dof, r_allowed))
         s_chi2, s_dof = s_chi2 + r_chi2, s_dof + r_dof
-    envelope = [f.envelope_chi2 for f in fams if f.envelope_chi2] if _carrier_kept(settings) else []
+    envelope = [(c, d) for c, d in (f.envelope_chi2 for f in fams if f.envelope_chi2)
+                if c > ENVELOPE_MIN_RATIO * d] if _carrier_kept(settings) else []
     return a_chi2, a_dof, blend, [(s_chi2, s_dof)] + envelope[:1]
 
 
