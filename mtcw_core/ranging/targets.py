@@ -77,12 +77,13 @@ def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
 
 #: the static lines' one-envelope test (:func:`~mtcw_core.dsp.extract.envelope_rank_chi2`) is read
 #: where the declared laser keeps at least this part of the carrier beat one line at every range
-#: the echo could be (:func:`carrier_coherence`, :func:`_carrier_kept`): one echo's LO beat is one real
-#: envelope times the tones' phasors whatever the carrier's phase, but a pedestal, white out to
-#: ~1/dtau, puts on each line's segments parts the floor beside it does not show -- one echo at
-#: 0.59 m on six tones, balanced, residual per degree of freedom 0.08 / 0.3 / 0.85 / 2.2 under a 1 kHz / 10 kHz / 100 kHz / 1 MHz
-#: laser (coherence 0.99998 ... 0.976); the envelope probe's scenes 183 and 185, one echo each at
-#: coherence 0.974-0.976, right within their sigmas, read 2.2-3.6 (:func:`_carrier_kept`)
+#: the echo could be (:func:`carrier_coherence`, :func:`_carrier_kept`): one echo's LO beat is one
+#: real envelope times the tones' phasors whatever the carrier's phase, but a partly coherent
+#: laser's pedestal puts on each line's segments parts the floor beside it does not show (not
+#: understood) -- one echo at 0.59 m on six tones, balanced, residual per degree of freedom 0.08 /
+#: 0.3 / 0.85 / 2.2 under a 1 kHz / 10 kHz / 100 kHz / 1 MHz laser (coherence 0.99998 ... 0.976);
+#: the envelope probe's scenes 183 and 185, one echo each at coherence 0.974-0.976, right within
+#: their sigmas, read 2.2-3.6
 ENVELOPE_MIN_COHERENCE = 0.99
 #: ... and flags only a residual above this many times its degrees of freedom (besides p < 1e-4, as
 #: the line phases' chi2/dof 10): a laser left undeclared is taken as ideal, and ``moving-target``'s
