@@ -342,19 +342,21 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
 
 
 def _static_envelope(x: np.ndarray, fs: float, uniq: np.ndarray, static_hz: np.ndarray, spec: Spectrum,
-                     guard_hz: float, segments: tuple[np.ndarray, np.ndarray], z_all: np.ndarray
+                     guard_hz: float, seg_dfts: tuple[np.ndarray, np.ndarray], z_all: np.ndarray
                      ) -> tuple[np.ndarray, tuple[float, int] | None]:
     """No Doppler line found on a real record: the static lines (``static_hz``) may still fade
     within it (a mover below the search's guard, the carrier's phase noise). Their common real
     envelope is measured (:func:`fading_lines`, its lines put into ``z_all`` (1, K) where taken)
     and their segments read against one (:func:`envelope_rank_chi2`: (chi2, dof), None where not
-    read). ``segments``: the segments' DFTs and sums (:func:`_whole_record_dfts`)."""
+    read), both from one read of the segments (:func:`static_segments`). ``seg_dfts``: the
+    segments' DFTs and sums (:func:`_whole_record_dfts`)."""
     s_idx = _line_index(uniq, static_hz)
-    c = fading_lines(x, fs, uniq, s_idx, spec.noise_variances(static_hz, uniq), guard_hz, *segments)
+    seg = static_segments(x, fs, uniq, s_idx, guard_hz, *seg_dfts)
+    c = fading_lines(x, fs, uniq, s_idx, spec.noise_variances(static_hz, uniq), guard_hz, *seg_dfts, segments=seg)
     # the test reads its noise as the lines' own is read: as near them as their floor may lie (a
     # floor ~15 % low further out inflates the chi2 by as much)
     s2_lines = spec.noise_variances(static_hz, uniq, guard=spec.line_floor_guard())
-    envelope = envelope_rank_chi2(x, fs, uniq, s_idx, s2_lines, guard_hz, *segments)
+    envelope = envelope_rank_chi2(x, fs, uniq, s_idx, s2_lines, guard_hz, *seg_dfts, segments=seg)
     if c is not None:
         z_all = z_all.copy()
         z_all[0, s_idx] = c
@@ -756,8 +758,8 @@ def _whole_record_dfts(x: np.ndarray, fs: float, uniq: np.ndarray, spec: Spectru
 
 
 def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
-                 guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None
-                 ) -> np.ndarray | None:
+                 guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None,
+                 segments: tuple | None = None) -> np.ndarray | None:
     """The static lines' whole-record amplitudes with a fading envelope taken out, or None.
 
     A real detector sees a target's LO beats at tone ``f_i`` as ``A_i*a(t)*cos(2*pi*f_i*t +
@@ -794,17 +796,19 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
         taken (:func:`~.tones.exact_dft_tiled` with :func:`fading_segments`' count, which ``S`` is then)
     seg_sums : ndarray, shape (S,), optional: the segments' sums (V) if already taken (the same
         pass at 0 Hz)
+    segments : :func:`static_segments`' of the record, if already read
 
     Returns
     -------
     ndarray, shape (T,), complex (V, phase at the record's centre), or None where the envelope is
     constant within the noise or the record cannot be cut fine enough
     """
-    seg = _static_segments(x, fs, uniq, s_idx, s2, guard_hz, seg_dft, seg_sums)
-    if seg is None:
+    seg = segments or static_segments(x, fs, uniq, s_idx, guard_hz, seg_dft, seg_sums)
+    if seg is None or not np.all(s2 > 0):
         return None
-    z, turn, sd, dc = seg
+    z, turn, dc = seg
     segs, length = z.shape[0], x.size // z.shape[0]
+    sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
     cols = m.shape[1]
     varying = np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[0] ** 2
@@ -824,25 +828,24 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
     return (a @ z) / segs
 
 
-def _static_segments(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
-                     guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+def static_segments(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, guard_hz: float,
+                    seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The static lines fitted on each of :func:`fading_segments`' segments (or ``seg_dft``'s),
     referred to the record's centre: ``z`` (S, T) complex (V), what turned them there from each
-    segment's centre (S, T), each real component's noise std per segment (T,) (V) and each
-    segment's mean (S,) (V); None where the record cannot be cut, with fewer than two lines or a
-    floor not above 0 (parameters: :func:`fading_lines`)."""
+    segment's centre (S, T) and each segment's mean (S,) (V); None where the record cannot be cut
+    or holds fewer than two lines (parameters: :func:`fading_lines`). Read once for
+    :func:`fading_lines` and :func:`envelope_rank_chi2` (their ``segments``)."""
     n = x.size
     segs = seg_dft.shape[0] if seg_dft is not None else fading_segments(n, fs, uniq, guard_hz)
-    if segs is None or s_idx.size < 2 or not np.all(s2 > 0):
+    if segs is None or s_idx.size < 2:
         return None
     length = n // segs
     starts = np.arange(segs) * length
     z = fit_lines_segments(x, starts, length, uniq, fs, seg_dft, seg_sums)[:, s_idx]  # (S, T), about each segment's centre
     turn = centre_turn(segs, length, n, uniq[s_idx], fs)  # about the record's centre
-    sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
     dc = seg_sums / length if seg_sums is not None else x[:segs * length].reshape(segs, length).mean(axis=1)
-    return z * turn, turn, sd, dc
+    return z * turn, turn, dc
 
 
 #: :func:`envelope_rank_chi2` allows each line's segments this much (relative, complex) beyond
@@ -854,8 +857,8 @@ ENVELOPE_TOLERANCE = 0.01
 
 
 def envelope_rank_chi2(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, s2: np.ndarray,
-                       guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None
-                       ) -> tuple[float, int]:
+                       guard_hz: float, seg_dft: np.ndarray | None = None, seg_sums: np.ndarray | None = None,
+                       segments: tuple | None = None) -> tuple[float, int]:
     """The static lines across the record against one echo's: chi2 and degrees of freedom of the
     best fit ``a_s * c_i`` with ``a`` real (one envelope, every tone), (0, 0) where not read.
 
@@ -881,15 +884,17 @@ def envelope_rank_chi2(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.nda
     where the declared laser keeps the carrier one line,
     :data:`~mtcw_core.ranging.targets.ENVELOPE_MIN_COHERENCE`).
 
-    Parameters: :func:`fading_lines`'.
+    Parameters: :func:`fading_lines`' (``segments``: :func:`static_segments`' of the record, if read).
     """
-    seg = _static_segments(x, fs, uniq, s_idx, s2, guard_hz, seg_dft, seg_sums)
-    if seg is None:
+    seg = segments or static_segments(x, fs, uniq, s_idx, guard_hz, seg_dft, seg_sums)
+    if seg is None or not np.all(s2 > 0):
         return 0.0, 0
-    z, turn, sd, dc = seg
+    z, turn, dc = seg
+    length = x.size // z.shape[0]
     if z.shape[0] >= 3:
-        z = z - ramp_leak(dc, z, turn, x.size // z.shape[0], uniq, s_idx, fs) * turn
-    # each real component's noise, and the model's own tolerance on a line's segments
+        z = z - ramp_leak(dc, z, turn, length, uniq, s_idx, fs) * turn
+    # each real component's noise per segment, and the model's own tolerance on a line's segments
+    sd = np.sqrt(2.0 * s2 / length)
     sd = np.sqrt(sd**2 + (ENVELOPE_TOLERANCE**2 / 2) * np.mean(np.abs(z) ** 2, axis=0))
     m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T), unit variance per entry
     sv = np.linalg.svd(m, compute_uv=False)
