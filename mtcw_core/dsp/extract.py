@@ -352,10 +352,12 @@ def _static_envelope(x: np.ndarray, fs: float, uniq: np.ndarray, static_hz: np.n
     segments' DFTs and sums (:func:`_whole_record_dfts`)."""
     s_idx = _line_index(uniq, static_hz)
     seg = static_segments(x, fs, uniq, s_idx, guard_hz, *seg_dfts)
-    c = fading_lines(x, fs, uniq, s_idx, spec.noise_variances(static_hz, uniq), guard_hz, *seg_dfts, segments=seg)
+    s2 = spec.noise_variances(static_hz, uniq)  # its default ring, 12 bins clear of every line
+    c = fading_lines(x, fs, uniq, s_idx, s2, guard_hz, *seg_dfts, segments=seg)
     # the test reads its noise as the lines' own is read: as near them as their floor may lie (a
-    # floor ~15 % low further out inflates the chi2 by as much)
-    s2_lines = spec.noise_variances(static_hz, uniq, guard=spec.line_floor_guard())
+    # floor ~15 % low further out inflates the chi2 by as much); the same ring on a whole-record spectrum
+    guard = spec.line_floor_guard()
+    s2_lines = s2 if guard == 12 else spec.noise_variances(static_hz, uniq, guard=guard)
     envelope = envelope_rank_chi2(x, fs, uniq, s_idx, s2_lines, guard_hz, *seg_dfts, segments=seg)
     if c is not None:
         z_all = z_all.copy()

@@ -642,8 +642,7 @@ def _static_sizes(fams: list[LineFamily], dop: DopplerEstimate, frame: Frame, re
     delay (s) and its aliases (:func:`_aliases`), pooled; and on a real record its lines' segments
     against one envelope (:attr:`~mtcw_core.dsp.extract.LineFamily.envelope_chi2`) where the
     declared laser keeps the carrier one line (:func:`_carrier_kept`) and the residual exceeds
-    :data:`ENVELOPE_MIN_RATIO` times its dof; zeros and no pairs for a
-    mover. The blend's phase
+    :data:`ENVELOPE_MIN_RATIO` times its dof; zeros and no pairs for a mover. The blend's phase
     variance is read from the sizes and, where it is read, from the common phase alike: a second
     echo of relative size ``rho`` moves the sizes by ``rho*cos(dphi_i)`` and the phases by
     ``rho*sin(dphi_i)``, and the lines' common phase is the part of the latter one range leaves
