@@ -882,8 +882,10 @@ def envelope_rank_chi2(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.nda
     second rank above ~1 % of the lines shows. What is not one real envelope and not a second echo
     would read as one too: quantizer products under half an LSB of noise, a front end's
     nonlinearity, a clock offset between synthesizer and digitizer (a phase ramp in ``f_i`` across
-    the segments); and a partly coherent laser's pedestal (the target stage reads the test only
-    where the declared laser keeps the carrier one line,
+    the segments); and a partly coherent laser's pedestal (the 0 Hz carrier beat's, which each
+    segment's fit gathers through its sidelobes, most where the envelope crosses zero, and the
+    record's floor does not show; the target stage reads the test only where the declared laser
+    keeps the carrier one line,
     :data:`~mtcw_core.ranging.targets.ENVELOPE_MIN_COHERENCE`).
 
     Parameters: :func:`fading_lines`' (``segments``: :func:`static_segments`' of the record, if read).

@@ -87,8 +87,10 @@ def echo_delay_s(settings: ChainSettings, range_m: float) -> float:
 ENVELOPE_MIN_COHERENCE = 0.99
 #: ... and flags only a residual above this many times its degrees of freedom (besides p < 1e-4, as
 #: the line phases' chi2/dof 10): a laser left undeclared is taken as ideal, and ``moving-target``'s
-#: own 100 kHz laser, undeclared, put one echo fading 0.6 record bins at 2^14 samples at 2.6-6.6
-#: (the static scenes 0.1-1.2); the envelope probe's 20925 reads 19 in its frame 0, 3.6 in frame 1
+#: own 100 kHz laser, undeclared, put one echo fading 0.6 record bins at 2^14 samples at 2.5-8.9
+#: (the static scenes 0.1-1.2): the segments' fits gather the carrier beat's pedestal through their
+#: sidelobes, most where the envelope crosses zero, which the record's floor does not show (the honesty
+#: notes, twenty-eighth session); the envelope probe's 20925 reads 19 in its frame 0, 3.6 in frame 1
 ENVELOPE_MIN_RATIO = 10.0
 
 
