@@ -227,3 +227,58 @@ def test_worker_with_technique_pe_streams_points_to_the_api(tmp_path):
             assert abs(t["velocity_mps"] - 30.0) < 5 * t["velocity_sigma_mps"] + 1e-3
     finally:
         bench.close()
+
+
+def test_slope_phase_var_against_a_monte_carlo_of_the_delayed_self_heterodyne_phase():
+    """The least-squares frequency of ``phi(t) - phi(t - tau)`` (``phi`` a Wiener phase of rate
+    2*pi*linewidth) drawn directly, against the closed form: flat-PSD limit, saturation, between."""
+    rng = np.random.default_rng(3)
+    lw, fs, n = 1e5, 1e9, 1000
+    t = np.arange(n) / fs
+    w = (t - t.mean()) / np.sum((t - t.mean()) ** 2) / (2 * np.pi)  # Hz per rad of slope
+    for lag in (20, 200, 700, 2000):
+        steps = rng.normal(0, np.sqrt(2 * np.pi * lw / fs), (4000, n + lag))
+        phi = np.cumsum(steps, axis=1)
+        est = (phi[:, lag:] - phi[:, :n]) @ w
+        want = pe.slope_phase_var(lw, lag / fs, n / fs)
+        assert np.var(est) == pytest.approx(want, rel=0.1), lag
+    T, tau = 1e-5, 1e-8
+    assert pe.slope_phase_var(lw, tau, T) == pytest.approx(3 * (2 * np.pi * lw * tau**2) / (np.pi**2 * T**3), rel=0.01)
+    assert pe.slope_phase_var(lw, 3 * T, T) == pe.slope_phase_var(lw, T, T) == pytest.approx(2.4 * 2 * np.pi * lw / T / (4 * np.pi**2))
+
+
+def _far_mover(range_m: float, samples: int):
+    return fast_scene(samples=samples, noise=True, laser={"linewidth_hz": 1e5},
+                      targets=[{"range_m": range_m, "velocity_mps": 39.0, "loss_db": 30.0}])
+
+
+def test_speed_sigma_covers_the_laser_phase_over_a_delay_the_folded_range_hides():
+    """A target at 103.5 m reads 1.58 m (6 m unambiguous): the laser's phase over its true delay
+    (0.69 us, coherence 0.65) moves the Doppler by ~0.025 m/s, 10-17 sigmas of the speed stated
+    before; the sigma now takes the longest delay the pedestal allows."""
+    sim = Simulator(_far_mover(103.5, 2**16), seed=7)
+    z = []
+    for _ in range(10):
+        fr = sim.next_frame()
+        res = process_frame(fr, settings(laser_linewidth_hz=1e5))
+        if res.status != "ok" or res.targets[0].cycle_ambiguous:
+            continue
+        p = res.targets[0]
+        z.append((p.velocity_mps - abs(fr.truth[0].velocity_mps)) / p.velocity_sigma_mps)
+    assert len(z) >= 6 and np.max(np.abs(z)) < 5, z
+
+
+@pytest.mark.parametrize("range_m, tight", [(10.0, True), (103.5, False)])
+def test_the_pedestal_witnesses_the_delay(range_m, tight):
+    """On a record long enough that the probes sit on the pedestal's flat part (2^18 samples: 2-10
+    bins = 0.125-0.625 MHz), a target 10 m away is held to a short delay (the stated error a few
+    times its own), and one 103.5 m away is not held below its true delay."""
+    sc = _far_mover(range_m, 2**18)
+    fr = simulate_frame(sc, 0, seed=5)
+    st = run_stages(fr, settings(laser_linewidth_hz=1e5), None, until="pe_lines")
+    stated = st.pe_lines[0].doppler.wander_hz
+    true_tau = 2 * (range_m - sc.architecture.reference_range_m) / C
+    own = np.sqrt(pe.slope_phase_var(1e5, true_tau, fr.n / fr.fs_hz))
+    assert stated >= own
+    if tight:
+        assert stated < 4 * own

@@ -59,13 +59,14 @@ and IQ receivers have no reference self-beat); a target with no Doppler line is 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
+from scipy.stats import gamma as gamma_dist
 
-from ..dsp.doppler import DopplerEstimate, estimate_doppler, l1_ball
+from ..dsp.doppler import DopplerEstimate, estimate_doppler, l1_ball, white_floor
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import Spectrum
 from ..dsp.tones import fit_lines
@@ -288,6 +289,95 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
                            beat_ambiguous=dop.beat_ambiguous, beat_pull_hz=dop.beat_pull_hz)
 
 
+#: :func:`shared_phase_wander_hz` probes the pedestal this many record bins either side of the line ...
+PROBE_BINS = tuple(range(2, 11))
+#: ... excludes a delay whose pedestal the probes' power would have shown with odds below this ...
+PROBE_FALSE_ODDS = 1e-4
+#: ... scanning the delay on this many points up to the longest the bench allows: its declared
+#: largest range, or the delay at which the line would keep :data:`DELAY_CAP_COHERENCE` of the beat
+DELAY_SCAN_POINTS = 512
+DELAY_CAP_COHERENCE = 0.01
+
+
+def slope_phase_var(linewidth_hz: float, tau_s: float, duration_s: float) -> float:
+    """Variance (Hz^2) of the least-squares frequency over ``duration_s`` of a line whose phase is
+    the delayed self-heterodyne one, ``Phi(t) = phi(t) - phi(t - tau)`` of a Lorentzian laser
+    (``phi`` a Wiener process of rate ``D = 2*pi*linewidth``, so ``Cov(Phi(t), Phi(t')) =
+    D*max(0, tau - |t - t'|)``): with the slope's weights ``12*(t - T/2)/T^3`` it is
+    ``D*(12*tau^2/T^3 - 12*tau^3/T^4 + 2.4*tau^5/T^6)/(4*pi^2)`` up to ``tau = T`` (``12*D*tau^2/T^3``
+    for a short delay: the flat PSD ``2*pi*linewidth*tau^2``'s ``3*S/(pi^2*T^3)``) and ``2.4*D/T``
+    beyond, two independent random walks."""
+    r = min(tau_s / duration_s, 1.0)
+    d = 2 * math.pi * linewidth_hz
+    return d * (12 * r**2 - 12 * r**3 + 2.4 * r**5) / duration_s / (4 * math.pi**2)
+
+
+#: :func:`shared_phase_wander_hz` states this many times :func:`slope_phase_var`: the whole-record
+#: fit of every moving line (:func:`refine_doppler`) scattered 0.86 / 1.2 / 1.46 times that model's
+#: sigma for targets 10 / 30 / 103.5 m away (30 frames each, 100 kHz laser, 2^16 samples: ~13 % each)
+SHARED_PHASE_MARGIN = 2.0
+
+
+def shared_phase_wander_hz(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_hz: float, white: float,
+                           settings: ChainSettings) -> float:
+    """The Doppler's error (Hz) from the phase every moving line shares: the declared laser's noise
+    over the echo's delay relative to the reference arm (:func:`slope_phase_var`, times
+    :data:`SHARED_PHASE_MARGIN`), for the longest delay the pedestal about the target's line at
+    ``line_hz`` allows.
+
+    The delay is what the phases cannot give: they fold the range into ``c/(2*gcd)`` (6 m for
+    section 4.3's tones), and a target at 103.5 m under a 100 kHz laser read 1.58 m, its speed
+    10-17 of its sigmas off (the speed's scatter 0.025 m/s, the model's 0.017). The pedestal
+    witnesses the delay: a line keeping ``coherence = exp(-2*pi*linewidth*dtau)`` of the beat has
+    about it the phase's spectrum ``S(f) = 2*linewidth*sin^2(pi*f*dtau)/(pi*f^2)`` times its density
+    over the coherence (flat at ``2*pi*linewidth*dtau^2`` below ``1/(pi*dtau)``, beyond it a tail
+    that no longer grows with the delay). Probes fitted jointly with every line
+    (:data:`PROBE_BINS` record bins either side: no window's lobe hides them) read it, and each
+    delay under which their power would have stood higher than seen, with odds below
+    :data:`PROBE_FALSE_ODDS` (their powers over the expected, summed: gamma-distributed), is
+    excluded; the longest left is the one stated. Close probes pin a delay up to ``~T/(2*pi)``
+    (a long record); beyond, only the tail's rise with the coherence's fall bounds it, and the
+    bound is loose (a short record: the honest worst case). Capped by the declared largest range
+    (``range_max_m``) or the delay at which the line would keep :data:`DELAY_CAP_COHERENCE` of the
+    beat. 0 for a laser declared coherent.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,), float64, V
+    fs : sample rate (Hz)
+    lines_hz : ndarray, shape (M,), every line the frame's fit holds (Hz), sorted
+    line_hz : the target's strongest moving line (Hz)
+    white : the white floor (V^2 per sample, :func:`~mtcw_core.dsp.doppler.white_floor`)
+    """
+    lw, n = settings.laser_linewidth_hz, x.size
+    if lw <= 0:
+        return 0.0
+    cap = math.log(1 / DELAY_CAP_COHERENCE) / (2 * math.pi * lw)
+    if settings.range_max_m is not None:
+        cap = min(cap, 2 * settings.range_max_m / C)
+    delta = np.concatenate([-np.array(PROBE_BINS), PROBE_BINS]) * fs / n  # Hz from the line
+    probes = line_hz + delta
+    keep = (np.abs(probes[:, None] - lines_hz[None, :]).min(axis=1) > 1.5 * fs / n) & (probes > fs / n) & \
+        (probes < fs / 2 - fs / n)
+    tau = cap
+    if keep.any():
+        freqs = np.concatenate([lines_hz, probes[keep]])
+        order = np.argsort(freqs)
+        z = fit_lines(x, freqs[order], fs)[np.argsort(order)]
+        density = abs(z[np.argmin(np.abs(lines_hz - line_hz))]) ** 2 / 4  # V^2 per side
+        power = np.abs(z[lines_hz.size:]) ** 2
+        d = np.abs(delta[keep])
+        taus = np.linspace(0.0, cap, DELAY_SCAN_POINTS)[:, None]
+        # the phase's PSD as a probe (a record-long fit: its kernel the Fejer's, whose transform is a
+        # triangle) gathers it, over the line's coherence
+        sin2 = 0.5 - 0.5 * np.cos(2 * np.pi * d * taus) * np.maximum(1 - taus * fs / n, 0.0)
+        ped = 2 * lw * sin2 / (np.pi * d**2) / np.exp(-2 * np.pi * lw * taus)
+        seen = np.sum(power / (4 / n * (white + fs * density * ped)), axis=1)  # each ~ Exp(1)
+        last = int(np.flatnonzero(seen >= gamma_dist.ppf(PROBE_FALSE_ODDS, d.size))[-1])  # 0 always allowed
+        tau = float(taus[min(last + 1, taus.size - 1), 0])  # the bound lies before the next point excluded
+    return math.sqrt(SHARED_PHASE_MARGIN * slope_phase_var(lw, tau, n / fs))
+
+
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
                settings: ChainSettings) -> list[PeLines]:
     """The stage ``pe_lines``: per moving target, the complex amplitude of its PE lines.
@@ -338,6 +428,8 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
             z[~ok] = 0.0
             amps[nm], vars_[nm] = z, var
         a_d = float(np.abs(z_all[np.argmin(np.abs(allf - abs(dop.fd_hz)))]))
+        shared = shared_phase_wander_hz(x, fs, allf, abs(dop.fd_hz), white_floor(spec, allf)[0], settings)
+        dop = replace(dop, wander_hz=max(dop.wander_hz, shared))
         rho = min(a_d / abs(dc), 1.0) if dc != 0 else 1.0
         ratio = (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
         out.append(PeLines(k, dop, np.asarray(frame.tones_hz, float), amps["ref"], amps["up"], amps["low"],

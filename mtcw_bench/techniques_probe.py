@@ -1,0 +1,134 @@
+"""Random scenes for the dissertation's other techniques (PE-MTCW, AB-MTCW): confident-wrong and
+confident-false frames, as the envelope probe counts them for the PB chain.
+
+``python -m mtcw_bench.techniques_probe --technique pe|ab [--scenes 400] [--first 0] [--frames 2]``
+
+Scene ``i`` is drawn from its own seed (reproduced by ``--first i --scenes 1``):
+
+- ``pe``: section 4.3's bench (``pe-fast-target``: 4 tones 75-2450 MHz, reference mirror 10 cm,
+  16.384 GS/s, 2^16 samples, shot and thermal noise) with one target, or two (30 %), at 0.5-120 m
+  (the tones fold it into 5.996 m), moving at 0.03-40 m/s either way, 10-75 dB of loss, under an
+  ideal, 100 kHz or 1 MHz laser, declared;
+- ``ab``: the AB bench (``ab-bench``: 6 tones 79-2623 MHz, 1540 nm, reference mirror 3 cm) at 2^16
+  or 2^18 samples, with one target, or two (25 %), at 0.05-37 m (``c/(8*gcd)`` = 37.5 m), still
+  (50 %) or moving at 0.01-3 m/s, 25-65 dB of loss, the reference arm 25-50 dB down, under an
+  ideal, 500 kHz or 5 MHz laser; its reference-only calibration from 4 frames of the same bench
+  with the target arm blocked (``ab.derive_reference``).
+
+Each frame runs through ``balanced`` and is judged as the honesty map judges
+(:func:`mtcw_core.evaluate.judge_frame`; a PE range modulo its unambiguous range). The summary also
+gives the unflagged points' speed z spread (rms).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+
+import numpy as np
+from tqdm import tqdm
+
+from mtcw_core.calibration import Calibration
+from mtcw_core.chain import process_frame
+from mtcw_core.evaluate import Z_WRONG, judge_frame
+from mtcw_core.profiles import get_profile
+from mtcw_core.ranging import ab
+from mtcw_core.scene import Scene, SceneError, load_scene, scene_variant
+from mtcw_core.simulate import Simulator
+
+from .honesty import tally
+
+TECHNIQUES = ("pe", "ab")
+
+
+def _signed_speed(rng: np.random.Generator, lo_exp: float, hi_exp: float) -> float:
+    return float(rng.choice([-1.0, 1.0]) * 10 ** rng.uniform(lo_exp, hi_exp))
+
+
+def draw(technique: str, i: int) -> dict:
+    """Scene ``i``'s changes to the technique's bench (see the module docstring)."""
+    if technique == "pe":
+        rng = np.random.default_rng(i)
+
+        def target() -> dict:
+            return {"range_m": float(rng.uniform(0.5, 120.0)), "velocity_mps": _signed_speed(rng, -1.5, 1.6),
+                    "loss_db": float(rng.uniform(10.0, 75.0))}
+        targets = [target()]
+        laser = {"linewidth_hz": float(rng.choice([0.0, 1e5, 1e6]))}
+        if rng.random() < 0.3:
+            targets.append(target())
+        return {"targets": targets, "laser": laser}
+    rng = np.random.default_rng(10_000 + i)
+    samples = int(rng.choice([2**16, 2**18]))
+
+    def target() -> dict:
+        v = 0.0 if rng.random() < 0.5 else _signed_speed(rng, -2.0, 0.5)
+        return {"range_m": float(rng.uniform(0.05, 37.0)), "velocity_mps": v, "loss_db": float(rng.uniform(25.0, 65.0))}
+    targets = [target()] + ([target()] if rng.random() < 0.25 else [])
+    return {"digitizer": {"samples": samples}, "targets": targets,
+            "laser": {"linewidth_hz": float(rng.choice([0.0, 5e5, 5e6]))},
+            "architecture": {"reference_loss_db": float(rng.uniform(25.0, 50.0))}}
+
+
+def _calibration(technique: str, sc: Scene, seed: int) -> Calibration | None:
+    """AB's reference-only calibration: the same bench, its target arm blocked."""
+    if technique != "ab":
+        return None
+    blocked = scene_variant(sc, targets=[{"loss_db": 300.0}])
+    return ab.derive_reference(Simulator(blocked, seed).frames(4), sc.architecture.reference_range_m)
+
+
+def judge_scene(technique: str, i: int, frames: int) -> tuple[collections.Counter, list[str], list[float]]:
+    """Scene ``i``: counts (as :func:`mtcw_bench.honesty.tally`, with statuses and ``refused``
+    scenes), a line per confident frame, and the unflagged points' speed z."""
+    counts: collections.Counter = collections.Counter()
+    changes = draw(technique, i)
+    base = load_scene("pe-fast-target" if technique == "pe" else "ab-bench")
+    try:
+        sc = scene_variant(base, **changes)
+        sims = list(Simulator(sc, i).frames(frames))
+    except SceneError as err:
+        counts["refused" if "reached the sensor" in str(err) else "invalid"] += 1
+        return counts, [], []
+    settings = get_profile("balanced", technique=technique, laser_linewidth_hz=sc.laser.linewidth_hz)
+    cal = _calibration(technique, sc, i)
+    lines, zs = [], []
+    for j, fr in enumerate(sims):
+        res = process_frame(fr, settings, cal)
+        v = judge_frame(res, fr.truth, Z_WRONG)
+        counts[res.status] += 1
+        zs += [p.speed_z for p in v.points if p.truth_index is not None and not p.flagged and p.speed_z is not None]
+        if tally(counts, v):
+            lines.append(f"scene {i} frame {j}: " + "; ".join(
+                f"{q.range_m:.4f} m {q.velocity_mps:+.4f} m/s range z {p.range_z} speed z {p.speed_z}"
+                for p, q in zip(v.points, res.targets)) + f" truth {[(t.range_m, t.velocity_mps) for t in fr.truth]}"
+                + f" {changes}")
+    return counts, lines, zs
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m mtcw_bench.techniques_probe", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--technique", choices=TECHNIQUES, required=True)
+    ap.add_argument("--scenes", type=int, default=400, help="scenes drawn (default 400)")
+    ap.add_argument("--first", type=int, default=0, help="index of the first scene (default 0)")
+    ap.add_argument("--frames", type=int, default=2, help="frames per scene (default 2)")
+    a = ap.parse_args(argv)
+    total: collections.Counter = collections.Counter()
+    zs: list[float] = []
+    for i in tqdm(range(a.first, a.first + a.scenes), desc=f"{a.technique} probe", unit="scene"):
+        counts, lines, z = judge_scene(a.technique, i, a.frames)
+        total.update(counts)
+        zs += z
+        for line in lines:
+            tqdm.write("CONFIDENT " + line)
+    z = np.abs(np.asarray(zs, float))
+    spread = (f"unflagged speed z: {z.size} points, rms {np.sqrt(np.mean(z**2)):.2f}, largest {z.max():.2f}"
+              if z.size else "no unflagged speed")
+    print(f"{a.technique}: {a.scenes} scenes ({total['refused']} refused by the simulator), {total['frames']} frames: "
+          f"confident wrong {total['cw']}, confident false {total['cf']}; ok {total['ok']}, no_target "
+          f"{total['no_target']}, rejected {total['rejected']}, missed truths {total['missed']}; flagged points "
+          f"{total['flagged']} ({total['flagged_right']} of them right within {Z_WRONG:g} sigma); {spread}")
+
+
+if __name__ == "__main__":
+    main()
