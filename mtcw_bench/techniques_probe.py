@@ -17,7 +17,8 @@ Scene ``i`` is drawn from its own seed (reproduced by ``--first i --scenes 1``):
 
 Each frame runs through ``balanced`` and is judged as the honesty map judges
 (:func:`mtcw_core.evaluate.judge_frame`; a PE range modulo its unambiguous range). The summary also
-gives the unflagged points' speed z spread (rms).
+gives the confident frames of one- and two-target scenes apart (AB fits one target) and the
+unflagged points' speed z spread (rms).
 """
 
 from __future__ import annotations
@@ -98,7 +99,9 @@ def judge_scene(technique: str, i: int, frames: int) -> tuple[collections.Counte
         v = judge_frame(res, fr.truth, Z_WRONG)
         counts[res.status] += 1
         zs += [p.speed_z for p in v.points if p.truth_index is not None and not p.flagged and p.speed_z is not None]
-        if tally(counts, v):
+        confident = tally(counts, v)
+        counts[f"confident_{len(fr.truth)}"] += int(confident)  # AB assumes one target: counted apart
+        if confident:
             lines.append(f"scene {i} frame {j}: " + "; ".join(
                 f"{q.range_m:.4f} m {q.velocity_mps:+.4f} m/s range z {p.range_z} speed z {p.speed_z}"
                 for p, q in zip(v.points, res.targets)) + f" truth {[(t.range_m, t.velocity_mps) for t in fr.truth]}"
@@ -127,7 +130,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{a.technique}: {a.scenes} scenes ({total['refused']} refused by the simulator), {total['frames']} frames: "
           f"confident wrong {total['cw']}, confident false {total['cf']}; ok {total['ok']}, no_target "
           f"{total['no_target']}, rejected {total['rejected']}, missed truths {total['missed']}; flagged points "
-          f"{total['flagged']} ({total['flagged_right']} of them right within {Z_WRONG:g} sigma); {spread}")
+          f"{total['flagged']} ({total['flagged_right']} of them right within {Z_WRONG:g} sigma); confident frames of "
+          f"one-target scenes {total['confident_1']}, of two-target scenes {total['confident_2']}; {spread}")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import pytest
 
 from mtcw_core.chain import TECHNIQUES, get_profile, process_frame, run_stages
 from mtcw_core.phase import C
-from mtcw_core.ranging import pe
+from mtcw_core.ranging import pe, targets
 from mtcw_core.results import NoTarget
 from mtcw_core.scene import load_scene, scene_variant
 from mtcw_core.simulate import Simulator, simulate_frame
@@ -229,24 +229,6 @@ def test_worker_with_technique_pe_streams_points_to_the_api(tmp_path):
         bench.close()
 
 
-def test_slope_phase_var_against_a_monte_carlo_of_the_delayed_self_heterodyne_phase():
-    """The least-squares frequency of ``phi(t) - phi(t - tau)`` (``phi`` a Wiener phase of rate
-    2*pi*linewidth) drawn directly, against the closed form: flat-PSD limit, saturation, between."""
-    rng = np.random.default_rng(3)
-    lw, fs, n = 1e5, 1e9, 1000
-    t = np.arange(n) / fs
-    w = (t - t.mean()) / np.sum((t - t.mean()) ** 2) / (2 * np.pi)  # Hz per rad of slope
-    for lag in (20, 200, 700, 2000):
-        steps = rng.normal(0, np.sqrt(2 * np.pi * lw / fs), (4000, n + lag))
-        phi = np.cumsum(steps, axis=1)
-        est = (phi[:, lag:] - phi[:, :n]) @ w
-        want = pe.slope_phase_var(lw, lag / fs, n / fs)
-        assert np.var(est) == pytest.approx(want, rel=0.1), lag
-    T, tau = 1e-5, 1e-8
-    assert pe.slope_phase_var(lw, tau, T) == pytest.approx(3 * (2 * np.pi * lw * tau**2) / (np.pi**2 * T**3), rel=0.01)
-    assert pe.slope_phase_var(lw, 3 * T, T) == pe.slope_phase_var(lw, T, T) == pytest.approx(2.4 * 2 * np.pi * lw / T / (4 * np.pi**2))
-
-
 def _far_mover(range_m: float, samples: int):
     return fast_scene(samples=samples, noise=True, laser={"linewidth_hz": 1e5},
                       targets=[{"range_m": range_m, "velocity_mps": 39.0, "loss_db": 30.0}])
@@ -278,7 +260,7 @@ def test_the_pedestal_witnesses_the_delay(range_m, tight):
     st = run_stages(fr, settings(laser_linewidth_hz=1e5), None, until="pe_lines")
     stated = st.pe_lines[0].doppler.wander_hz
     true_tau = 2 * (range_m - sc.architecture.reference_range_m) / C
-    own = np.sqrt(pe.slope_phase_var(1e5, true_tau, fr.n / fr.fs_hz))
+    own = np.sqrt(targets.slope_phase_var(1e5, true_tau, fr.n / fr.fs_hz))
     assert stated >= own
     if tight:
         assert stated < 4 * own

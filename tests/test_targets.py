@@ -13,6 +13,7 @@ from mtcw_core.dsp.extract import LineFamily
 from mtcw_core.frame import Frame
 from mtcw_core.phase import C
 from mtcw_core.profiles import ChainSettings, get_profile
+from mtcw_core.ranging import targets
 from mtcw_core.ranging.mixing import mix
 from mtcw_core.chain import process_frame
 from mtcw_core.ranging.targets import (SPEED_FLOOR_BINS, Reference, median_snr, resolve_targets, select_targets,
@@ -1155,3 +1156,21 @@ class TestAliases:
 
         assert list(_aliases(1.2, 1.5, (0.0, None), (1.0, 1.6))[1]) == [0]
         assert list(_aliases(1.2, 1.5, (0.0, None), (0.0, 3.0))[1]) == [0, 1]
+
+
+def test_slope_phase_var_against_a_monte_carlo_of_the_delayed_self_heterodyne_phase():
+    """The least-squares frequency of ``phi(t) - phi(t - tau)`` (``phi`` a Wiener phase of rate
+    2*pi*linewidth) drawn directly, against the closed form: flat-PSD limit, saturation, between."""
+    rng = np.random.default_rng(3)
+    lw, fs, n = 1e5, 1e9, 1000
+    t = np.arange(n) / fs
+    w = (t - t.mean()) / np.sum((t - t.mean()) ** 2) / (2 * np.pi)  # Hz per rad of slope
+    for lag in (20, 200, 700, 2000):
+        steps = rng.normal(0, np.sqrt(2 * np.pi * lw / fs), (4000, n + lag))
+        phi = np.cumsum(steps, axis=1)
+        est = (phi[:, lag:] - phi[:, :n]) @ w
+        want = targets.slope_phase_var(lw, lag / fs, n / fs)
+        assert np.var(est) == pytest.approx(want, rel=0.1), lag
+    T, tau = 1e-5, 1e-8
+    assert targets.slope_phase_var(lw, tau, T) == pytest.approx(3 * (2 * np.pi * lw * tau**2) / (np.pi**2 * T**3), rel=0.01)
+    assert targets.slope_phase_var(lw, 3 * T, T) == targets.slope_phase_var(lw, T, T) == pytest.approx(2.4 * 2 * np.pi * lw / T / (4 * np.pi**2))

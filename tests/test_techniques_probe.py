@@ -22,3 +22,18 @@ def test_a_pe_mover_far_beyond_the_folded_range_states_the_laser_in_its_speed_si
     counts, lines, z = tp.judge_scene("pe", 206, 2)
     assert counts["ok"] == 2 and counts["cw"] == 0 and not lines, lines
     assert max(abs(v) for v in z) < 5
+
+
+def test_an_ab_still_target_is_not_moved_by_the_tones_products():
+    """Scene 11: a target at 8.06 m moving 5.7 cm/s read 3.85 m/s -- the 5 MHz product of the AB
+    bench's tones (971 + 1657 - 2623 MHz) taken for its Doppler line, 4000 sigmas off."""
+    counts, lines, z = tp.judge_scene("ab", 11, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and not lines, lines
+
+
+def test_an_ab_pedestal_bump_beside_a_product_is_no_doppler_line():
+    """Scene 70: 500 kHz laser, a target at 6.87 m moving 0.28 MHz (under the search's lowest bin):
+    a bump of the 32 MHz product's phase-noise pedestal stood 19x over the floor and the target read
+    25 m/s, 2400 sigmas off. It is no coherent line (wider than 3.2 bins): the speed is unknown."""
+    counts, lines, z = tp.judge_scene("ab", 70, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and not lines, lines

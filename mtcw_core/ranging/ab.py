@@ -65,11 +65,13 @@ from scipy.optimize import minimize_scalar
 from scipy.special import diric
 
 from ..calibration import Calibration, CalibrationError
-from ..dsp.spectrum import Spectrum, local_floor
-from ..dsp.tones import exact_dft, fit_lines
+from ..dsp.doppler import intermod_frequencies
+from ..dsp.spectrum import Spectrum, local_floor, power_spectrum, widths_at
+from ..dsp.tones import exact_dft, fit_lines, lines_signal
 from ..frame import Frame
 from ..phase import C
 from ..results import NoTarget, Rejected, TargetPoint
+from .targets import SHARED_PHASE_MARGIN, slope_phase_var
 
 #: the chain's FrameState and Stage (not imported: the chain imports this module, and core has no
 #: import cycles); the stages read and write the state's attributes, the table reuses pb's row type
@@ -97,6 +99,16 @@ DOPPLER_FALSE_ALARM = 1e-6
 #: bins next to 0 Hz never searched for the Doppler line: the main lobe of the mean-removal
 #: residue through the Kaiser(14) window is +-4.6 bins wide
 DC_GUARD_BINS = 6
+#: the baseband candidate is a line where its equivalent width (:func:`~mtcw_core.dsp.spectrum.widths_at`
+#: over +-:data:`LINE_WIDTH_SPAN_BINS`) is at most this many bins: a coherent line through the Kaiser(14)
+#: window is 2.3-3; a bump of a product's phase-noise pedestal is wider (a 500 kHz laser, a target at
+#: 6.9 m moving 0.28 MHz: a bump 0.8 MHz beside the 32 MHz product stood 19x over the floor, and
+#: the still-looking target read 25 m/s, 2400 sigmas off)
+MAX_LINE_WIDTH_BINS = 3.2
+LINE_WIDTH_SPAN_BINS = 8
+#: the baseband search's second, near floor: the bins this far from the candidate (its Kaiser(14)
+#: main lobe, +-4.6 bins, left out), beside the chain's ring of 8-48
+NEAR_FLOOR_BINS = (5, 12)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -155,6 +167,12 @@ class BasebandLine:
     detected : bool
     snr_db : float, line power over the local floor (dB)
     min_detectable_hz : float, the lowest frequency searched (Hz)
+    max_searched_hz : float, the highest frequency searched (Hz)
+    doubt : str, why the strongest candidate, above the threshold, was not taken for the target's
+        line, and its speed is unknown up to ``max_searched_hz`` (not 0): ``"broad"`` (no coherent
+        line, wider than :data:`MAX_LINE_WIDTH_BINS`: a bump of a pedestal, or a carrier beat the
+        laser is incoherent over), ``"product"`` (within the lowest searched frequency of one of the
+        tones' static products: the product moved by a Doppler below the band); ``""`` otherwise
     """
 
     fd_hz: float
@@ -162,6 +180,8 @@ class BasebandLine:
     detected: bool
     snr_db: float
     min_detectable_hz: float
+    max_searched_hz: float = math.inf
+    doubt: str = ""
 
 
 def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_bins: int,
@@ -193,15 +213,24 @@ def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_
     k_hi = min(int(top / spec.df_hz), spec.power.size - 1)
     f_lo = k_lo * spec.df_hz
     if k_hi <= k_lo + 2:
-        return BasebandLine(0.0, f_lo, False, -math.inf, f_lo)
-    floor = local_floor(spec.power, mirror_dc=True)
+        return BasebandLine(0.0, f_lo, False, -math.inf, f_lo, top)
+    spec, prods = _without_products(x, fs_hz, t, spec, top)
+    # the floor near the candidate too: the carrier beat's phase-noise pedestal falls steeply
+    # beside a line under the band, where the wide ring reads it low (a bump 3x its pedestal stood
+    # 19.5x over the wide ring: a target moving 0.72 MHz under a 500 kHz laser read 2.8 MHz)
+    floor = np.maximum(local_floor(spec.power, mirror_dc=True),
+                       local_floor(spec.power, NEAR_FLOOR_BINS[0], NEAR_FLOOR_BINS[1], mirror_dc=True))
     ratio = spec.power[k_lo:k_hi + 1] / floor[k_lo:k_hi + 1]
     k = int(np.argmax(ratio))
     threshold = math.log((k_hi - k_lo + 1) / DOPPLER_FALSE_ALARM)
     snr_db = 10 * math.log10(max(float(ratio[k]), 1e-30))
-    if ratio[k] < threshold:
-        return BasebandLine(0.0, f_lo, False, snr_db, f_lo)
+    # the band's first bin the highest: the skirt of a line below the band (a Doppler under f_lo)
+    if ratio[k] < threshold or k == 0:
+        return BasebandLine(0.0, f_lo, False, snr_db, f_lo, top)
     f0 = (k_lo + k) * spec.df_hz
+    doubt = _doubt(spec, f0, prods, f_lo)
+    if doubt:
+        return BasebandLine(0.0, f_lo, False, snr_db, f_lo, top, doubt)
     n = x.size
     # the tone lines (and the Doppler sidebands beside them) removed first: their leakage
     # through the record's rectangular window would pull a line of a few cycles
@@ -218,7 +247,47 @@ def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_
     amp = abs(fit_lines(x, [fd, *t], fs_hz)[0])
     noise = spec.noise_variance(fd, [0.0, fd])
     sigma = fs_hz * math.sqrt(6.0 * noise) / (math.pi * amp * n**1.5) if amp > 0 else math.inf
-    return BasebandLine(fd, sigma, True, snr_db, f_lo)
+    return BasebandLine(fd, sigma, True, snr_db, f_lo, top)
+
+
+def _without_products(x: np.ndarray, fs_hz: float, tones_hz: list[float], spec: Spectrum, f_max_hz: float
+                      ) -> tuple[Spectrum, np.ndarray]:
+    """``spec`` of ``x`` with the tones' static products below ``f_max_hz`` (plus the window's
+    reach) fitted and taken out: the baseband search's spectrum, and those products (Hz).
+
+    The arms' self-beats carry the tones' intermodulation products (the MZM's and the square law's,
+    :func:`~mtcw_core.dsp.doppler.intermod_frequencies`, folded at the sample rate): on the AB bench's
+    tones 971 + 1657 - 2623 = 5 MHz, 32 and 38 MHz lie in the band searched. They are static
+    lines, but one line alone is all this search asks of a Doppler, and before they were taken
+    out a still target read 3.85 m/s (5 MHz at 1540 nm) in 47 of 452 frames of a random probe
+    (``python -m mtcw_bench.techniques_probe --technique ab``). Fitted jointly with the tones
+    (:func:`~mtcw_core.dsp.tones.fit_lines`), they leave a mover within a record bin or so of one
+    unseen (a blind speed of the tone plan); ``spec`` unchanged where none lies in the band."""
+    reach = 8 * spec.df_hz  # a Kaiser(14) line's skirt
+    prods = intermod_frequencies(tuple(tones_hz), f_max_hz + reach, fs_hz=fs_hz)
+    prods = prods[prods > fs_hz / x.size]
+    if not prods.size:
+        return spec, prods
+    lines = np.concatenate([prods, tones_hz])
+    amps = fit_lines(x, lines, fs_hz)
+    y = x - lines_signal(amps[:prods.size], prods, fs_hz, x.size, False)
+    single = np.dtype(spec.power.dtype) == np.float32
+    return power_spectrum(y, fs_hz, spec.window or ("kaiser", 14.0), spec.n if spec.n < x.size else None,
+                          single), prods
+
+
+def _doubt(spec: Spectrum, f0_hz: float, prods_hz: np.ndarray, f_lo_hz: float) -> str:
+    """Why the baseband candidate at ``f0_hz`` is not the target's line (:attr:`BasebandLine.doubt`),
+    or ``""``. A product moved by a Doppler ``f_d`` under the band (``|p +- f_d|``, the target's
+    cross-beat with the reference's products) stands where the baseband line at ``f_d`` is not
+    searched: a still-looking target at 6.4 m moving 66 kHz read 3.85 m/s beside the 5 MHz
+    product; a carrier beat whose laser is incoherent over the delay, or a pedestal's bump, is no
+    line (:data:`MAX_LINE_WIDTH_BINS`)."""
+    if prods_hz.size and float(np.min(np.abs(prods_hz - f0_hz))) < f_lo_hz:
+        return "product"
+    if widths_at(spec, [f0_hz], LINE_WIDTH_SPAN_BINS) > MAX_LINE_WIDTH_BINS:
+        return "broad"
+    return ""
 
 
 def _explained(x: np.ndarray, f_hz: float, fs_hz: float) -> float:
@@ -546,7 +615,14 @@ def _select(s: FrameState) -> None:
         raise NoTarget("sine fit: its covariance is singular")
     lam = s.frame.wavelength_m
     if line.detected:
-        v, v_sig, direction = line.fd_hz * lam / 2, line.sigma_hz * lam / 2, "unknown"
+        # the laser's phase over the path difference the fit found moves the line's frequency
+        # (:func:`~mtcw_core.ranging.targets.slope_phase_var`: a 500 kHz laser, 8.5 m, 2^16 samples
+        # at 20 GS/s: 9 kHz, against a white-noise bound of 1 kHz; seen 7.8 kHz off)
+        wander = SHARED_PHASE_MARGIN * slope_phase_var(s.settings.laser_linewidth_hz, fit.dtau_s,
+                                                       s.frame.n / s.frame.fs_hz)
+        v, v_sig, direction = line.fd_hz * lam / 2, math.hypot(line.sigma_hz, math.sqrt(wander)) * lam / 2, "unknown"
+    elif line.doubt:  # something stood there, not the target's line: any speed the search covers
+        v, v_sig, direction = 0.0, line.max_searched_hz * lam / 2, "unknown"
     else:
         v, v_sig, direction = 0.0, line.min_detectable_hz * lam / 2, "static"
     dl = C * fit.dtau_s / 2

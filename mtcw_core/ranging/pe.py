@@ -74,7 +74,7 @@ from ..frame import Frame
 from ..phase import C, unambiguous_range, wrap_pi
 from ..profiles import ChainSettings
 from ..results import NoTarget, Rejected, TargetPoint
-from .targets import BIRGE_P, Reference, velocity
+from .targets import BIRGE_P, SHARED_PHASE_MARGIN, Reference, slope_phase_var, velocity
 from .triangulation import Observations, resolve_ml, resolve_seed
 
 
@@ -299,31 +299,13 @@ DELAY_SCAN_POINTS = 512
 DELAY_CAP_COHERENCE = 0.01
 
 
-def slope_phase_var(linewidth_hz: float, tau_s: float, duration_s: float) -> float:
-    """Variance (Hz^2) of the least-squares frequency over ``duration_s`` of a line whose phase is
-    the delayed self-heterodyne one, ``Phi(t) = phi(t) - phi(t - tau)`` of a Lorentzian laser
-    (``phi`` a Wiener process of rate ``D = 2*pi*linewidth``, so ``Cov(Phi(t), Phi(t')) =
-    D*max(0, tau - |t - t'|)``): with the slope's weights ``12*(t - T/2)/T^3`` it is
-    ``D*(12*tau^2/T^3 - 12*tau^3/T^4 + 2.4*tau^5/T^6)/(4*pi^2)`` up to ``tau = T`` (``12*D*tau^2/T^3``
-    for a short delay: the flat PSD ``2*pi*linewidth*tau^2``'s ``3*S/(pi^2*T^3)``) and ``2.4*D/T``
-    beyond, two independent random walks."""
-    r = min(tau_s / duration_s, 1.0)
-    d = 2 * math.pi * linewidth_hz
-    return d * (12 * r**2 - 12 * r**3 + 2.4 * r**5) / duration_s / (4 * math.pi**2)
-
-
-#: :func:`shared_phase_wander_hz` states this many times :func:`slope_phase_var`: the whole-record
-#: fit of every moving line (:func:`refine_doppler`) scattered 0.86 / 1.2 / 1.46 times that model's
-#: sigma for targets 10 / 30 / 103.5 m away (30 frames each, 100 kHz laser, 2^16 samples: ~13 % each)
-SHARED_PHASE_MARGIN = 2.0
-
-
 def shared_phase_wander_hz(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_hz: float, white: float,
                            settings: ChainSettings) -> float:
     """The Doppler's error (Hz) from the phase every moving line shares: the declared laser's noise
-    over the echo's delay relative to the reference arm (:func:`slope_phase_var`, times
-    :data:`SHARED_PHASE_MARGIN`), for the longest delay the pedestal about the target's line at
-    ``line_hz`` allows.
+    over the echo's delay relative to the reference arm
+    (:func:`~mtcw_core.ranging.targets.slope_phase_var`, times
+    :data:`~mtcw_core.ranging.targets.SHARED_PHASE_MARGIN`), for the longest delay the pedestal about
+    the target's line at ``line_hz`` allows.
 
     The delay is what the phases cannot give: they fold the range into ``c/(2*gcd)`` (6 m for
     section 4.3's tones), and a target at 103.5 m under a 100 kHz laser read 1.58 m, its speed

@@ -263,6 +263,27 @@ def shared_phase_psd(settings: ChainSettings, range_m: float) -> float:
     return 2 * math.pi * settings.laser_linewidth_hz * echo_delay_s(settings, range_m) ** 2
 
 
+def slope_phase_var(linewidth_hz: float, tau_s: float, duration_s: float) -> float:
+    """Variance (Hz^2) of the least-squares frequency over ``duration_s`` of a line whose phase is
+    the delayed self-heterodyne one, ``Phi(t) = phi(t) - phi(t - tau)`` of a Lorentzian laser
+    (``phi`` a Wiener process of rate ``D = 2*pi*linewidth``, so ``Cov(Phi(t), Phi(t')) =
+    D*max(0, tau - |t - t'|)``): with the slope's weights ``12*(t - T/2)/T^3`` it is
+    ``D*(12*tau^2/T^3 - 12*tau^3/T^4 + 2.4*tau^5/T^6)/(4*pi^2)`` up to ``tau = T`` (``12*D*tau^2/T^3``
+    for a short delay: the flat PSD ``2*pi*linewidth*tau^2``'s ``3*S/(pi^2*T^3)``) and ``2.4*D/T``
+    beyond, two independent random walks."""
+    r = min(tau_s / duration_s, 1.0)
+    d = 2 * math.pi * linewidth_hz
+    return d * (12 * r**2 - 12 * r**3 + 2.4 * r**5) / duration_s / (4 * math.pi**2)
+
+
+#: a whole-record fit's frequency under that phase (PE's lines, AB's baseband line) is stated at this
+#: many times :func:`slope_phase_var`: the maximum of a line's power is no least-squares slope where
+#: the phase wanders a radian and more, and scattered 0.86 / 1.2 / 1.46 times its sigma for PE targets
+#: 10 / 30 / 103.5 m away (100 kHz laser, 2^16 samples), 1.34 / 1.12 / 1.77 for AB targets 8.5 / 20 /
+#: 35 m away (500 kHz; 14-30 frames each: ~13-19 % each)
+SHARED_PHASE_MARGIN = 2.0
+
+
 def phase_psd(settings: ChainSettings, range_m: float, dop: DopplerEstimate, iq: bool) -> float:
     """The low-frequency PSD (rad^2/Hz) of the phase a target's lines share, for the speed sigma:
     the declared laser's at the point's range (:func:`shared_phase_psd`), or what the pedestal
