@@ -1,7 +1,7 @@
-"""Random scenes for the dissertation's other techniques (PE-MTCW, AB-MTCW): confident-wrong and
+"""Random scenes for the dissertation's other techniques (PE-MTCW, AB-MTCW, PToF): confident-wrong and
 confident-false frames, as the envelope probe counts them for the PB chain.
 
-``python -m mtcw_bench.techniques_probe --technique pe|ab [--scenes 400] [--first 0] [--frames 2]``
+``python -m mtcw_bench.techniques_probe --technique pe|ab|ptof [--scenes 400] [--first 0] [--frames 2]``
 
 Scene ``i`` is drawn from its own seed (reproduced by ``--first i --scenes 1``):
 
@@ -13,7 +13,11 @@ Scene ``i`` is drawn from its own seed (reproduced by ``--first i --scenes 1``):
   or 2^18 samples, with one target, or two (25 %), at 0.05-37 m (``c/(8*gcd)`` = 37.5 m), still
   (50 %) or moving at 0.01-3 m/s, 25-65 dB of loss, the reference arm 25-50 dB down, under an
   ideal, 500 kHz or 5 MHz laser; its reference-only calibration from 4 frames of the same bench
-  with the target arm blocked (``ab.derive_reference``).
+  with the target arm blocked (``ab.derive_reference``);
+- ``ptof``: the mode-locked PToF bench (``ptof-bench``: 25 MHz pulses, 5 GHz detector, 20 GS/s,
+  reference mirror 3 cm) at 2^14 or 2^16 samples behind an 8- or 12-bit ADC, pulses of 0.5-32 ps,
+  one target, or two (25 %), at 0.1-5.9 m (the repetition's 6 m), 5-45 dB of loss, the reference
+  arm 3-25 dB down; ranges from a zero at the reference mirror.
 
 Each frame runs through ``balanced`` and is judged as the honesty map judges
 (:func:`mtcw_core.evaluate.judge_frame`; a PE range modulo its unambiguous range). The summary also
@@ -32,6 +36,7 @@ from tqdm import tqdm
 from mtcw_core.calibration import Calibration
 from mtcw_core.chain import process_frame
 from mtcw_core.evaluate import Z_WRONG, judge_frame
+from mtcw_core.phase import C
 from mtcw_core.profiles import get_profile
 from mtcw_core.ranging import ab
 from mtcw_core.scene import Scene, SceneError, load_scene, scene_variant
@@ -39,7 +44,8 @@ from mtcw_core.simulate import Simulator
 
 from .honesty import tally
 
-TECHNIQUES = ("pe", "ab")
+TECHNIQUES = ("pe", "ab", "ptof")
+BENCHES = {"pe": "pe-fast-target", "ab": "ab-bench", "ptof": "ptof-bench"}
 
 
 def _signed_speed(rng: np.random.Generator, lo_exp: float, hi_exp: float) -> float:
@@ -59,6 +65,8 @@ def draw(technique: str, i: int) -> dict:
         if rng.random() < 0.3:
             targets.append(target())
         return {"targets": targets, "laser": laser}
+    if technique == "ptof":
+        return _draw_ptof(i)
     rng = np.random.default_rng(10_000 + i)
     samples = int(rng.choice([2**16, 2**18]))
 
@@ -71,8 +79,25 @@ def draw(technique: str, i: int) -> dict:
             "architecture": {"reference_loss_db": float(rng.uniform(25.0, 50.0))}}
 
 
+def _draw_ptof(i: int) -> dict:
+    rng = np.random.default_rng(20_000 + i)
+
+    def target() -> dict:
+        v = 0.0 if rng.random() < 0.6 else _signed_speed(rng, -2.0, 1.0)
+        return {"range_m": float(rng.uniform(0.1, 5.9)), "loss_db": float(rng.uniform(5.0, 45.0)), "velocity_mps": v}
+    targets = [target()] + ([target()] if rng.random() < 0.25 else [])
+    return {"targets": targets,
+            "digitizer": {"samples": int(rng.choice([2**14, 2**16])), "adc_bits": int(rng.choice([8, 12]))},
+            "ptof": {"pulse_width_s": float(10 ** rng.uniform(-12.3, -10.5))},
+            "architecture": {"reference_loss_db": float(rng.uniform(3.0, 25.0))}}
+
+
 def _calibration(technique: str, sc: Scene, seed: int) -> Calibration | None:
-    """AB's reference-only calibration: the same bench, its target arm blocked."""
+    """AB's reference-only calibration: the same bench, its target arm blocked; PToF's zero at
+    the reference mirror (``tau0 = -2*L_ref/c``: ranges from the calibrated zero, as the truth's)."""
+    if technique == "ptof":
+        return Calibration(tones_hz=tuple(sc.tones_hz), tone_phases_rad=tuple(0.0 for _ in sc.tones_hz),
+                           tau0_s=-2 * sc.architecture.reference_range_m / C)
     if technique != "ab":
         return None
     blocked = scene_variant(sc, targets=[{"loss_db": 300.0}])
@@ -84,7 +109,7 @@ def judge_scene(technique: str, i: int, frames: int) -> tuple[collections.Counte
     scenes), a line per confident frame, and the unflagged points' speed z."""
     counts: collections.Counter = collections.Counter()
     changes = draw(technique, i)
-    base = load_scene("pe-fast-target" if technique == "pe" else "ab-bench")
+    base = load_scene(BENCHES[technique])
     try:
         sc = scene_variant(base, **changes)
         sims = list(Simulator(sc, i).frames(frames))

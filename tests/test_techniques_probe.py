@@ -37,3 +37,19 @@ def test_an_ab_pedestal_bump_beside_a_product_is_no_doppler_line():
     25 m/s, 2400 sigmas off. It is no coherent line (wider than 3.2 bins): the speed is unknown."""
     counts, lines, z = tp.judge_scene("ab", 70, 2)
     assert counts["ok"] == 2 and counts["cw"] == 0 and not lines, lines
+
+
+def test_a_ptof_echo_s_own_shape_beside_it_is_no_second_echo():
+    """Scene 11: one mirror at 1.72 m through a 5 GHz detector at 20 GS/s (the pulse aliased: its
+    spectrum at Nyquist half its value at 0); the echo, sampled at another sub-sample phase than the
+    template, left a copy ~3 samples away, reported as a second target 2.2 cm off in both frames."""
+    counts, lines, _ = tp.judge_scene("ptof", 11, 2)
+    assert counts["ok"] == 2 and counts["cf"] == 0 and counts["cw"] == 0 and not lines, lines
+
+
+def test_a_weak_ptof_echo_is_not_pulled_by_the_reference_pulse_through_the_template_s_tails():
+    """Scene 195: a mirror at 5.23 m, 27 dB under the reference mirror's pulse; the fractional shift
+    of the aliased template rings across the period, and through its tails the reference pulse
+    pulled the echo 6.3 mm, 7.4 of its sigmas, in both frames."""
+    counts, lines, _ = tp.judge_scene("ptof", 195, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines
