@@ -57,7 +57,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -218,14 +218,19 @@ def baseband_doppler(x: np.ndarray, fs_hz: float, spec: Spectrum, tones_hz, min_
     # the floor near the candidate too: the carrier beat's phase-noise pedestal falls steeply
     # beside a line under the band, where the wide ring reads it low (a bump 3x its pedestal stood
     # 19.5x over the wide ring: a target moving 0.72 MHz under a 500 kHz laser read 2.8 MHz)
-    floor = np.maximum(local_floor(spec.power, mirror_dc=True),
-                       local_floor(spec.power, NEAR_FLOOR_BINS[0], NEAR_FLOOR_BINS[1], mirror_dc=True))
-    ratio = spec.power[k_lo:k_hi + 1] / floor[k_lo:k_hi + 1]
+    wide = local_floor(spec.power, mirror_dc=True)[k_lo:k_hi + 1]
+    near = local_floor(spec.power, NEAR_FLOOR_BINS[0], NEAR_FLOOR_BINS[1], mirror_dc=True)[k_lo:k_hi + 1]
+    band = spec.power[k_lo:k_hi + 1]
+    ratio = band / np.maximum(wide, near)
     k = int(np.argmax(ratio))
     threshold = math.log((k_hi - k_lo + 1) / DOPPLER_FALSE_ALARM)
     snr_db = 10 * math.log10(max(float(ratio[k]), 1e-30))
-    # the band's first bin the highest: the skirt of a line below the band (a Doppler under f_lo)
-    if ratio[k] < threshold or k == 0:
+    if ratio[k] < threshold:
+        # a line over the wide floor but not over the near one: inside a pedestal, its own (a mover
+        # under a laser incoherent over its delay) or another line's: a speed, unknown
+        doubt = "broad" if float(np.max(band / wide)) >= threshold else ""
+        return BasebandLine(0.0, f_lo, False, snr_db, f_lo, top, doubt)
+    if k == 0:  # the band's first bin the highest: the skirt of a line below the band (a Doppler under f_lo)
         return BasebandLine(0.0, f_lo, False, snr_db, f_lo, top)
     f0 = (k_lo + k) * spec.df_hz
     doubt = _doubt(spec, f0, prods, f_lo)
@@ -262,18 +267,22 @@ def _without_products(x: np.ndarray, fs_hz: float, tones_hz: list[float], spec: 
     out a still target read 3.85 m/s (5 MHz at 1540 nm) in 47 of 452 frames of a random probe
     (``python -m mtcw_bench.techniques_probe --technique ab``). Fitted jointly with the tones
     (:func:`~mtcw_core.dsp.tones.fit_lines`), they leave a mover within a record bin or so of one
-    unseen (a blind speed of the tone plan); ``spec`` unchanged where none lies in the band."""
+    unseen: reported ``static`` -- a blind speed of the tone plan (the bench's tones: 3.85, 4.6,
+    24.6 and 29.3 m/s), as the PB chain's spur test has its own; ``spec`` unchanged where none lies
+    in the band."""
     reach = 8 * spec.df_hz  # a Kaiser(14) line's skirt
     prods = intermod_frequencies(tuple(tones_hz), f_max_hz + reach, fs_hz=fs_hz)
     prods = prods[prods > fs_hz / x.size]
+    if prods.size > 1:  # two products within half a record bin are one line to the fit
+        prods = prods[np.concatenate([[True], np.diff(prods) > 0.5 * fs_hz / x.size])]
     if not prods.size:
         return spec, prods
     lines = np.concatenate([prods, tones_hz])
     amps = fit_lines(x, lines, fs_hz)
     y = x - lines_signal(amps[:prods.size], prods, fs_hz, x.size, False)
     single = np.dtype(spec.power.dtype) == np.float32
-    return power_spectrum(y, fs_hz, spec.window or ("kaiser", 14.0), spec.n if spec.n < x.size else None,
-                          single), prods
+    out = power_spectrum(y, fs_hz, spec.window or ("kaiser", 14.0), spec.n if spec.n < x.size else None, single)
+    return replace(out, record_n=spec.record_n), prods  # the same samples, the same floor rings
 
 
 def _doubt(spec: Spectrum, f0_hz: float, prods_hz: np.ndarray, f_lo_hz: float) -> str:

@@ -130,13 +130,17 @@ def _mismatch_reach(auto: np.ndarray, template: np.ndarray) -> tuple[int, float]
     copy beside it in the correlation, where it is not the template's: an aliased pulse (its
     spectrum at Nyquist ``r`` of its value at 0, :func:`aliasing_sigma`) sampled at another
     sub-sample phase than the template differs from the shifted template by up to ~``r`` of it,
-    within the template's autocorrelation's support (lags where it is above 1e-4 of its peak, and a
-    sample more). Seen on the techniques probe's PToF benches (``r`` ~0.5, a 5 GHz detector at
+    within the template's autocorrelation's support (lags where it is above 1e-4 of its peak, at most
+    three of its half widths at half maximum, and a sample more). Seen on the techniques probe's PToF benches (``r`` ~0.5, a 5 GHz detector at
     20 GS/s): copies 0.6-12 % of the echo 1.6-3 samples away, 1.2-2.3 cm, taken for second echoes
     (43 confident-false frames of 600)."""
     n = auto.size
     lags = np.abs(auto[: n // 2]) > 1e-4 * auto[0]
-    reach = int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4
+    support = int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4
+    # ... but no further than a few of its half widths: a template on a baseline (a pulse_ref
+    # channel's) has an autocorrelation with a floor, and a real echo a quarter period away is no copy
+    half = int(np.argmax(auto[: n // 2] < 0.5 * auto[0])) if np.any(auto[: n // 2] < 0.5 * auto[0]) else support
+    reach = min(support, 3 * max(half, 1))
     spec = np.abs(sfft.rfft(template))
     r = float(np.median(spec[-max(3, spec.size // 20):]) / spec[0]) if spec[0] > 0 else 0.0
     return reach + 1, r
@@ -322,7 +326,9 @@ def _reference(s: FrameState) -> None:
     t.template = win
     t.template_noisy = True
     t.ref_index = 0.0
-    t.exclude = (-w, w + 1)
+    # lags whose echo would overlap the template's window (taken out of the searched signal): the
+    # window's +-w and the pulse's own half of it
+    t.exclude = (-(w + w // 2), w + w // 2 + 1)
 
 
 def _correlate(s: FrameState) -> None:

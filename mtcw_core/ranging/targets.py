@@ -268,9 +268,9 @@ def slope_phase_var(linewidth_hz: float, tau_s: float, duration_s: float) -> flo
     the delayed self-heterodyne one, ``Phi(t) = phi(t) - phi(t - tau)`` of a Lorentzian laser
     (``phi`` a Wiener process of rate ``D = 2*pi*linewidth``, so ``Cov(Phi(t), Phi(t')) =
     D*max(0, tau - |t - t'|)``): with the slope's weights ``12*(t - T/2)/T^3`` it is
-    ``D*(12*tau^2/T^3 - 12*tau^3/T^4 + 2.4*tau^5/T^6)/(4*pi^2)`` up to ``tau = T`` (``12*D*tau^2/T^3``
-    for a short delay: the flat PSD ``2*pi*linewidth*tau^2``'s ``3*S/(pi^2*T^3)``) and ``2.4*D/T``
-    beyond, two independent random walks."""
+    ``D*(12*tau^2/T^3 - 12*tau^3/T^4 + 2.4*tau^5/T^6)/(4*pi^2)`` up to ``tau = T``
+    (``12*D*tau^2/(4*pi^2*T^3)`` for a short delay: the flat PSD ``S = 2*pi*linewidth*tau^2``'s
+    ``3*S/(pi^2*T^3)``) and ``2.4*D/(4*pi^2*T)`` beyond, two independent random walks."""
     r = min(tau_s / duration_s, 1.0)
     d = 2 * math.pi * linewidth_hz
     return d * (12 * r**2 - 12 * r**3 + 2.4 * r**5) / duration_s / (4 * math.pi**2)
