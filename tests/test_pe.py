@@ -237,17 +237,21 @@ def _far_mover(range_m: float, samples: int):
 def test_speed_sigma_covers_the_laser_phase_over_a_delay_the_folded_range_hides():
     """A target at 103.5 m reads 1.58 m (6 m unambiguous): the laser's phase over its true delay
     (0.69 us, coherence 0.65) moves the Doppler by ~0.025 m/s, 10-17 sigmas of the speed stated
-    before; the sigma now takes the longest delay the pedestal allows."""
+    before; the sigma now takes the longest delay the pedestal allows (every point, flagged or not:
+    a cycle flag is about the range). The same pedestal spills onto the weak 75 MHz lines, which
+    fix the half period: points it could turn are flagged, none is confidently wrong."""
     sim = Simulator(_far_mover(103.5, 2**16), seed=7)
-    z = []
+    z, confident_wrong = [], 0
     for _ in range(10):
         fr = sim.next_frame()
         res = process_frame(fr, settings(laser_linewidth_hz=1e5))
-        if res.status != "ok" or res.targets[0].cycle_ambiguous:
+        if res.status != "ok":
             continue
         p = res.targets[0]
         z.append((p.velocity_mps - abs(fr.truth[0].velocity_mps)) / p.velocity_sigma_mps)
-    assert len(z) >= 6 and np.max(np.abs(z)) < 5, z
+        e = wrapped_error(p.range_m, fr.truth[0].range_m, res.unambiguous_range_m)
+        confident_wrong += not (p.cycle_ambiguous or p.blended) and abs(e) > 5 * p.range_sigma_m
+    assert len(z) >= 6 and np.max(np.abs(z)) < 5 and confident_wrong == 0, z
 
 
 @pytest.mark.parametrize("range_m, tight", [(10.0, True), (103.5, False)])

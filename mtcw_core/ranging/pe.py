@@ -59,7 +59,7 @@ and IQ receivers have no reference self-beat); a target with no Doppler line is 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -101,6 +101,10 @@ class PeLines:
         Record length the amplitudes rest on (s).
     centre_s : float
         The instant the amplitudes refer to, after the record's first sample (s).
+    spill : dict of ndarray, shape (T,), rad^2, keyed as the lines (``"ref"``, ``"up"``, ...)
+        What the moving lines' phase-noise pedestals add to each line's phase variance
+        (:func:`pedestal_spill`): in the observations' variances, not in the lines' SNR test (a
+        worst-case delay's spill would drop lines a short delay leaves clear). Empty: none.
     """
 
     target: int
@@ -119,6 +123,7 @@ class PeLines:
     arm_ratio: float
     duration_s: float
     centre_s: float
+    spill: dict = field(default_factory=dict)
 
 
 def _fold(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -289,7 +294,7 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
                            beat_ambiguous=dop.beat_ambiguous, beat_pull_hz=dop.beat_pull_hz)
 
 
-#: :func:`shared_phase_wander_hz` probes the pedestal this many record bins either side of the line ...
+#: :func:`echo_delay_bound` probes the pedestal this many record bins either side of the line ...
 PROBE_BINS = tuple(range(2, 11))
 #: ... excludes a delay whose pedestal the probes' power would have shown with odds below this ...
 PROBE_FALSE_ODDS = 1e-4
@@ -299,21 +304,53 @@ DELAY_SCAN_POINTS = 512
 DELAY_CAP_COHERENCE = 0.01
 
 
-def shared_phase_wander_hz(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_hz: float, white: float,
-                           settings: ChainSettings) -> float:
-    """The Doppler's error (Hz) from the phase every moving line shares: the declared laser's noise
-    over the echo's delay relative to the reference arm
+def probe_pedestal(bins: np.ndarray, taus_s: np.ndarray, linewidth_hz: float, duration_s: float) -> np.ndarray:
+    """Expected power of a record-long fit ``bins`` record bins from a line, over the power of the
+    line's own fit, for echo delays ``taus_s`` relative to the LO: ``P_k/(1 + P_0)``, shape (S, P).
+
+    The line is ``B*exp(j*Phi(t))`` with ``Phi`` the delayed self-heterodyne phase of a Lorentzian
+    laser (``D = 2*pi*linewidth``): its autocorrelation ``exp(-D*min(|u|, tau))`` is the coherent
+    part ``exp(-D*tau)`` plus ``exp(-D*tau)*K(u)``, ``K = expm1(D*(tau - |u|)_+)``. A fit over
+    ``T`` gathers it through the Fejer kernel, whose transform is the triangle ``1 - |u|/T``: at a
+    whole bin ``k`` the coherent part gives nothing, and ``P_k = (2/T) int_0^min(tau,T) (1 - u/T)
+    K(u) cos(2*pi*k*u/T) du`` over the coherent power; the line's own fit (``k = 0``) holds
+    ``1 + P_0`` of it. For a small ``D*tau`` this is the phase's spectrum
+    ``2*linewidth*sin^2(pi*f*tau)/(pi*f^2)`` seen through the kernel.
+
+    Parameters
+    ----------
+    bins : ndarray, shape (P,), whole record bins from the line (>= 1)
+    taus_s : ndarray, shape (S,), delays (s)
+    """
+    d = 2 * math.pi * linewidth_hz
+    s = np.linspace(0.0, 1.0, 129)
+    span = np.minimum(taus_s, duration_s)[:, None]  # (S, 1)
+    u = span * s[None, :]  # (S, M)
+    k_u = np.expm1(d * (taus_s[:, None] - u)) * (1 - u / duration_s)  # (S, M)
+    w = np.full(s.size, 1.0)
+    w[[0, -1]] = 0.5
+    w = w * span / (s.size - 1) * 2 / duration_s  # trapezoid weights times 2/T, (S, M)
+    p0 = np.sum(w * k_u, axis=1)  # (S,)
+    pk = np.einsum("sm,smp->sp", w * k_u, np.cos(2 * np.pi * u[:, :, None] * bins[None, None, :] / duration_s))
+    return pk / (1 + p0[:, None])
+
+
+def echo_delay_bound(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_hz: float, white: float,
+                     settings: ChainSettings) -> float:
+    """The longest echo delay (s) relative to the reference arm that the pedestal about the target's
+    line at ``line_hz`` allows, for the declared laser (0 for a laser declared coherent). It sets
+    the Doppler's error from the phase every moving line shares
     (:func:`~mtcw_core.ranging.targets.slope_phase_var`, times
-    :data:`~mtcw_core.ranging.targets.SHARED_PHASE_MARGIN`), for the longest delay the pedestal about
-    the target's line at ``line_hz`` allows.
+    :data:`~mtcw_core.ranging.targets.SHARED_PHASE_MARGIN`) and what each moving line's pedestal
+    spills onto its neighbours (:func:`pedestal_spill`).
 
     The delay is what the phases cannot give: they fold the range into ``c/(2*gcd)`` (6 m for
     section 4.3's tones), and a target at 103.5 m under a 100 kHz laser read 1.58 m, its speed
     10-17 of its sigmas off (the speed's scatter 0.025 m/s, the model's 0.017). The pedestal
-    witnesses the delay: a line keeping ``coherence = exp(-2*pi*linewidth*dtau)`` of the beat has
-    about it the phase's spectrum ``S(f) = 2*linewidth*sin^2(pi*f*dtau)/(pi*f^2)`` times its density
-    over the coherence (flat at ``2*pi*linewidth*dtau^2`` below ``1/(pi*dtau)``, beyond it a tail
-    that no longer grows with the delay). Probes fitted jointly with every line
+    witnesses the delay: about the line lies, to first order, the phase's spectrum ``S(f) =
+    2*linewidth*sin^2(pi*f*dtau)/(pi*f^2)`` times the line's density (flat at
+    ``2*pi*linewidth*dtau^2`` below ``1/(pi*dtau)``, beyond it a tail that no longer grows with the
+    delay; exactly, :func:`probe_pedestal`). Probes fitted jointly with every line
     (:data:`PROBE_BINS` record bins either side: no window's lobe hides them) read it, and each
     delay under which their power would have stood higher than seen, with odds below
     :data:`PROBE_FALSE_ODDS` (their powers over the expected, summed: gamma-distributed), is
@@ -346,18 +383,43 @@ def shared_phase_wander_hz(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_
         freqs = np.concatenate([lines_hz, probes[keep]])
         order = np.argsort(freqs)
         z = fit_lines(x, freqs[order], fs)[np.argsort(order)]
-        density = abs(z[np.argmin(np.abs(lines_hz - line_hz))]) ** 2 / 4  # V^2 per side
+        line = abs(z[np.argmin(np.abs(lines_hz - line_hz))]) ** 2
         power = np.abs(z[lines_hz.size:]) ** 2
-        d = np.abs(delta[keep])
-        taus = np.linspace(0.0, cap, DELAY_SCAN_POINTS)[:, None]
-        # the phase's PSD as a probe (a record-long fit: its kernel the Fejer's, whose transform is a
-        # triangle) gathers it, over the line's coherence
-        sin2 = 0.5 - 0.5 * np.cos(2 * np.pi * d * taus) * np.maximum(1 - taus * fs / n, 0.0)
-        ped = 2 * lw * sin2 / (np.pi * d**2) / np.exp(-2 * np.pi * lw * taus)
-        seen = np.sum(power / (4 / n * (white + fs * density * ped)), axis=1)  # each ~ Exp(1)
-        last = int(np.flatnonzero(seen >= gamma_dist.ppf(PROBE_FALSE_ODDS, d.size))[-1])  # 0 always allowed
-        tau = float(taus[min(last + 1, taus.size - 1), 0])  # the bound lies before the next point excluded
-    return math.sqrt(SHARED_PHASE_MARGIN * slope_phase_var(lw, tau, n / fs))
+        taus = np.linspace(0.0, cap, DELAY_SCAN_POINTS)
+        expected = 4 * white / n + line * probe_pedestal(np.abs(delta[keep]) * n / fs, taus, lw, n / fs)
+        seen = np.sum(power / expected, axis=1)  # each term ~ Exp(1)
+        allowed = np.flatnonzero(seen >= gamma_dist.ppf(PROBE_FALSE_ODDS, power.size))
+        # the bound lies before the next point excluded; none allowed (a floor under the white
+        # one): the cap
+        tau = float(taus[min(allowed[-1] + 1, taus.size - 1)]) if allowed.size else cap
+    return tau
+
+
+def pedestal_spill(lines_hz: np.ndarray, z: np.ndarray, movers_hz: np.ndarray, z_movers: np.ndarray, tau_s: float,
+                   linewidth_hz: float, duration_s: float) -> np.ndarray:
+    """Phase variance (rad^2) that the moving lines' pedestals spill onto each of ``lines_hz``.
+
+    Every Doppler-shifted line carries the laser's phase over the echo's delay; the joint fit
+    takes out its coherent part, not its pedestal, which a neighbour ``D`` Hz away gathers as
+    ``|z_N|^2 * P`` (:func:`probe_pedestal` at ``D*T`` bins), half of it across the line's phase.
+    Beside the baseband Doppler line, hundreds of times a tone's sideband, that is the sideband's
+    leading noise: section 4.3's 75 MHz tone, its lower line 1.5 MHz from a target's 36.8 MHz
+    Doppler (18.4 m/s) at 103 m under a 100 kHz laser, put the range half a period off, 11600
+    sigmas, unflagged (the techniques probe's scene 1348).
+
+    Parameters
+    ----------
+    lines_hz, z : ndarray, shape (L,), the lines' frequencies (Hz) and fitted amplitudes (V)
+    movers_hz, z_movers : ndarray, shape (M,), the moving lines (Hz) and their amplitudes (V)
+    tau_s : the echo delay (s), :func:`echo_delay_bound`'s
+    """
+    if tau_s <= 0 or not movers_hz.size:
+        return np.zeros(lines_hz.size)
+    gap = np.abs(lines_hz[:, None] - movers_hz[None, :]) * duration_s  # record bins, (L, M)
+    far = gap > 0.5  # a line is not its own neighbour
+    p = probe_pedestal(np.maximum(gap.ravel(), 0.5), np.array([tau_s]), linewidth_hz, duration_s)[0]
+    spill = np.sum(np.where(far, p.reshape(gap.shape) * np.abs(z_movers[None, :]) ** 2, 0.0), axis=1)
+    return spill / (2 * np.maximum(np.abs(z) ** 2, 1e-300))
 
 
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
@@ -410,13 +472,21 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
             z[~ok] = 0.0
             amps[nm], vars_[nm] = z, var
         a_d = float(np.abs(z_all[np.argmin(np.abs(allf - abs(dop.fd_hz)))]))
-        shared = shared_phase_wander_hz(x, fs, allf, abs(dop.fd_hz), white_floor(spec, allf)[0], settings)
+        lw = settings.laser_linewidth_hz
+        tau = echo_delay_bound(x, fs, allf, abs(dop.fd_hz), white_floor(spec, allf)[0], settings)
+        shared = math.sqrt(SHARED_PHASE_MARGIN * slope_phase_var(lw, tau, n / fs))
         dop = replace(dop, wander_hz=max(dop.wander_hz, shared))
+        # the moving lines' pedestals onto every line used (the baseband line's the largest)
+        movers = np.concatenate([[abs(dop.fd_hz)]] + [_fold(wanted[nm])[0] for nm in ("up", "low", "up2", "low2")])
+        at = np.clip(np.searchsorted(allf, np.round(movers, 6)), 0, allf.size - 1)
+        z_movers = np.where(np.abs(allf[at] - movers) < 1e-3, z_all[at], 0.0)  # a line not fitted: none
+        spill = {nm: pedestal_spill(_fold(wanted[nm])[0], amps[nm], movers, z_movers, tau, lw, n / fs)
+                 for nm in ("ref", "up", "low", "up2", "low2")}
         rho = min(a_d / abs(dc), 1.0) if dc != 0 else 1.0
         ratio = (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
         out.append(PeLines(k, dop, np.asarray(frame.tones_hz, float), amps["ref"], amps["up"], amps["low"],
                            amps["up2"], amps["low2"], vars_["ref"], vars_["up"], vars_["low"], vars_["up2"],
-                           vars_["low2"], ratio, n / fs, (n - 1) / (2 * fs)))
+                           vars_["low2"], ratio, n / fs, (n - 1) / (2 * fs), spill))
     return out
 
 
@@ -460,15 +530,16 @@ def pe_observations(lines: PeLines, tone_phases_rad: dict[float, float], wavelen
     # is left is the error of the arm ratio read from the baseband line over DC (which counts the
     # sidebands' power in DC: a few % at m = 0.1 per tone; taken as 10 %)
     sys_ref = 0.5 * (0.1 * lines.arm_ratio**2) ** 2
-    var_ref = lines.var_ref + sys_ref
+    sp = {nm: lines.spill.get(nm, 0.0) for nm in ("ref", "up", "low", "up2", "low2")}
+    var_ref = lines.var_ref + sys_ref + sp["ref"]
     v = abs(lines.doppler.fd_hz) * wavelength_m / 2
     delta = 2 * v * t / C
     kappa1 = _kappa(delta, lines.duration_s)
     kappa2 = _kappa(2 * delta, lines.duration_s)
     q1 = lines.z_up * lines.z_low * np.conj(lines.z_ref) ** 2
     q2 = lines.z2_up * lines.z2_low * np.conj(lines.z_ref) ** 4
-    v1 = lines.var_up + lines.var_low + 4 * var_ref
-    v2 = lines.var2_up + lines.var2_low + 16 * var_ref
+    v1 = lines.var_up + sp["up"] + lines.var_low + sp["low"] + 4 * var_ref
+    v2 = lines.var2_up + sp["up2"] + lines.var2_low + sp["low2"] + 16 * var_ref
     lim = 10 ** (-min_snr_db / 10)
     ok1 = np.isfinite(v1) & (lines.var_up <= lim) & (lines.var_low <= lim) & (lines.var_ref <= lim)
     ok2 = np.isfinite(v2) & (lines.var2_up <= lim) & (lines.var2_low <= lim) & (lines.var_ref <= lim)
