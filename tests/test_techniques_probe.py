@@ -61,3 +61,12 @@ def test_the_baseband_line_s_pedestal_beside_a_weak_pe_sideband_is_in_its_varian
     pedestal turned it and put the range half a period off, 11600 sigmas, unflagged."""
     counts, lines, _ = tp.judge_scene("pe", 1348, 2)
     assert counts["frames"] == 2 and counts["cw"] == 0 and not lines, lines
+
+
+def test_pe_tones_that_disagree_beyond_chance_flag_the_point():
+    """Scene 1823, frame 0: a slow mover (1.06 MHz, under the search's guard) 10 dB stronger than a
+    fast one leaks onto its weak 75 MHz sideband through the fit's sidelobes; the fast one's range
+    came out 290 sigmas off with its tones' chi2 23 on 3 degrees of freedom (under the chi2/dof of
+    10 that flagged it): at p < 1e-4 it is ``blended``, as the PB chain reads it."""
+    counts, lines, _ = tp.judge_scene("pe", 1823, 1)
+    assert counts["ok"] == 1 and counts["cw"] == 0 and not lines, lines

@@ -74,7 +74,7 @@ from ..frame import Frame
 from ..phase import C, unambiguous_range, wrap_pi
 from ..profiles import ChainSettings
 from ..results import NoTarget, Rejected, TargetPoint
-from .targets import BIRGE_P, SHARED_PHASE_MARGIN, Reference, slope_phase_var, velocity
+from .targets import BIRGE_P, BLENDED_P, SHARED_PHASE_MARGIN, Reference, slope_phase_var, velocity
 from .triangulation import Observations, resolve_ml, resolve_seed
 
 
@@ -741,7 +741,11 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     point = TargetPoint(
         range_m=float(sol.range_m + l_ref), range_sigma_m=float(sigma), velocity_mps=v, velocity_sigma_mps=vs,
         direction=direction, snr_db=float(np.max(snr)), margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
-        near_edge=sol.near_edge, cycle_ambiguous=ambiguous, blended=bool(dof > 0 and ratio > settings.blended_chi2),
+        near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
+        # the tones disagree beyond chance, as the PB chain reads it: a second mover's lines, undetected
+        # under the search's guard, leak onto the weak sidebands through the fit's sidelobes (a slow one
+        # 10 dB stronger turned a 75 MHz line by ~2 rad: chi2 23 on 3 dof, 290 sigmas off; scene 1823)
+        blended=bool(dof > 0 and (ratio > settings.blended_chi2 or chi2_dist.sf(chi2, dof) < BLENDED_P)),
         doppler_hz=lines.doppler.fd_hz, chi2_per_dof=float(ratio), tone_snr_db=tone_snr,
         seed_sigma_k_m=sol.seed_sigma_k_m,
     )
