@@ -100,7 +100,7 @@ def _calibration(technique: str, sc: Scene, seed: int) -> Calibration | None:
                            tau0_s=-2 * sc.architecture.reference_range_m / C)
     if technique != "ab":
         return None
-    blocked = scene_variant(sc, targets=[{"loss_db": 300.0}])
+    blocked = scene_variant(sc, targets=[{"loss_db": 300.0, "velocity_mps": 0.0}])  # still: it must not reach the sensor
     return ab.derive_reference(Simulator(blocked, seed).frames(4), sc.architecture.reference_range_m)
 
 
@@ -113,11 +113,11 @@ def judge_scene(technique: str, i: int, frames: int) -> tuple[collections.Counte
     try:
         sc = scene_variant(base, **changes)
         sims = list(Simulator(sc, i).frames(frames))
+        cal = _calibration(technique, sc, i)
     except SceneError as err:
         counts["refused" if "reached the sensor" in str(err) else "invalid"] += 1
         return counts, [], []
     settings = get_profile("balanced", technique=technique, laser_linewidth_hz=sc.laser.linewidth_hz)
-    cal = _calibration(technique, sc, i)
     lines, zs = [], []
     for j, fr in enumerate(sims):
         res = process_frame(fr, settings, cal)
