@@ -70,3 +70,10 @@ def test_pe_tones_that_disagree_beyond_chance_flag_the_point():
     10 that flagged it): at p < 1e-4 it is ``blended``, as the PB chain reads it."""
     counts, lines, _ = tp.judge_scene("pe", 1823, 1)
     assert counts["ok"] == 1 and counts["cw"] == 0 and not lines, lines
+
+
+def test_a_weaker_ptof_echo_is_not_pulled_by_a_stronger_one_through_the_template_s_tails():
+    """Scene 1167: two still mirrors at 2.34 and 5.05 m; the weaker one's delay, refined with the
+    stronger echo still in the record, came out 9 of its sigmas off in both frames."""
+    counts, lines, _ = tp.judge_scene("ptof", 1167, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines

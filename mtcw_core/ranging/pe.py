@@ -723,9 +723,8 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     if dof > 0 and chi2_dist.sf(chi2, dof) < BIRGE_P:
         sigma *= math.sqrt(ratio)
     sigma = math.hypot(sigma, s_ref)
-    # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range
-    # over the runner-up's, sum_l w_l*(cos r_l(best) - cos r_l(second)) = sum(w)*J(best)*margin;
-    # below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
+    # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range over
+    # the runner-up's; below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
     ml = sol if settings.method != "seed" else resolve_ml(obs, ref.tau0_s, interval, settings.points_per_cycle)
     log_odds = runner_up_log_odds(obs, ref.tau0_s, interval, ml.range_m, settings.points_per_cycle)
     ambiguous = bool(log_odds < settings.pe_min_log_odds)
@@ -742,9 +741,7 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         range_m=float(sol.range_m + l_ref), range_sigma_m=float(sigma), velocity_mps=v, velocity_sigma_mps=vs,
         direction=direction, snr_db=float(np.max(snr)), margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
         near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
-        # the tones disagree beyond chance, as the PB chain reads it: a second mover's lines, undetected
-        # under the search's guard, leak onto the weak sidebands through the fit's sidelobes (a slow one
-        # 10 dB stronger turned a 75 MHz line by ~2 rad: chi2 23 on 3 dof, 290 sigmas off; scene 1823)
+        # tones disagreeing beyond chance, as in the PB chain (the techniques probe's scene 1823: chi2 23/3)
         blended=bool(dof > 0 and (ratio > settings.blended_chi2 or chi2_dist.sf(chi2, dof) < BLENDED_P)),
         doppler_hz=lines.doppler.fd_hz, chi2_per_dof=float(ratio), tone_snr_db=tone_snr,
         seed_sigma_k_m=sol.seed_sigma_k_m,

@@ -130,17 +130,15 @@ def _mismatch_reach(auto: np.ndarray, template: np.ndarray) -> tuple[int, float]
     copy beside it in the correlation, where it is not the template's: an aliased pulse (its
     spectrum at Nyquist ``r`` of its value at 0, :func:`aliasing_sigma`) sampled at another
     sub-sample phase than the template differs from the shifted template by up to ~``r`` of it,
-    within the template's autocorrelation's support (lags where it is above 1e-4 of its peak, at most
-    three of its half widths at half maximum, and a sample more). Seen on the techniques probe's PToF benches (``r`` ~0.5, a 5 GHz detector at
+    within the template's autocorrelation's support (lags where it is above 1e-4 of its peak, and a
+    sample more; copies were seen out to 4.4 samples). Seen on the techniques probe's PToF benches (``r`` ~0.5, a 5 GHz detector at
     20 GS/s): copies 0.6-12 % of the echo 1.6-3 samples away, 1.2-2.3 cm, taken for second echoes
     (43 confident-false frames of 600)."""
     n = auto.size
     lags = np.abs(auto[: n // 2]) > 1e-4 * auto[0]
-    support = int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4
-    # ... but no further than a few of its half widths: a template on a baseline (a pulse_ref
-    # channel's) has an autocorrelation with a floor, and a real echo a quarter period away is no copy
-    half = int(np.argmax(auto[: n // 2] < 0.5 * auto[0])) if np.any(auto[: n // 2] < 0.5 * auto[0]) else support
-    reach = min(support, 3 * max(half, 1))
+    # (a template on a baseline, a pulse_ref channel's gate, has an autocorrelation with a floor:
+    # a quarter period then, but its ratio r is that of a pulse tens of samples long, ~1 %)
+    reach = int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4
     spec = np.abs(sfft.rfft(template))
     r = float(np.median(spec[-max(3, spec.size // 20):]) / spec[0]) if spec[0] > 0 else 0.0
     return reach + 1, r
@@ -188,6 +186,9 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
         mask[np.arange(a, b) % n] = False
     reach, mismatch = _mismatch_reach(auto, template)
     out: list[PulseEcho] = []
+    clean = signal.astype(np.float64, copy=True)
+    big = np.flatnonzero(np.abs(template) > 1e-3 * np.max(np.abs(template)))
+    support = np.unique(np.concatenate([big - 1, big, big + 1]))  # an echo's samples, relative to its lag
     while len(out) < max_pulses:
         cand = np.where(mask, score, -np.inf)
         k = int(np.argmax(cand))
@@ -208,6 +209,11 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
         if quantize:
             var += 1.0 / 12.0
         out.append(PulseEcho(d % n, math.sqrt(var), amp, amp / amp_se))
+        # the weaker echoes are refined on the record without this one: the shifted template's tails
+        # reach across the period, and through them a stronger echo pulled a weaker one 5-9 of its
+        # sigmas (as the reference pulse had, :func:`_correlate`)
+        clean[(int(round(d)) + support) % n] = 0.0
+        corr = _shifted_correlation(sfft.fft(clean), tf, n)
     return out
 
 
