@@ -108,40 +108,38 @@ def _shifted_correlation(yf: np.ndarray, tf: np.ndarray, n: int):
     return corr
 
 
+def aliasing_ratio(template: np.ndarray) -> float:
+    """``r``: the template's spectrum at Nyquist over its value at 0, the median over the top 5 % of
+    the band (noise there makes it conservative); 0 for a template without power at 0."""
+    spec = np.abs(sfft.rfft(template))
+    return float(np.median(spec[-max(3, spec.size // 20):]) / spec[0]) if spec[0] > 0 else 0.0
+
+
 def aliasing_sigma(template: np.ndarray) -> float:
     """Sigma (samples) of the fractional-delay error of a template that is not band-limited.
 
     The Fourier shift is exact for a pulse without content at Nyquist; a pulse sampled too
     coarsely (a 5 GHz detector's ~60 ps pulse every 50 ps) is aliased, and the shifted template
     misses the echo's shape by an error that swings with the echo's sub-sample position, about
-    ``r/pi`` samples at most, ``r`` the template's spectrum at Nyquist over its value at 0
-    (measured: 0.09 sample at ``r = 0.25``); its rms, ``r/(pi*sqrt(2))``, is the sigma added.
-    ``r`` is the median over the top 5 % of the band (noise there makes it conservative).
+    ``r/pi`` samples at most (:func:`aliasing_ratio`; measured: 0.09 sample at ``r = 0.25``); its
+    rms, ``r/(pi*sqrt(2))``, is the sigma added.
     """
-    spec = np.abs(sfft.rfft(template))
-    if spec[0] <= 0:
-        return 0.0
-    top = spec[-max(3, spec.size // 20):]
-    return float(np.median(top) / spec[0]) / (math.pi * math.sqrt(2.0))
+    return aliasing_ratio(template) / (math.pi * math.sqrt(2.0))
 
 
-def _mismatch_reach(auto: np.ndarray, template: np.ndarray) -> tuple[int, float]:
-    """How far (samples) and how strongly (amplitude over the echo's) an echo's shape may leave a
-    copy beside it in the correlation, where it is not the template's: an aliased pulse (its
-    spectrum at Nyquist ``r`` of its value at 0, :func:`aliasing_sigma`) sampled at another
+def _mismatch_reach(auto: np.ndarray) -> int:
+    """How far (samples) an echo's shape may leave a copy beside it in the correlation, where it is
+    not the template's. An aliased pulse (:func:`aliasing_ratio` ``r``) sampled at another
     sub-sample phase than the template differs from the shifted template by up to ~``r`` of it,
     within the template's autocorrelation's support (lags where it is above 1e-4 of its peak, and a
-    sample more; copies were seen out to 4.4 samples). Seen on the techniques probe's PToF benches (``r`` ~0.5, a 5 GHz detector at
-    20 GS/s): copies 0.6-12 % of the echo 1.6-3 samples away, 1.2-2.3 cm, taken for second echoes
-    (43 confident-false frames of 600)."""
+    sample more; copies were seen out to 4.4 samples). Seen on the techniques probe's PToF benches
+    (``r`` ~0.5, a 5 GHz detector at 20 GS/s): copies 0.6-12 % of the echo 1.6-3 samples away,
+    1.2-2.3 cm, taken for second echoes (43 confident-false frames of 600). A template on a
+    baseline (a pulse_ref channel's gate) has an autocorrelation with a floor: a quarter period
+    then, but its ``r`` is that of a pulse tens of samples long, ~1 %."""
     n = auto.size
     lags = np.abs(auto[: n // 2]) > 1e-4 * auto[0]
-    # (a template on a baseline, a pulse_ref channel's gate, has an autocorrelation with a floor:
-    # a quarter period then, but its ratio r is that of a pulse tens of samples long, ~1 %)
-    reach = int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4
-    spec = np.abs(sfft.rfft(template))
-    r = float(np.median(spec[-max(3, spec.size // 20):]) / spec[0]) if spec[0] > 0 else 0.0
-    return reach + 1, r
+    return (int(np.flatnonzero(~lags)[0]) if not lags.all() else n // 4) + 1
 
 
 def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, template_noisy: bool,
@@ -173,7 +171,8 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
     if e_t <= 0 or e_dt <= 0 or noise_sigma <= 0:
         return []
     amp_se = noise_sigma / math.sqrt(e_t)  # standard error of an amplitude fit (template noise aside)
-    alias_var = aliasing_sigma(template) ** 2
+    mismatch = aliasing_ratio(template)
+    alias_var = (mismatch / (math.pi * math.sqrt(2.0))) ** 2  # aliasing_sigma's
     corr = _shifted_correlation(yf, tf, n)
     # the template's autocorrelation width: neighbouring lags within it belong to the same pulse
     auto = np.real(sfft.ifft(np.abs(tf) ** 2))
@@ -184,7 +183,7 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
     if exclude is not None:
         a, b = exclude
         mask[np.arange(a, b) % n] = False
-    reach, mismatch = _mismatch_reach(auto, template)
+    reach = _mismatch_reach(auto)
     out: list[PulseEcho] = []
     clean = signal.astype(np.float64, copy=True)
     big = np.flatnonzero(np.abs(template) > 1e-3 * np.max(np.abs(template)))
