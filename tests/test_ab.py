@@ -224,3 +224,12 @@ def test_stream_a_worker_with_technique_ab_serves_points_at_the_api(tmp_path):
         assert 'stage="ab_fit"' in b.get("/metrics").text
     finally:
         b.close()
+
+
+def test_swap_odds_are_the_gaussian_log_likelihood_ratio_s():
+    """Two hypotheses D apart in chi2: their log-likelihood ratio ~ N(D, 4D), swapped with Phi(-sqrt(D)/2)."""
+    rng = np.random.default_rng(0)
+    for d in (4.0, 16.0, 25.0):
+        llr = rng.normal(d, 2 * np.sqrt(d), 400_000)
+        assert ab.swap_odds(d) == pytest.approx(np.mean(llr < 0), rel=0.05, abs=2e-4)
+    assert ab.swap_odds(38.2) == pytest.approx(1e-3, rel=0.01) and ab.swap_odds(math.inf) == 0.0

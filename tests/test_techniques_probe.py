@@ -77,3 +77,11 @@ def test_a_weaker_ptof_echo_is_not_pulled_by_a_stronger_one_through_the_template
     stronger echo still in the record, came out 9 of its sigmas off in both frames."""
     counts, lines, _ = tp.judge_scene("ptof", 1167, 2)
     assert counts["ok"] == 2 and counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines
+
+
+def test_an_ab_period_noise_could_swap_is_flagged_at_the_chain_s_cycle_odds():
+    """Scene 1060, frame 0: a still-looking echo at 31.7 m under a 500 kHz laser; the sine fit's
+    runner-up (the right period) lay 26.2 in chi2 behind, just past the old fixed 25 (0.6 % odds of a
+    swap): read against ``cycle_slip_max`` (1e-3) it is ``cycle_ambiguous``, with its odds stated."""
+    counts, lines, _ = tp.judge_scene("ab", 1060, 1)
+    assert counts["ok"] == 1 and counts["cw"] == 0 and not lines, lines

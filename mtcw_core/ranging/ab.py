@@ -40,8 +40,9 @@ dissertation's Eq. 3.10 states, and within ``[0, c/(8*g)]`` when every ``f_i/g``
 flip of ``Dtau -> 1/(2g) - Dtau`` is absorbed by the free depth: 37.5 m for the bench's
 79...2623 MHz, against the dissertation's 150 m); nor can they tell a target in front of the
 reference mirror from one behind it (``|DL|``). The search covers ``[range_min_m,
-range_max_m]`` within that interval; a runner-up peak of the fit within ``AMBIGUITY_DCHI2`` of
-the best is flagged ``cycle_ambiguous`` (the dissertation bounded its fit with the PToF range).
+range_max_m]`` within that interval; a runner-up peak of the fit close enough to the best that
+noise swaps them with odds above ``cycle_slip_max`` (:func:`swap_odds`) is flagged
+``cycle_ambiguous`` (the dissertation bounded its fit with the PToF range).
 
 **Speed** from the baseband line of the carrier beat at ``|f_d|`` (the dissertation's PDV),
 refined below a bin on the record's exact DFT, with the Cramér–Rao sigma of a sinusoid's
@@ -78,11 +79,6 @@ from .targets import SHARED_PHASE_MARGIN, slope_phase_var
 FrameState = Any
 Stage = Any
 
-#: Delta chi^2 (after the Birge scaling) between the best and the runner-up peak of the sine fit
-#: below which the point is flagged ``cycle_ambiguous``. For Gaussian errors the log-likelihood
-#: ratio of two hypotheses apart by D has mean D and variance 4D, so noise swaps them with
-#: probability Phi(-sqrt(D)/2): 0.6 % at 25.
-AMBIGUITY_DCHI2 = 25.0
 #: the pattern's depth |beta| must be this many of its sigmas from 0, else the frame is
 #: ``no_target`` (pattern faded: the carrier phase at the null, an echo too weak against the
 #: reference, or a path difference below the shortest one the tones resolve)
@@ -559,6 +555,19 @@ class ABState:
     offset_m: float = 0.0  # c*tau0/2 of the calibration: range = c*Dtau/2 - offset
 
 
+def swap_odds(delta_chi2: float) -> float:
+    """The odds that noise put the sine fit's best peak ahead of the right one ``delta_chi2`` (after
+    the Birge scaling) behind it: for Gaussian errors the log-likelihood ratio of two hypotheses
+    ``D`` apart has mean ``D`` and variance ``4D``, so they swap with probability
+    ``Phi(-sqrt(D)/2)``. Read against ``ChainSettings.cycle_slip_max`` (1e-3: ``D`` ~38), as the PB
+    chain reads its own cycle odds; the fixed ``D`` of 25 this replaced (0.6 %) let a still echo at
+    31.7 m under a 500 kHz laser (``D`` = 26.2) through on the wrong period (the techniques probe's
+    scene 1060)."""
+    if not math.isfinite(delta_chi2):
+        return 0.0
+    return float(0.5 * math.erfc(math.sqrt(max(delta_chi2, 0.0)) / 2 / math.sqrt(2.0)))
+
+
 def _st(s: FrameState) -> ABState:
     if not isinstance(s.technique_state, ABState):
         s.technique_state = ABState()
@@ -642,7 +651,8 @@ def _select(s: FrameState) -> None:
     s.result.targets = [TargetPoint(
         range_m=dl - ab.offset_m, range_sigma_m=sigma_m, velocity_mps=v, velocity_sigma_mps=v_sig,
         direction=direction, snr_db=float(np.max(pw.snr_db)), margin=float(min(max(margin, 0.0), 1.0)),
-        near_edge=bool(near), cycle_ambiguous=bool(fit.delta_chi2 < AMBIGUITY_DCHI2),
+        near_edge=bool(near), cycle_ambiguous=bool(swap_odds(fit.delta_chi2) > s.settings.cycle_slip_max),
+        cycle_slip_prob=swap_odds(fit.delta_chi2),
         blended=bool(chi2_dof > s.settings.blended_chi2), doppler_hz=line.fd_hz, chi2_per_dof=float(chi2_dof),
         tone_snr_db={f"{f:.0f}": float(d) for f, d in zip(pw.tones_hz, pw.snr_db)}, fit_r2=float(fit.r2))]
     s.result.status = "ok"
@@ -660,5 +670,5 @@ def stages(pb: tuple[Stage, ...]) -> tuple[Stage, ...]:
 
 __all__ = ["pattern", "pattern_depth", "unambiguous_path", "baseband_doppler", "BasebandLine", "tone_powers",
            "TonePowers", "fit_sine", "SineFit", "reference_powers", "derive_reference", "stages", "ABState",
-           "AMBIGUITY_DCHI2", "MIN_DEPTH_Z"]
+           "swap_odds", "MIN_DEPTH_Z"]
 
