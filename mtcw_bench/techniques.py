@@ -334,6 +334,12 @@ def _report(res: dict, out: Path, cmd: str) -> str:
         f"Made by `{cmd}` in {res['seconds']:.0f} s (figures: fig10.png, fig11.png, fig14.png, fig16.png; numbers: "
         "results.json). Technique notes: [docs/techniques.md](../../techniques.md).",
         "",
+        "The other techniques' reports: **PE-MTCW** (sections 4.3 and 4.4, Figs. 19, 21, 23): [pe.md](pe.md) "
+        "(`mtcw-bench-pe --out docs/benchmarks/techniques --frames 10`); the **SNR model** (Fig. 36): "
+        "[docs/snr.md](../../snr.md) (`mtcw snr -o docs/snr`); **tone planning**: "
+        "[docs/tone-planning.md](../../tone-planning.md); random benches around each technique: "
+        "`python -m mtcw_bench.techniques_probe --technique pe|ab|ptof`.",
+        "",
         "## Fig. 10: tone powers against frequency (150/650/1250/1500/2100 MHz, 10 % depth, lossless arms)",
         "",
         "![fig10](fig10.png)",
