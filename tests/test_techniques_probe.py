@@ -85,3 +85,11 @@ def test_an_ab_period_noise_could_swap_is_flagged_at_the_chain_s_cycle_odds():
     swap): read against ``cycle_slip_max`` (1e-3) it is ``cycle_ambiguous``, with its odds stated."""
     counts, lines, _ = tp.judge_scene("ab", 1060, 1)
     assert counts["ok"] == 1 and counts["cw"] == 0 and not lines, lines
+
+
+def test_a_ptof_echo_s_copy_past_the_autocorrelation_is_not_a_second_mirror():
+    """Scene 1265: one mirror at 4.85 m, its echo 7x the reference pulse; a copy 5.25 samples out,
+    past the template autocorrelation's support, had stood in the correlation as a second mirror
+    3.9 cm away. Refined on the record without the stronger echo it keeps nothing: dropped."""
+    counts, lines, _ = tp.judge_scene("ptof", 1265, 1)
+    assert counts["ok"] == 1 and counts["cf"] == 0 and not lines, lines

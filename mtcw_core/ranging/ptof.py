@@ -201,6 +201,8 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
                                 options={"xatol": 1e-5})
             d = float(r.x)
         amp = corr(d) / e_t
+        if not amp / amp_se >= MIN_PULSE_SNR:
+            continue  # nothing left once the stronger echoes are out: one of their copies (scene 1265)
         if any(abs((d - e.delay_s + n / 2) % n - n / 2) <= reach and abs(amp) < mismatch * abs(e.amplitude)
                for e in out):
             continue  # what a stronger echo's shape, not the template's, leaves beside it
