@@ -70,7 +70,8 @@ class TargetPoint:
         spectrum, a quasi-CW record) the guard itself. When the laser is not coherent at the
         target's range, the search's largest speed (nothing could have shown).
     cycle_slip_prob : float
-        The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1].
+        The summed likelihood odds of the runner-up cycles against the one reported, in [0, 1]
+        (AB: the odds that noise swapped the sine fit's best period with its runner-up).
     doppler_hz : float
         The target's Doppler line (Hz; signed for IQ; 0 for the static target).
     chi2_per_dof : float
