@@ -93,3 +93,11 @@ def test_a_ptof_echo_s_copy_past_the_autocorrelation_is_not_a_second_mirror():
     3.9 cm away. Refined on the record without the stronger echo it keeps nothing: dropped."""
     counts, lines, _ = tp.judge_scene("ptof", 1265, 1)
     assert counts["ok"] == 1 and counts["cf"] == 0 and not lines, lines
+
+
+def test_a_pe_point_known_modulo_a_shorter_period_than_the_frame_s_is_flagged():
+    """Scene 2478: two movers; the weaker one's 75 MHz lines fell under the threshold, so its three
+    tones (multiples of 50 MHz) repeat every 2.998 m in a frame stating 5.996 m: it came out half a
+    period off, 6000 sigmas, unflagged. Known only modulo its own period, it is ``cycle_ambiguous``."""
+    counts, lines, _ = tp.judge_scene("pe", 2478, 2)
+    assert counts["cw"] == 0 and not lines, lines

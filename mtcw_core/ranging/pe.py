@@ -759,8 +759,7 @@ def resolve_pe(lines: list[PeLines], frame: Frame, settings: ChainSettings, ref:
     NoTarget
         No target had enough lines (the reason of the first is given).
     """
-    points: list[tuple[int, TargetPoint]] = []
-    l_unamb = None
+    solved: list[tuple[int, TargetPoint, float]] = []
     why = None
     for ln in lines:
         try:
@@ -768,11 +767,16 @@ def resolve_pe(lines: list[PeLines], frame: Frame, settings: ChainSettings, ref:
         except NoTarget as err:
             why = why or str(err)
             continue
-        points.append((ln.target, p))
-        l_unamb = lu if l_unamb is None else max(l_unamb, lu)
-    if not points:
+        solved.append((ln.target, p, lu))
+    if not solved:
         raise NoTarget(why or "pe: nothing to range")
-    return points, l_unamb
+    l_unamb = max(lu for _, _, lu in solved)
+    # a point whose tones repeat sooner than the frame's stated period is known only modulo its own
+    # (as the PB chain reads its points): a mover whose 75 MHz lines fell under the threshold beside
+    # another, ranged modulo 2.998 m in a 5.996 m frame, half a period off and unflagged (the
+    # techniques probe's scene 2478)
+    return [(k, p if lu >= l_unamb * (1 - 1e-9) else replace(p, cycle_ambiguous=True))
+            for k, p, lu in solved], l_unamb
 
 
 # -------------------------------------------------------------------------------------------
