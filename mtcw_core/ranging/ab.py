@@ -72,7 +72,7 @@ from ..dsp.tones import exact_dft, fit_lines, lines_signal
 from ..frame import Frame
 from ..phase import C
 from ..results import NoTarget, Rejected, TargetPoint
-from .targets import SHARED_PHASE_MARGIN, slope_phase_var
+from .targets import shared_phase_error_hz
 
 #: the chain's FrameState and Stage (not imported: the chain imports this module, and core has no
 #: import cycles); the stages read and write the state's attributes, the table reuses pb's row type
@@ -634,11 +634,10 @@ def _select(s: FrameState) -> None:
     lam = s.frame.wavelength_m
     if line.detected:
         # the laser's phase over the path difference the fit found moves the line's frequency
-        # (:func:`~mtcw_core.ranging.targets.slope_phase_var`: a 500 kHz laser, 8.5 m, 2^16 samples
-        # at 20 GS/s: 9 kHz, against a white-noise bound of 1 kHz; seen 7.8 kHz off)
-        wander = SHARED_PHASE_MARGIN * slope_phase_var(s.settings.laser_linewidth_hz, fit.dtau_s,
-                                                       s.frame.n / s.frame.fs_hz)
-        v, v_sig, direction = line.fd_hz * lam / 2, math.hypot(line.sigma_hz, math.sqrt(wander)) * lam / 2, "unknown"
+        # (:func:`~mtcw_core.ranging.targets.shared_phase_error_hz`: a 500 kHz laser, 8.5 m, 2^16
+        # samples at 20 GS/s: 9 kHz, against a white-noise bound of 1 kHz; seen 7.8 kHz off)
+        wander = shared_phase_error_hz(s.settings.laser_linewidth_hz, fit.dtau_s, s.frame.n / s.frame.fs_hz)
+        v, v_sig, direction = line.fd_hz * lam / 2, math.hypot(line.sigma_hz, wander) * lam / 2, "unknown"
     elif line.doubt:  # something stood there, not the target's line: any speed the search covers
         v, v_sig, direction = 0.0, line.max_searched_hz * lam / 2, "unknown"
     else:

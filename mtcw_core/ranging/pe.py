@@ -74,7 +74,7 @@ from ..frame import Frame
 from ..phase import C, unambiguous_range, wrap_pi
 from ..profiles import ChainSettings
 from ..results import NoTarget, Rejected, TargetPoint
-from .targets import BIRGE_P, BLENDED_P, SHARED_PHASE_MARGIN, Reference, slope_phase_var, velocity
+from .targets import BIRGE_P, BLENDED_P, Reference, shared_phase_error_hz, velocity
 from .triangulation import Observations, resolve_ml, resolve_seed
 
 
@@ -340,8 +340,7 @@ def echo_delay_bound(x: np.ndarray, fs: float, lines_hz: np.ndarray, line_hz: fl
     """The longest echo delay (s) relative to the reference arm that the pedestal about the target's
     line at ``line_hz`` allows, for the declared laser (0 for a laser declared coherent). It sets
     the Doppler's error from the phase every moving line shares
-    (:func:`~mtcw_core.ranging.targets.slope_phase_var`, times
-    :data:`~mtcw_core.ranging.targets.SHARED_PHASE_MARGIN`) and what each moving line's pedestal
+    (:func:`~mtcw_core.ranging.targets.shared_phase_error_hz`) and what each moving line's pedestal
     spills onto its neighbours (:func:`pedestal_spill`).
 
     The delay is what the phases cannot give: they fold the range into ``c/(2*gcd)`` (6 m for
@@ -459,9 +458,10 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
         dop = refine_doppler(x, frame, dop, others, spec)
         wanted, usable, allf = _plan_with_others(frame.tones_hz, dop.fd_hz, others, fs, n)
         z_all = fit_lines(x, allf, fs)
-        amps, vars_ = {}, {}
+        amps, vars_, line_hz = {}, {}, {}
         for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
             f, folded = _fold(wanted[nm])
+            line_hz[nm] = f
             idx = np.clip(np.searchsorted(allf, np.round(f, 6)), 0, allf.size - 1)
             z = z_all[idx].copy()
             z[folded] = np.conj(z[folded])
@@ -474,14 +474,12 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
         a_d = float(np.abs(z_all[np.argmin(np.abs(allf - abs(dop.fd_hz)))]))
         lw = settings.laser_linewidth_hz
         tau = echo_delay_bound(x, fs, allf, abs(dop.fd_hz), white_floor(spec, allf)[0], settings)
-        shared = math.sqrt(SHARED_PHASE_MARGIN * slope_phase_var(lw, tau, n / fs))
-        dop = replace(dop, wander_hz=max(dop.wander_hz, shared))
+        dop = replace(dop, wander_hz=max(dop.wander_hz, shared_phase_error_hz(lw, tau, n / fs)))
         # the moving lines' pedestals onto every line used (the baseband line's the largest)
-        movers = np.concatenate([[abs(dop.fd_hz)]] + [_fold(wanted[nm])[0] for nm in ("up", "low", "up2", "low2")])
+        movers = np.concatenate([[abs(dop.fd_hz)]] + [line_hz[nm] for nm in ("up", "low", "up2", "low2")])
         at = np.clip(np.searchsorted(allf, np.round(movers, 6)), 0, allf.size - 1)
         z_movers = np.where(np.abs(allf[at] - movers) < 1e-3, z_all[at], 0.0)  # a line not fitted: none
-        spill = {nm: pedestal_spill(_fold(wanted[nm])[0], amps[nm], movers, z_movers, tau, lw, n / fs)
-                 for nm in ("ref", "up", "low", "up2", "low2")}
+        spill = {nm: pedestal_spill(f, amps[nm], movers, z_movers, tau, lw, n / fs) for nm, f in line_hz.items()}
         rho = min(a_d / abs(dc), 1.0) if dc != 0 else 1.0
         ratio = (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
         out.append(PeLines(k, dop, np.asarray(frame.tones_hz, float), amps["ref"], amps["up"], amps["low"],

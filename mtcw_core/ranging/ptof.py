@@ -124,7 +124,12 @@ def aliasing_sigma(template: np.ndarray) -> float:
     ``r/pi`` samples at most (:func:`aliasing_ratio`; measured: 0.09 sample at ``r = 0.25``); its
     rms, ``r/(pi*sqrt(2))``, is the sigma added.
     """
-    return aliasing_ratio(template) / (math.pi * math.sqrt(2.0))
+    return _ratio_sigma(aliasing_ratio(template))
+
+
+def _ratio_sigma(r: float) -> float:
+    """:func:`aliasing_sigma` of a template whose :func:`aliasing_ratio` is ``r``."""
+    return r / (math.pi * math.sqrt(2.0))
 
 
 def _mismatch_reach(auto: np.ndarray) -> int:
@@ -172,7 +177,7 @@ def find_echoes(signal: np.ndarray, template: np.ndarray, noise_sigma: float, te
         return []
     amp_se = noise_sigma / math.sqrt(e_t)  # standard error of an amplitude fit (template noise aside)
     mismatch = aliasing_ratio(template)
-    alias_var = (mismatch / (math.pi * math.sqrt(2.0))) ** 2  # aliasing_sigma's
+    alias_var = _ratio_sigma(mismatch) ** 2
     corr = _shifted_correlation(yf, tf, n)
     # the template's autocorrelation width: neighbouring lags within it belong to the same pulse
     auto = np.real(sfft.ifft(np.abs(tf) ** 2))

@@ -284,6 +284,12 @@ def slope_phase_var(linewidth_hz: float, tau_s: float, duration_s: float) -> flo
 SHARED_PHASE_MARGIN = 2.0
 
 
+def shared_phase_error_hz(linewidth_hz: float, tau_s: float, duration_s: float) -> float:
+    """The frequency error (Hz) a whole-record fit states for the phase its lines share over an
+    echo delay ``tau_s``: :func:`slope_phase_var` times :data:`SHARED_PHASE_MARGIN`, its root."""
+    return math.sqrt(SHARED_PHASE_MARGIN * slope_phase_var(linewidth_hz, tau_s, duration_s))
+
+
 def phase_psd(settings: ChainSettings, range_m: float, dop: DopplerEstimate, iq: bool) -> float:
     """The low-frequency PSD (rad^2/Hz) of the phase a target's lines share, for the speed sigma:
     the declared laser's at the point's range (:func:`shared_phase_psd`), or what the pedestal
