@@ -576,6 +576,40 @@ def test_a_lone_echo_above_the_lo_is_not_flagged_for_its_own_leftover():
             assert len(r.targets) == 1 and not v.points[0].flags and abs(v.points[0].range_z) < 5, v.points
 
 
+class TestFastFade:
+    """A static point's speed is claimed only where its lines' envelope is slow: a mover beyond the
+    search's guard whose Doppler lines stayed under the threshold fades them faster than any
+    envelope within the guard (the envelope probe's scene 41777)."""
+
+    @staticmethod
+    def part(delta_bins, s=1e-4, seed=0, n=2**14, guard_bins=1.2):
+        from mtcw_core.dsp.extract import fast_fade, static_segments
+
+        x, _, _ = TestFadingLines.record(delta_bins * FS / n, 0.4, s, seed=seed, n=n)
+        f = np.asarray(TONES)
+        z, _, _ = static_segments(x, FS, f, np.arange(3), guard_bins * FS / n)
+        return fast_fade(z, np.full(3, s**2), n // z.shape[0], guard_bins)
+
+    def test_a_mover_beyond_the_guard_is_mostly_a_fast_envelope(self):
+        # 11.4 record bins over 8 segments (the guard of 1.2 bins asks for 8): aliased to 3.4 bins
+        from mtcw_core.dsp.extract import FAST_FADE_PART
+
+        assert all(self.part(d, seed=k) > FAST_FADE_PART for k, d in enumerate((3.0, 5.5, 11.4)))
+
+    def test_a_slow_envelope_within_the_guard_is_explained(self):
+        # a constant, a mover under the guard, and one at it: the sinusoid within the guard explains them
+        parts = [self.part(d, seed=k) for k in range(4) for d in (0.0, 0.3, 0.8, 1.2)]
+        assert max(parts) < 0.05, parts
+
+    def test_noise_alone_reads_no_fast_envelope(self):
+        from mtcw_core.dsp.extract import fast_fade
+
+        rng = np.random.default_rng(5)
+        z = rng.standard_normal((8, 3)) + 1j * rng.standard_normal((8, 3))  # unit noise per component
+        length = 2048
+        assert fast_fade(z * np.sqrt(2e-8 / length), np.full(3, 1e-8), length, 1.2) == 0.0
+
+
 class TestEnvelopeRank:
     """The static lines' segments against one echo's real envelope (``extract.envelope_rank_chi2``)."""
 

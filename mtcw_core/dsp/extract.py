@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import signal as sps
+from scipy.special import chdtrc
 
 from ..frame import Frame
 from ..profiles import ChainSettings
@@ -127,6 +128,9 @@ class LineFamily:
         The static lines of a real record on which no mover was found: their segments against one
         echo's real envelope (:func:`envelope_rank_chi2`), chi2 and degrees of freedom; None where
         not read.
+    fast_fade : float or None
+        The same static lines: the part of their envelope's energy that turns faster than the
+        search's guard (:func:`fast_fade`; 0 within the noise); None where not read.
     """
 
     name: str
@@ -145,6 +149,7 @@ class LineFamily:
     copy_v: np.ndarray | None = None
     self_beats: dict[int, np.ndarray] | None = None
     envelope_chi2: tuple[float, int] | None = None
+    fast_fade: float | None = None
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -299,9 +304,9 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         centres = (starts + (length - 1) / 2) / fs
         n = int(starts.size * length)  # samples the amplitudes rest on
     kappa = 0.5 if iq else 2.0
-    envelope = None
+    envelope = fade = None
     if seg_dft is not None and not iq and not fds:
-        z_all, envelope = _static_envelope(x, fs, uniq, fams[0][2], spec, guard, (seg_dft, seg_sums), z_all)
+        z_all, envelope, fade = _static_envelope(x, fs, uniq, fams[0][2], spec, guard, (seg_dft, seg_sums), z_all)
     zs = {}
     for target, name, freqs, conj, bad in fams:
         idx = _line_index(uniq, freqs)
@@ -337,19 +342,21 @@ def extract_lines(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec
         out.append(LineFamily(name, np.asarray(frame.tones_hz, float), freqs, z, centres, var, target,
                               unexplained if target == 0 else None, cross.get(target) if target else None,
                               still if target else None, bool(target and over_lo), bool(not target and own),
-                              ring, copies[i], parts if target == 0 else None, envelope if target == 0 else None))
+                              ring, copies[i], parts if target == 0 else None, envelope if target == 0 else None,
+                              fade if target == 0 else None))
     return out
 
 
 def _static_envelope(x: np.ndarray, fs: float, uniq: np.ndarray, static_hz: np.ndarray, spec: Spectrum,
                      guard_hz: float, seg_dfts: tuple[np.ndarray, np.ndarray], z_all: np.ndarray
-                     ) -> tuple[np.ndarray, tuple[float, int] | None]:
+                     ) -> tuple[np.ndarray, tuple[float, int] | None, float | None]:
     """No Doppler line found on a real record: the static lines (``static_hz``) may still fade
     within it (a mover below the search's guard, the carrier's phase noise). Their common real
-    envelope is measured (:func:`fading_lines`, its lines put into ``z_all`` (1, K) where taken)
-    and their segments read against one (:func:`envelope_rank_chi2`: (chi2, dof), None where not
-    read), both from one read of the segments (:func:`static_segments`). ``seg_dfts``: the
-    segments' DFTs and sums (:func:`_whole_record_dfts`)."""
+    envelope is measured (:func:`fading_lines`, its lines put into ``z_all`` (1, K) where taken),
+    their segments read against one (:func:`envelope_rank_chi2`: (chi2, dof), None where not
+    read) and the part of that envelope beyond the guard (:func:`fast_fade`, None where not read),
+    all from one read of the segments (:func:`static_segments`). ``seg_dfts``: the segments' DFTs
+    and sums (:func:`_whole_record_dfts`)."""
     s_idx = _line_index(uniq, static_hz)
     seg = static_segments(x, fs, uniq, s_idx, guard_hz, *seg_dfts)
     s2 = spec.noise_variances(static_hz, uniq)  # its default ring, 12 bins clear of every line
@@ -359,10 +366,11 @@ def _static_envelope(x: np.ndarray, fs: float, uniq: np.ndarray, static_hz: np.n
     guard = spec.line_floor_guard()
     s2_lines = s2 if guard == 12 else spec.noise_variances(static_hz, uniq, guard=guard)
     envelope = envelope_rank_chi2(x, fs, uniq, s_idx, s2_lines, guard_hz, *seg_dfts, segments=seg)
+    fade = None if seg is None else fast_fade(seg[0], s2, x.size // seg[0].shape[0], guard_hz * x.size / fs)
     if c is not None:
         z_all = z_all.copy()
         z_all[0, s_idx] = c
-    return z_all, envelope if envelope[1] else None
+    return z_all, envelope if envelope[1] else None, fade
 
 
 #: :func:`quantizer_copies` reads a record whose white floor (per channel) is at most this many
@@ -810,8 +818,7 @@ def fading_lines(x: np.ndarray, fs: float, uniq: np.ndarray, s_idx: np.ndarray, 
         return None
     z, turn, dc = seg
     segs, length = z.shape[0], x.size // z.shape[0]
-    sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
-    m = np.concatenate([z.real / sd, z.imag / sd], axis=1)  # (S, 2T)
+    m = _whitened(z, s2, length)
     cols = m.shape[1]
     varying = np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[0] ** 2
     a = None
@@ -974,6 +981,73 @@ FADING_SINE_GAIN = 30.0
 FADING_SINE_SIGNAL = 40.0
 
 
+def _whitened(z: np.ndarray, s2: np.ndarray, length: int) -> np.ndarray:
+    """The segments' lines ``z`` (S, T) as real and imaginary parts in units of their noise
+    (``s2``: each line's noise variance per sample, V^2; ``length``: samples a segment), (S, 2T)."""
+    sd = np.sqrt(2.0 * s2 / length)  # each real component's noise std per segment (V)
+    return np.concatenate([z.real / sd, z.imag / sd], axis=1)
+
+
+def _sine_energies(m: np.ndarray, fds: np.ndarray) -> tuple[np.ndarray, tuple, tuple, tuple]:
+    """The best rank-1 energy of ``m`` (S, 2T, whitened) whose envelope lies in span{cos, sin} at
+    each trial Doppler ``fds`` (F,) (record bins) over the segments' centres: ``lam`` (F,), with
+    the basis (F, S) each, its Gram and the projections' Gram ((F,) each) for the eigenvectors."""
+    segs = m.shape[0]
+    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
+    c, s = np.cos(2 * np.pi * np.outer(fds, t)), np.sin(2 * np.pi * np.outer(fds, t))  # (F, S)
+    pc, ps = c @ m, s @ m  # (F, 2T)
+    # the largest root of det(H - lam*G) = 0 (H: the projections' Gram, G: the basis'): the best
+    # rank-1 energy in span{cos, sin}, every trial at once (a 2x2 generalised eigenproblem)
+    g11, g12, g22 = np.sum(c * c, axis=1), np.sum(c * s, axis=1), np.sum(s * s, axis=1)
+    h11, h12, h22 = np.sum(pc * pc, axis=1), np.sum(pc * ps, axis=1), np.sum(ps * ps, axis=1)
+    qa = g11 * g22 - g12**2
+    qb = -(h11 * g22 + h22 * g11 - 2 * h12 * g12)
+    qc = h11 * h22 - h12**2
+    lam = (-qb + np.sqrt(np.maximum(qb**2 - 4 * qa * qc, 0.0))) / (2 * np.maximum(qa, 1e-300))
+    return lam, (c, s), (g11, g12, g22), (h11, h12, h22)
+
+
+#: a static point's speed is claimed only where its lines' envelope is slow: where more than this
+#: part of their free rank-1 energy (:func:`fading_lines`) is beyond what any envelope within the
+#: search's guard explains (a constant, or one sinusoid up to the guard), the carrier turns faster
+#: than a static point's sigma allows -- a mover whose Doppler lines stayed under the search's
+#: threshold while the segments gathered its sidebands (the envelope probe's scene 41777: 873 kHz,
+#: 11 record bins, read as an envelope fading over 8 segments; 0.93 of the energy beyond). A laser
+#: incoherent at the echo's delay fades the lines randomly: that part then varies (0.06-0.8 for a
+#: carrier phase wandering 20-80 rad over the record), and a static claim there stays a static
+#: target's, whatever its range
+FAST_FADE_PART = 0.5
+#: ... and where that excess stands out of the noise at this tail probability (chi2, S - 2 dof:
+#: the free envelope's S values against the sinusoid's two)
+FAST_FADE_P = 1e-6
+
+
+def fast_fade(z: np.ndarray, s2: np.ndarray, length: int, guard_bins: float) -> float:
+    """The part of the static lines' envelope energy that no envelope within the guard explains.
+
+    ``z`` (S, T): the static lines on each segment (:func:`static_segments`); ``s2`` (T,): their
+    noise variance per sample (V^2); ``length``: samples a segment; ``guard_bins``: the largest
+    Doppler the search could have missed, in record bins. The free rank-1 energy (the leading
+    singular value squared of the whitened lines, :func:`fading_lines`) less the best of a constant
+    envelope and of one sinusoid up to the guard (:func:`_sine_energies`), as a part of the free
+    energy; 0 where that excess is within the noise (:data:`FAST_FADE_P`) or the segments cannot
+    show an envelope beyond the guard (fewer than 4 of them, or a guard past half their Nyquist).
+    """
+    segs = z.shape[0]
+    if segs < 4 or guard_bins >= segs / 4 or not np.all(s2 > 0):
+        return 0.0
+    m = _whitened(z, s2, length)
+    free = float(np.linalg.svd(m, compute_uv=False)[0] ** 2)
+    slow = segs * float(np.sum(m.mean(axis=0) ** 2))
+    fds = np.arange(FADING_SINE_STEP_BINS, guard_bins + 1e-9, FADING_SINE_STEP_BINS)
+    if fds.size:
+        slow = max(slow, float(np.max(_sine_energies(m, fds)[0])))
+    excess = max(free - slow, 0.0)
+    if free <= 0 or chdtrc(segs - 2, excess) > FAST_FADE_P:
+        return 0.0
+    return excess / free
+
+
 def _sine_envelope(m: np.ndarray, guard_bins: float) -> np.ndarray | None:
     """A mover below one record bin: the envelope ``a_s = 2*cos(2*pi*f_d*t_s + Phi_0)`` its carrier
     puts on the static lines, fitted with two parameters instead of one per segment.
@@ -985,21 +1059,11 @@ def _sine_envelope(m: np.ndarray, guard_bins: float) -> np.ndarray | None:
     envelope's (the whole-record fit) by :data:`FADING_SINE_GAIN` and reaches
     :data:`FADING_SINE_SIGNAL`. Returns ``a`` (S,), ``mean a^2 = 1``, or None."""
     segs = m.shape[0]
-    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
     e0 = segs * float(np.sum(m.mean(axis=0) ** 2))
     fds = np.arange(FADING_SINE_MIN_BINS, min(guard_bins, FADING_SINE_MAX_BINS) + 1e-9, FADING_SINE_STEP_BINS)
     if not fds.size:
         return None
-    c, s = np.cos(2 * np.pi * np.outer(fds, t)), np.sin(2 * np.pi * np.outer(fds, t))  # (F, S)
-    pc, ps = c @ m, s @ m  # (F, 2T)
-    # the largest root of det(H - lam*G) = 0 (H: the projections' Gram, G: the basis'): the best
-    # rank-1 energy in span{cos, sin}, every trial at once (a 2x2 generalised eigenproblem)
-    g11, g12, g22 = np.sum(c * c, axis=1), np.sum(c * s, axis=1), np.sum(s * s, axis=1)
-    h11, h12, h22 = np.sum(pc * pc, axis=1), np.sum(pc * ps, axis=1), np.sum(ps * ps, axis=1)
-    qa = g11 * g22 - g12**2
-    qb = -(h11 * g22 + h22 * g11 - 2 * h12 * g12)
-    qc = h11 * h22 - h12**2
-    lam = (-qb + np.sqrt(np.maximum(qb**2 - 4 * qa * qc, 0.0))) / (2 * qa)
+    lam, (c, s), (g11, g12, g22), (h11, h12, h22) = _sine_energies(m, fds)
     k = int(np.argmax(lam))
     best = float(lam[k])
     if best < FADING_SINE_SIGNAL or best - e0 < FADING_SINE_GAIN:

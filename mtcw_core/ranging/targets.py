@@ -22,7 +22,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import Calibration
 from ..dsp.doppler import CROSS_PULL_BINS, MIN_CARRIER_COHERENCE, DopplerEstimate, fd_max, quarters_resolve_hz, within
-from ..dsp.extract import LineFamily
+from ..dsp.extract import FAST_FADE_PART, LineFamily
 from ..dsp.spectrum import search_length
 from ..frame import Frame
 from ..phase import C
@@ -329,8 +329,11 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     floor carries it, and the local floors' error is the least stated).
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
-    :data:`MIN_CARRIER_COHERENCE`): then no speed up to the search's limit ``fd_max_hz`` could have
-    shown, and the point says 0 with that limit as its sigma, direction ``unknown``.
+    :data:`MIN_CARRIER_COHERENCE`), or the static lines' envelope turns faster than the search's
+    guard (:attr:`LineFamily.fast_fade` above :data:`~mtcw_core.dsp.extract.FAST_FADE_PART`: a
+    mover whose Doppler lines stayed under the threshold): then no speed up to the search's limit
+    ``fd_max_hz`` could have shown, and the point says 0 with that limit as its sigma, direction
+    ``unknown``.
     A real detector reports ``unknown`` (spec: it sees ``|f_d|``), or with ``sideband_direction``
     the direction its sidebands' modulation Doppler decided (``dop.motion_sign``).
     """
@@ -338,7 +341,8 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     n, fs = frame.n, frame.fs_hz
     v_min = dop.min_detectable_hz * lam / 2
     if not dop.detected:
-        if coherence < MIN_CARRIER_COHERENCE and fd_max_hz is not None:
+        fade = max((f.fast_fade or 0.0 for f in families if f.target == 0), default=0.0)
+        if (coherence < MIN_CARRIER_COHERENCE or fade > FAST_FADE_PART) and fd_max_hz is not None:
             v_max = fd_max_hz * lam / 2
             return 0.0, v_max, "unknown", v_max
         return 0.0, v_min, "static", v_min
