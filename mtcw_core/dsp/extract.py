@@ -17,7 +17,6 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import signal as sps
-from scipy.special import chdtrc
 
 from ..frame import Frame
 from ..profiles import ChainSettings
@@ -130,7 +129,7 @@ class LineFamily:
         not read.
     fast_fade : float or None
         The same static lines: the part of their envelope's energy that turns faster than the
-        search's guard (:func:`fast_fade`; 0 within the noise); None where not read.
+        static claim's sigma (:func:`fast_fade`; 0 within the noise); None where not read.
     """
 
     name: str
@@ -1008,18 +1007,28 @@ def _sine_energies(m: np.ndarray, fds: np.ndarray) -> tuple[np.ndarray, tuple, t
 
 
 #: a static point's speed is claimed only where its lines' envelope is slow: where more than this
-#: part of their free rank-1 energy (:func:`fading_lines`) is beyond what any envelope within the
-#: search's guard explains (a constant, or one sinusoid up to the guard), the carrier turns faster
-#: than a static point's sigma allows -- a mover whose Doppler lines stayed under the search's
-#: threshold while the segments gathered its sidebands (the envelope probe's scene 41777: 873 kHz,
-#: 11 record bins, read as an envelope fading over 8 segments; 0.93 of the energy beyond). A laser
-#: incoherent at the echo's delay fades the lines randomly: that part then varies (0.06-0.8 for a
-#: carrier phase wandering 20-80 rad over the record), and a static claim there stays a static
-#: target's, whatever its range
+#: part of their free rank-1 energy (:func:`fading_lines`) is beyond what an envelope no faster than
+#: the static claim's sigma explains (a constant plus one sinusoid up to it: the echo's own
+#: intensity and a mover below it), the carrier turns faster than that claim allows -- a mover
+#: whose Doppler lines stayed under the search's threshold while the segments gathered its
+#: sidebands (the envelope probe's scene 41777: 873 kHz, 11 record bins, read as an envelope fading
+#: over 8 segments; 0.84 of the energy beyond in its first frame). A laser incoherent at the echo's
+#: delay fades the lines randomly, by 0.06-0.8 of that energy for a carrier phase wandering 20-80
+#: rad over the record: above this part such a static target's speed is reported unknown too (it
+#: cannot be told from a mover there)
 FAST_FADE_PART = 0.5
-#: ... and where that excess stands out of the noise at this tail probability (chi2, S - 2 dof:
-#: the free envelope's S values against the sinusoid's two)
-FAST_FADE_P = 1e-6
+
+
+def _slow_energies(m: np.ndarray, fds: np.ndarray) -> np.ndarray:
+    """The best rank-1 energy of ``m`` (S, 2T, whitened) whose envelope lies in span{1, cos, sin}
+    at each trial Doppler ``fds`` (F,) (record bins) over the segments' centres: shape (F,)."""
+    segs = m.shape[0]
+    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
+    arg = 2 * np.pi * fds[:, None] * t[None, :]
+    basis = np.stack([np.ones_like(arg), np.cos(arg), np.sin(arg)], axis=2)  # (F, S, 3)
+    q, _ = np.linalg.qr(basis)  # an orthonormal basis of each span
+    proj = np.swapaxes(q, 1, 2) @ m  # (F, 3, 2T)
+    return np.linalg.eigvalsh(proj @ np.swapaxes(proj, 1, 2))[:, -1]
 
 
 def fast_fade(z: np.ndarray, s2: np.ndarray, length: int, guard_bins: float) -> float:
@@ -1027,23 +1036,23 @@ def fast_fade(z: np.ndarray, s2: np.ndarray, length: int, guard_bins: float) -> 
 
     ``z`` (S, T): the static lines on each segment (:func:`static_segments`); ``s2`` (T,): their
     noise variance per sample (V^2); ``length``: samples a segment; ``guard_bins``: the largest
-    Doppler the search could have missed, in record bins. The free rank-1 energy (the leading
-    singular value squared of the whitened lines, :func:`fading_lines`) less the best of a constant
-    envelope and of one sinusoid up to the guard (:func:`_sine_energies`), as a part of the free
-    energy; 0 where that excess is within the noise (:data:`FAST_FADE_P`) or the segments cannot
-    show an envelope beyond the guard (fewer than 4 of them, or a guard past half their Nyquist).
+    Doppler the static claim's sigma covers (``DopplerEstimate.min_detectable_hz``), in record
+    bins. The free rank-1 energy (the leading singular value squared of the whitened lines,
+    :func:`fading_lines`) less the best with an envelope in span{1, cos, sin} at a Doppler up to
+    the guard (:func:`_slow_energies`), as a part of the free energy; 0 where that excess stays
+    within what noise puts there (:data:`FADING_VARIATION_EDGES` times the largest a pure-noise
+    matrix of ``S - 3`` rows holds, as :func:`fading_lines` reads a varying envelope) or the
+    segments cannot show an envelope beyond the guard (fewer than 6 of them, or a guard within a
+    record bin of their Nyquist).
     """
     segs = z.shape[0]
-    if segs < 4 or guard_bins >= segs / 4 or not np.all(s2 > 0):
+    if segs < 6 or guard_bins + 1 > segs / 2 or not np.all(s2 > 0):
         return 0.0
     m = _whitened(z, s2, length)
     free = float(np.linalg.svd(m, compute_uv=False)[0] ** 2)
-    slow = segs * float(np.sum(m.mean(axis=0) ** 2))
-    fds = np.arange(FADING_SINE_STEP_BINS, guard_bins + 1e-9, FADING_SINE_STEP_BINS)
-    if fds.size:
-        slow = max(slow, float(np.max(_sine_energies(m, fds)[0])))
-    excess = max(free - slow, 0.0)
-    if free <= 0 or chdtrc(segs - 2, excess) > FAST_FADE_P:
+    fds = np.arange(FADING_SINE_STEP_BINS, max(guard_bins, FADING_SINE_STEP_BINS) + 1e-9, FADING_SINE_STEP_BINS)
+    excess = free - float(np.max(_slow_energies(m, fds)))
+    if excess <= FADING_VARIATION_EDGES * (math.sqrt(segs - 3) + math.sqrt(m.shape[1])) ** 2:
         return 0.0
     return excess / free
 

@@ -329,9 +329,10 @@ def velocity(dop: DopplerEstimate, frame: Frame, families: list[LineFamily], iq:
     floor carries it, and the local floors' error is the least stated).
     A target with no Doppler line is ``static``, with the smallest detectable speed as its sigma --
     unless the carrier beat is not a line at the target's range (``coherence`` below
-    :data:`MIN_CARRIER_COHERENCE`), or the static lines' envelope turns faster than the search's
-    guard (:attr:`LineFamily.fast_fade` above :data:`~mtcw_core.dsp.extract.FAST_FADE_PART`: a
-    mover whose Doppler lines stayed under the threshold): then no speed up to the search's limit
+    :data:`MIN_CARRIER_COHERENCE`), or the static lines' envelope turns faster than the static
+    claim's sigma allows (:attr:`LineFamily.fast_fade` above
+    :data:`~mtcw_core.dsp.extract.FAST_FADE_PART`: a mover whose Doppler lines stayed under the
+    search's threshold): then no speed up to the search's limit
     ``fd_max_hz`` could have shown, and the point says 0 with that limit as its sigma, direction
     ``unknown``.
     A real detector reports ``unknown`` (spec: it sees ``|f_d|``), or with ``sideband_direction``
