@@ -7,6 +7,7 @@ static lines at f_i, in white noise; the Doppler search must find f_d and nothin
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -1481,7 +1482,10 @@ def test_sub_guard_lines_own_frequencies_match_the_fit_differenced(iq):
 
 def test_refine_beside_small_leaves_movers_whose_lines_coincide():
     """Two movers whose sidebands fall on one frequency (10 MHz + 1.45 MHz = 13 MHz - 1.55 MHz) have
-    no joint fit to take one out of the record: the refined mover is returned as it was."""
+    no joint fit to take one out of the record: the refined mover is refined again with the other's
+    lines held among its others, as the movers far from one below the guard are -- it keeps them
+    out or states their leak (here, a noise record, it is reassigned with the larger error), and
+    keeps the flags the other stages gave it."""
     from mtcw_core.dsp.doppler import _refine_beside_small
     from mtcw_core.frame import Frame
     from mtcw_core.profiles import get_profile
@@ -1493,7 +1497,10 @@ def test_refine_beside_small_leaves_movers_whose_lines_coincide():
     main = DopplerEstimate(1.55e6, True, 50.0, 10.0, 0.0, refine_error_hz=1.0)
     small = [DopplerEstimate(1.45e6, True, 50.0, 10.0, 0.0, refine_error_hz=1.0, method="fit")]
     spec = power_spectrum(x, fs)
-    assert _refine_beside_small(x, frame, [main], [main], small, False, spec, get_profile("balanced")) == [main]
+    main = replace(main, unresolved=True)
+    (out,) = _refine_beside_small(x, frame, [main], [main], small, False, spec, get_profile("balanced"))
+    assert out != main and out.unresolved and out.method == "reassigned"
+    assert out.refine_error_hz > 1e3 and abs(out.fd_hz - main.fd_hz) < 3 * out.refine_error_hz
 
 
 def test_an_unmodelled_neighbour_pulls_a_record_long_fit_within_the_bound():

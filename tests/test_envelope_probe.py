@@ -72,6 +72,30 @@ def test_a_mover_far_from_one_below_the_guard_states_its_sidelobes():
     assert all(abs(q.speed_z) < 5 and abs(q.range_z) < 5 for q in v.points), v.points
 
 
+def test_a_sub_guard_mover_in_fast_reads_its_floors_at_the_records_resolution():
+    """Scene 42078, ``fast``: a balanced receiver, 2^18 samples, a 1 MHz laser; a static echo and a
+    mover 3.3 record bins up (0.048 m/s), both at 72 dB of loss. ``fast``'s eighth-record spectrum
+    read the sub-guard fit's floors 5-32 of its bins out (0.8-4.9 MHz), 26x under the static echo's
+    pedestal the record's own bins show about 0 Hz: the speed 439 Hz off at a stated 71 Hz, z 6.1.
+    The fit now reads the whole record's spectrum (``spectrum.whole_record``), as ``balanced`` does."""
+    from mtcw_bench.honesty import declared
+    from mtcw_core.chain import process_frame
+    from mtcw_core.evaluate import Z_WRONG, judge_frame
+    from mtcw_core.profiles import get_profile
+    from mtcw_core.simulate import Simulator
+
+    sc = scene_variant(load_scene("moving-target"), **ep.draw(42078))
+    fr = next(iter(Simulator(sc, 42078).frames(1)))
+    fast = process_frame(fr, get_profile("fast", **declared(sc)))
+    v = judge_frame(fast, fr.truth, Z_WRONG)
+    movers = [(p, q) for p, q in zip(fast.targets, v.points) if p.direction != "static"]
+    assert movers and all(abs(q.speed_z) < 5 for _, q in movers), v.points
+    bal = process_frame(fr, get_profile("balanced", **declared(sc)))
+    # the same fit and error as the whole record's spectrum gives ``balanced``
+    (pf,), (pb,) = [[p for p in r.targets if p.direction != "static"] for r in (fast, bal)]
+    assert pf.velocity_sigma_mps == pytest.approx(pb.velocity_sigma_mps, rel=1e-6)
+
+
 def test_the_slips_the_chain_expects_are_its_unflagged_points_cycle_slip_probabilities(capsys):
     """The summary's expected slips are the sum of ``cycle_slip_prob`` over the unflagged points,
     each under the profile's ``cycle_slip_max``: scene 2887 (two fast movers behind a 12-bit ADC,

@@ -29,9 +29,8 @@ from scipy.stats import t as student_t
 from ..frame import Frame
 from ..phase import C
 from ..profiles import ChainSettings
-from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, widths_at, window_power,
-                       windowed_record,
-                       window_sum)
+from .spectrum import (LowBand, Spectrum, cached_window, line_width_bins, local_floor, whole_record, widths_at,
+                       window_power, windowed_record, window_sum)
 from .tones import (PartDFTs, _dirichlet, exact_dft, exact_dft_parts, line_gains, lines_signal, mean_leak, solve_lines,
                     solve_lines_many)
 
@@ -1626,42 +1625,62 @@ def _refine_beside_small(x: np.ndarray, frame: Frame, ests: list[DopplerEstimate
     refine on; taking them out of the record does not: every mover's lines, the static lines and
     the movers' beats are fitted together on the whole record (:class:`_SmallFit`), and the lines
     of the movers below the guard are subtracted (:func:`~.tones.lines_signal`) before the
-    refinement runs again. Each refined estimate keeps the flags the others' stages gave it.
+    refinement runs again. The other movers beyond the guard -- and these, where the joint fit
+    cannot be made -- are refined again with the lines of the movers below the guard they are clear
+    of held among the others (one more refinement each): their refinement keeps those lines out or
+    states their leak. Each refined estimate keeps the flags the others' stages gave it.
     """
     fs, n = frame.fs_hz, x.size
 
-    def beside(m: DopplerEstimate, d: DopplerEstimate) -> bool:
+    def clear(m: DopplerEstimate, d: DopplerEstimate) -> bool:
         # another mover, not within the refined one's own error (a first step known to a cycle: the
         # mover below the guard is then that mover), nor so close that the joint fit cannot tell
         # their lines apart (the sub-guard scan's own keep-out)
-        gap = abs(abs(m.fd_hz) - abs(d.fd_hz))
-        return (max(WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz), SMALL_OTHER_BINS * fs / n) < gap
-                < CLEAN_NEIGHBOUR_BINS * fs / n)
+        return max(WRAP_SIGMAS * (m.refine_error_hz + m.wander_hz), SMALL_OTHER_BINS * fs / n) < abs(
+            abs(m.fd_hz) - abs(d.fd_hz))
 
-    near = {i for i, m in enumerate(refined) if m.detected and any(beside(m, d) for d in small)}
-    # the rest, refined again with the lines of those below the guard among the others: each keeps
-    # them out or states their leak (:func:`sidelobe_leak`; the envelope probe's scene 41314, IQ,
+    def held(idx: list[int]) -> dict[int, DopplerEstimate]:
+        # refined again on the record with the lines of the movers below the guard each is clear of
+        # among the others: each keeps them out or states their leak (:func:`sidelobe_leak`)
+        out = {}
+        for i in idx:
+            hold = [d.fd_hz for d in small if clear(refined[i], d)]
+            if hold:
+                out[i] = _refine_found(x, frame, [ests[i]], iq, [e.fd_hz for e in ests] + hold, spec, settings)[0]
+        return out
+
+    near = {i for i, m in enumerate(refined) if m.detected and any(
+        clear(m, d) and abs(abs(m.fd_hz) - abs(d.fd_hz)) < CLEAN_NEIGHBOUR_BINS * fs / n for d in small)}
+    # the rest, with the lines of those below the guard held (the envelope probe's scene 41314, IQ,
     # 2^18 samples: a mover 63 record bins from one below the guard 3.6 dB stronger, refined on
     # quarters that its sidelobes turned by ~1.6e-4 rad, 1.5 Hz off at a stated 0.12 Hz)
-    far = [i for i, m in enumerate(refined) if m.detected and i not in near]
-    held = [e.fd_hz for e in ests] + [d.fd_hz for d in small]
-    again = dict(zip(far, _refine_found(x, frame, [ests[i] for i in far], iq, held, spec, settings)))
+    again = held([i for i, m in enumerate(refined) if m.detected and i not in near])
+    if not near:
+        return _with_refined(refined, again)
     tones = np.asarray(frame.tones_hz, float)
     main = tuple(m.fd_hz for m in refined if m.detected)
-    fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small)) if near else None
-    gaps = np.abs(fit.static[:, None] - fit.static[None, :]) + np.eye(fit.static.size) * fs if near else None
-    if near and gaps.min() >= 0.5 * fs / n:  # else two lines on one frequency (a sideband of one on another's)
-        try:
-            amps = fit.held_amps
-        except np.linalg.LinAlgError:
-            amps = None
-        if amps is not None:
-            per = target_lines(tones, 0.0, iq)[0].size
-            take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
-            clean = x - lines_signal(amps[take], fit.static[take], fs, n, iq)
-            order = sorted(near)
-            again.update(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq,
-                                                  [e.fd_hz for e in ests], spec, settings)))
+    fit = _SmallFit(x, fs, tones, iq, main + tuple(d.fd_hz for d in small))
+    gaps = np.abs(fit.static[:, None] - fit.static[None, :]) + np.eye(fit.static.size) * fs
+    try:
+        # two lines on one frequency (a sideband of one on another's): no joint fit
+        amps = fit.held_amps if gaps.min() >= 0.5 * fs / n else None
+    except np.linalg.LinAlgError:
+        amps = None
+    order = sorted(near)
+    if amps is None:  # no joint fit: their lines held, as the rest's
+        again.update(held(order))
+        return _with_refined(refined, again)
+    per = target_lines(tones, 0.0, iq)[0].size
+    take = slice(fit.n_static + len(main) * per, fit.n_static + (len(main) + len(small)) * per)
+    clean = x - lines_signal(amps[take], fit.static[take], fs, n, iq)
+    again.update(zip(order, _refine_found(clean, frame, [ests[i] for i in order], iq, [e.fd_hz for e in ests],
+                                          spec, settings)))
+    return _with_refined(refined, again)
+
+
+def _with_refined(refined: list[DopplerEstimate], again: dict[int, DopplerEstimate]) -> list[DopplerEstimate]:
+    """``refined`` with the estimates refined again (``again``, by index), each keeping the flags
+    the other stages gave it."""
     return [replace(m, fd_hz=again[i].fd_hz, refine_error_hz=again[i].refine_error_hz, method=again[i].method,
                     shared_phase_gain=again[i].shared_phase_gain, measured_phase_gain=again[i].measured_phase_gain,
                     pedestal_psd=again[i].pedestal_psd, shared_overlap_var_hz2=again[i].shared_overlap_var_hz2,
@@ -2179,6 +2198,9 @@ def search_small_doppler(x: np.ndarray, frame: Frame, spec: Spectrum, guard_bins
     if found is None:
         return None
     fd0, fit = found
+    # a candidate: its fit reads floors at the record's own resolution (``fast``'s eighth is 8x coarser)
+    full = whole_record(spec, x, fs)
+    guard_bins, spec = guard_bins * spec.df_hz / full.df_hz, full
     if not _small_may_peak(fit, spec, fd0):
         return None
     fd, c, fm, dm, s2, snr, beats, shape = _small_peak(fit, spec, fd0, lo, hi)
@@ -2402,6 +2424,7 @@ def remeasure_small(x: np.ndarray, frame: Frame, spec: Spectrum, found: list[Dop
     iq = np.iscomplexobj(x)
     fs, n = frame.fs_hz, x.size
     tones = np.asarray(frame.tones_hz, float)
+    spec = whole_record(spec, x, fs)  # floors at the record's resolution, as the movers were found
     out = list(found)
     for _ in range(SMALL_REMEASURE_ROUNDS):
         moved = False
@@ -2791,7 +2814,7 @@ class _SmallFit:
 
 
 def _small_decisive(spec: Spectrum, fd: float, c: np.ndarray, snr: np.ndarray, n_fixed: int, n_static: int,
-                    tones: np.ndarray, guard_bins: int, fd_max_hz: float, threshold_factor: float,
+                    tones: np.ndarray, guard_bins: float, fd_max_hz: float, threshold_factor: float,
                     width_test: bool = True, low: LowBand | None = None) -> bool:
     """Whether a sub-guard fit at ``fd`` is a mover: the baseband line's SNR (``snr[0]``) at least
     :data:`SMALL_MIN_SNR` and stronger than every sideband, :data:`SMALL_MIN_PAIRS` tones with both

@@ -843,6 +843,24 @@ def search_length(n: int, fraction: float) -> int:
     return min(n, max(SEARCH_MIN_SAMPLES, int(n * fraction)))
 
 
+def whole_record(spec: Spectrum, x: np.ndarray, fs_hz: float) -> Spectrum:
+    """``spec`` where it is the whole record's (``record_n`` None), else the whole record ``x``'s
+    spectrum in the same window, taken once per ``spec`` (kept in its ``memo``).
+
+    Floors read within a few tens of bins of a line need the record's own resolution: ``fast``'s
+    eighth-record bins are 8x wider, and its ring 5-32 bins out about a sub-guard mover 3 record
+    bins up read 0.8-4.9 MHz where the whole record's read 0.1-0.6 MHz: 26x less of a static
+    echo's pedestal about 0 Hz (the envelope probe's scene 42078, a 1 MHz laser: a sub-guard
+    mover's speed 6 sigmas off at the eighth's floors, 1.2 at the record's).
+    """
+    if spec.record_n is None or spec.record_n != x.size:
+        return spec
+    key = ("whole_record", x.size)
+    if key not in spec.memo:
+        spec.memo[key] = power_spectrum(x, fs_hz, spec.window if spec.window is not None else ("kaiser", 14.0))
+    return spec.memo[key]
+
+
 def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, single: bool,
                     windows: list[tuple[int, int]] | None = None) -> Spectrum:
     """The stage: the Kaiser(``beta``) spectrum of the first ``fraction`` of the record, at least
