@@ -101,3 +101,47 @@ def test_a_pe_point_known_modulo_a_shorter_period_than_the_frame_s_is_flagged():
     period off, 6000 sigmas, unflagged. Known only modulo its own period, it is ``cycle_ambiguous``."""
     counts, lines, _ = tp.judge_scene("pe", 2478, 2)
     assert counts["cw"] == 0 and not lines, lines
+
+
+def test_a_pe_mover_unfound_below_the_guard_is_fitted_as_a_line_no_plan_models():
+    """Scene 1426, ideal laser: movers at 0.21 m/s (0.42 MHz, under the search's guard, which PE's
+    parabolic search does not look below) and 1.10 m/s. The slow one's baseband line, as strong as
+    the fast one's and hundreds of times its sidebands, leaked through the rectangular fit ~290 bins
+    into the 75 MHz lines: 0.41 rad, the range 1.8 m off, 800 sigmas, unflagged in frame 0. Fitted
+    as a line no plan models (``pe.unmodelled_lines``), in the refinement and with the lines."""
+    counts, lines, z = tp.judge_scene("pe", 1426, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and not lines, lines
+    assert z and all(abs(v) < 5 for v in z)
+
+
+def test_a_pe_movers_baseband_line_beside_a_static_product_is_fitted_apart_from_it():
+    """Scene 1709: a 25 m/s mover's baseband line at 50.033 MHz, 0.13 bins from the reference's
+    50 MHz product, was fitted as that product alone (lines within 1.1 bins were one); its +-1-bin
+    residual, 9 % of a line three times the reference lines, leaked 0.6 rad into the other mover's
+    75 MHz lines 54 bins away: 0.55 m off, 411 sigmas, unflagged. Both are fitted now
+    (``pe.FIT_APART_BINS``)."""
+    counts, lines, z = tp.judge_scene("pe", 1709, 2)
+    assert counts["cw"] == 0 and not lines, lines
+
+
+def test_pe_movers_are_refined_with_each_others_refined_lines_held():
+    """Scene 2631: a strong mover (13 dB of loss, 3.26 m/s) held at its search estimate while the
+    other (-11.3 m/s) was refined: its baseband residual pulled the weaker one's Doppler 17.6 kHz
+    (speed z 6.2, range 98 sigmas off, unflagged). Refined again with the others where their
+    refinement put them. Scene 2564: a strong unfound slow mover pulled a found one's refinement
+    (z 6.1) until the lines no plan models were held in it too; scene 2943's 38 m/s ghost is gone."""
+    for scene in (2631, 2564, 2943):
+        counts, lines, z = tp.judge_scene("pe", scene, 2)
+        assert counts["cw"] == 0 and counts["cf"] == 0 and not lines, (scene, lines)
+
+
+def test_a_pe_target_whose_sidebands_are_not_one_size_is_blended():
+    """Scene 144: a mover at 0.27 m/s and 16 dB of loss, unfound below the guard, beside one at
+    11.4 m/s: the fast one's 75 MHz sidebands stood 55 % apart (chi2 75 on 4 tones), its range 188
+    sigmas off, unflagged in frame 0. A target's two sidebands of a tone are one size
+    (``pe.sideband_sizes_p``); the point is ``blended``. Scene 283, one strong echo (10 dB, arm
+    ratio 0.32) whose sidebands part by 1.2 %, stays unflagged and right."""
+    counts, lines, z = tp.judge_scene("pe", 144, 2)
+    assert counts["cw"] == 0 and not lines, lines
+    counts, lines, z = tp.judge_scene("pe", 283, 2)
+    assert counts["ok"] == 2 and counts["cw"] == 0 and z and all(abs(v) < 5 for v in z), (lines, z)

@@ -8,6 +8,7 @@ No line's phase is ever taken from it (the line fits are float64 exact DFTs, :mo
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
 
@@ -855,10 +856,11 @@ def whole_record(spec: Spectrum, x: np.ndarray, fs_hz: float) -> Spectrum:
     """
     if spec.record_n is None or spec.record_n != x.size:
         return spec
-    key = ("whole_record", x.size)
-    if key not in spec.memo:
-        spec.memo[key] = power_spectrum(x, fs_hz, spec.window if spec.window is not None else ("kaiser", 14.0))
-    return spec.memo[key]
+    kept = spec.memo.get("whole_record")
+    if kept is None or kept[0]() is not x:  # taken of this very record (the memo outlives no frame, but say so)
+        kept = (weakref.ref(x), power_spectrum(x, fs_hz, spec.window if spec.window is not None else ("kaiser", 14.0)))
+        spec.memo["whole_record"] = kept
+    return kept[1]
 
 
 def search_spectrum(x: np.ndarray, fs_hz: float, beta: float, fraction: float, single: bool,

@@ -68,7 +68,7 @@ from scipy.stats import gamma as gamma_dist
 
 from ..dsp.doppler import DopplerEstimate, estimate_doppler, l1_ball, white_floor
 from ..dsp.extract import LineFamily
-from ..dsp.spectrum import Spectrum
+from ..dsp.spectrum import Spectrum, local_floor, whole_record
 from ..dsp.tones import fit_lines
 from ..frame import Frame
 from ..phase import C, unambiguous_range, wrap_pi
@@ -131,6 +131,14 @@ def _fold(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.abs(f), f < 0
 
 
+#: two lines to fit closer than this (record bins) are fitted as one; further apart, both (their
+#: joint least squares holds at 0.13 bins, a Gram condition ~70): a mover's strong baseband line
+#: 0.13 bins from a static product, fitted as that product alone before (1.1 bins apart or less),
+#: left +-1-bin residuals 9 % of it that leaked 0.6 rad into another mover's 75 MHz lines 54 bins
+#: away (the techniques probe's scene 1709: the range 0.55 m off, 411 sigmas, unflagged)
+FIT_APART_BINS = 0.05
+
+
 def line_plan(tones_hz, fd_hz: float, fs_hz: float, n: int) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """Where a PE target's lines lie, which of them are usable, and every line to fit.
 
@@ -175,12 +183,18 @@ def line_plan(tones_hz, fd_hz: float, fs_hz: float, n: int) -> tuple[dict[str, n
         usable.append(ok)
     usable = np.asarray(usable, bool)
     every = np.unique(np.round(src_f[(src_f > res / 3) & (src_f < nyq)], 3))
-    keep: list[float] = []
     used = np.concatenate([np.abs(wanted[nm])[u] for nm, u in zip(("ref", "up", "low", "up2", "low2"), usable)])
-    for f in np.concatenate([used, every]):
-        if all(abs(f - k) > 0.75 * res for k in keep):
+    return wanted, usable, kept_apart(np.concatenate([used, every]), FIT_APART_BINS * fs_hz / n)
+
+
+def kept_apart(freqs: np.ndarray, apart_hz: float) -> np.ndarray:
+    """``freqs`` (Hz) with each one closer than ``apart_hz`` to one before it left out (the first of
+    a cluster kept: pass the wanted lines first), rounded to the micro-hertz and sorted."""
+    keep: list[float] = []
+    for f in np.round(np.asarray(freqs, float), 6):
+        if all(abs(f - k) > apart_hz for k in keep):
             keep.append(float(f))
-    return wanted, usable, np.asarray(keep, float)
+    return np.sort(np.asarray(keep, float))
 
 
 def _unit(size: int, i: int) -> tuple[int, ...]:
@@ -223,7 +237,7 @@ def _plan_with_others(tones_hz, fd_hz: float, others: list[float], fs: float, n:
     second mover's ``f_i +- f_d'`` must not leak in) and the wanted lines near them unusable."""
     wanted, usable, fit_hz = line_plan(tones_hz, fd_hz, fs, n)
     extra = [f for o in others for f in line_plan(tones_hz, o, fs, n)[2]]
-    allf = np.unique(np.round(np.concatenate([fit_hz, np.asarray(extra, float)]), 6))
+    allf = kept_apart(np.concatenate([fit_hz, np.asarray(extra, float)]), FIT_APART_BINS * fs / n)
     if extra:
         res = 2 * fs / n
         for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
@@ -233,8 +247,65 @@ def _plan_with_others(tones_hz, fd_hz: float, others: list[float], fs: float, n:
     return wanted, usable, allf
 
 
-def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: list[float], spec: Spectrum
-                   ) -> DopplerEstimate:
+#: a line no plan models that stands this many times its local floor in the whole record's spectrum
+#: (:func:`unmodelled_lines`) is fitted with the plan's ...
+UNMODELLED_MIN_RATIO = 100.0
+#: ... where it lies this many spectrum bins clear of every modelled line (inside a Kaiser(14) main
+#: lobe, +-4.6 bins, it is not told from that line) and a bin clear of 0 Hz
+UNMODELLED_CLEAR_BINS = 5.0
+
+
+def _strong_peaks(spec: Spectrum) -> np.ndarray:
+    """The spectrum's local maxima :data:`UNMODELLED_MIN_RATIO` times their local floor, each placed
+    by a parabola through the log power of its three bins (Hz), shape (M,)."""
+    p = np.asarray(spec.power[:], dtype=np.float64)
+    if p.size < 3:
+        return np.empty(0)
+    # an exact zero (a float32 spectrum's underflow, a filtered band) would sink the log floor 48 bins about it
+    p = np.maximum(p, 1e-6 * float(np.median(p)) + np.finfo(np.float64).tiny)
+    floor = local_floor(p, mirror_dc=True)
+    k = np.arange(1, p.size - 1)
+    k = k[(p[k] > p[k - 1]) & (p[k] >= p[k + 1]) & (p[k] > UNMODELLED_MIN_RATIO * floor[k])]
+    if not k.size:
+        return np.empty(0)
+    a, b, c = (np.log(p[j]) for j in (k - 1, k, k + 1))
+    curv = a - 2 * b + c
+    off = np.where(curv < 0, 0.5 * (a - c) / np.where(curv < 0, curv, -1.0), 0.0)
+    return spec.f0_hz + (k + np.clip(off, -0.5, 0.5)) * spec.df_hz
+
+
+def unmodelled_lines(spec: Spectrum, modelled_hz: np.ndarray) -> np.ndarray:
+    """The lines (Hz) the spectrum shows that no plan models: local maxima :data:`UNMODELLED_MIN_RATIO`
+    times their local floor (:func:`~mtcw_core.dsp.spectrum.local_floor`), :data:`UNMODELLED_CLEAR_BINS`
+    clear of ``modelled_hz`` (Hz), each placed by a parabola through the log power of its three bins.
+
+    A mover PE's search did not find -- below its guard, where the parabolic search does not look --
+    puts a carrier beat near 0 Hz as strong as the found mover's baseband line, hundreds of times its
+    sidebands; the rectangular least-squares fit leaks it as ``A/(pi*D)`` ``D`` bins away, so a line
+    290 bins off still carries 1/900 of it: ~6e-6 V on sidebands of 3.6e-5 V (the techniques probe's
+    scene 1426: a 0.21 m/s mover beside one at 1.10 m/s, 75 MHz lines 0.4 rad off, the range 1.8 m
+    off, 800 sigmas, unflagged). Fitted with the plan, it leaks nothing into the used lines.
+
+    Parameters
+    ----------
+    spec : the whole record's spectrum (:func:`~mtcw_core.dsp.spectrum.whole_record`), real record
+    modelled_hz : ndarray, shape (K,), every line the plan fits (Hz)
+
+    Returns
+    -------
+    ndarray, shape (M,), Hz
+    """
+    if "pe_peaks" not in spec.memo:  # the spectrum's peaks, once a frame (each mover filters its own)
+        spec.memo["pe_peaks"] = _strong_peaks(spec)
+    f = spec.memo["pe_peaks"]
+    if not f.size:
+        return f
+    near = np.abs(f[:, None] - np.asarray(modelled_hz, float)[None, :]).min(axis=1) if np.size(modelled_hz) else np.inf
+    return f[(near > UNMODELLED_CLEAR_BINS * spec.df_hz) & (f > spec.df_hz)]
+
+
+def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: list[float], spec: Spectrum,
+                   held: np.ndarray | None = None) -> DopplerEstimate:
     """The Doppler line below one spectrum bin: the shift whose lines (baseband, ``f_i +- f_d``,
     ``2f_i +- f_d`` and the other Doppler-shifted products) take the most power in the joint
     least-squares fit with every static line modelled -- the maximum-likelihood frequency in
@@ -245,7 +316,9 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
     short records (measured: 0.95 MHz at 2^14-2^15 samples on the section 4.3 scene, with a
     stated error of 0.1 MHz). Searched within 3 times the parabola's stated error of its estimate;
     the moving lines that would cross a static line there are left out (none left: the parabola's
-    estimate is kept, with its error).
+    estimate is kept, with its error). ``held``: further lines (Hz) fitted as static ones (the
+    lines no plan models, :func:`unmodelled_lines`: a strong one leaks into every fit of the search
+    span as into the lines' own, the techniques probe's scene 2564: 18.6 kHz off at a stated 3 kHz).
     """
     from scipy.optimize import minimize_scalar
 
@@ -255,6 +328,8 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
     static, pairs = _static_and_shifted(t, fs / 2)
     for o in others:  # the other targets' lines are static here
         static = np.concatenate([static, np.abs(pairs[:, 0] + pairs[:, 1] * o)])
+    if held is not None:
+        static = np.concatenate([static, np.asarray(held, float)])
     res = 1.5 * fs / n
 
     def lines_at(fd: float) -> np.ndarray:
@@ -266,7 +341,7 @@ def refine_doppler(x: np.ndarray, frame: Frame, dop: DopplerEstimate, others: li
     # would cross one are neither fitted nor counted)
     mv0 = lines_at(f0)
     span = 3 * max(dop.refine_error_hz, 0.01 * fs / n)  # the search's parabola: ~0.1 bin
-    st = np.unique(np.round(static[(static > res / 3) & (static < fs / 2 - res)], 3))
+    st = kept_apart(static[(static > res / 3) & (static < fs / 2 - res)], FIT_APART_BINS * fs / n)
     clear = np.abs(mv0[:, None] - st[None, :]).min(axis=1) > span + 0.5 * fs / n if st.size else \
         np.ones(mv0.size, bool)
     if not clear.any():
@@ -421,6 +496,42 @@ def pedestal_spill(lines_hz: np.ndarray, z: np.ndarray, movers_hz: np.ndarray, z
     return spill / (2 * np.maximum(np.abs(z) ** 2, 1e-300))
 
 
+def _amplitude_near(allf: np.ndarray, z: np.ndarray, f_hz: float, bin_hz: float) -> float:
+    """A line's amplitude (V) from the fit's columns within half a record bin of ``f_hz``: lines kept
+    0.05 bins apart share one line's amplitude between them where its frequency is a little off
+    (0.03 bins off, 0.06 apart: half in each)."""
+    near = np.abs(allf - f_hz) < 0.5 * bin_hz
+    return float(np.abs(np.sum(z[near]))) if near.any() else float(np.abs(z[np.argmin(np.abs(allf - f_hz))]))
+
+
+def arm_ratio(baseband_v: float, dc_v: float) -> float:
+    """``a_m/a_ref``, an echo's field amplitude over the reference's, from its baseband Doppler line
+    (``2*a_ref*a_m``, V) over the record's mean (``a_ref^2 + a_m^2``, V): the smaller root of
+    ``rho = 2r/(1 + r^2)``, ``rho`` their ratio (at most 1)."""
+    rho = min(baseband_v / abs(dc_v), 1.0) if dc_v != 0 else 1.0
+    return (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
+
+
+def other_echo_spill(fd_hz: float, carriers: list[tuple[float, float]], duration_s: float) -> tuple[float, float]:
+    """Phase variance (rad^2) other echoes put on a target's lines: on its reference lines (each
+    ``f_i``) and on its Doppler-shifted ones.
+
+    Every other echo ``k`` (``carriers``: its baseband line, Hz, and arm ratio ``r_k``,
+    :func:`arm_ratio`) squares into a self-beat on each reference line ``f_i``, ``r_k^2`` of it
+    (the target's own is corrected at the solution, another's is not: a 14.8 dB echo of arm ratio
+    0.18 moved a weaker mover's reference lines by 3 %, the techniques probe's scene 1238), and
+    beats with this target's sidebands as a second local oscillator, ``r_k`` of them, ``|f_k|``
+    or ``||f_k| - 2|f_d||`` away (one photodiode: the signs are unknown), where the record's
+    rectangular fit lets ``1/(pi*D)`` of it in ``D`` bins off (all of it within a bin).
+    """
+    ref = side = 0.0
+    for f_k, r in carriers:
+        ref += r**4
+        gap = min(abs(f_k), abs(abs(f_k) - 2 * abs(fd_hz))) * duration_s
+        side += (r * min(1.0, 1.0 / (math.pi * gap)) if gap > 0 else r) ** 2
+    return ref, side
+
+
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
                settings: ChainSettings) -> list[PeLines]:
     """The stage ``pe_lines``: per moving target, the complex amplitude of its PE lines.
@@ -452,11 +563,26 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
         raise NoTarget("pe: no Doppler line (PE ranges moving targets from f_i +- f_d; a static target is AB-MTCW's)")
     n, fs = x.size, frame.fs_hz
     dc = float(np.mean(x))
+    whole = whole_record(spec, x, fs)
+    # every strong line no plan models is fitted too, in the refinement and with the lines: a mover
+    # unfound leaks through every least-squares fit (found about the search's estimate; the
+    # refinement moves the plan by under a bin, the lines stay clear of it)
+    extras = [np.round(unmodelled_lines(whole, _plan_with_others(
+        frame.tones_hz, d.fd_hz, [abs(o.fd_hz) for o in moving if o is not d], fs, n)[2]), 6) for d in moving]
+    refined = list(moving)
+    for _ in range(2):
+        refined = [refine_doppler(x, frame, d, [abs(o.fd_hz) for j, o in enumerate(refined) if j != i], spec, extras[i])
+                   for i, d in enumerate(moving)]
+        # with several movers, again with the others' lines where their refinement put them, where
+        # it moved them (held at the search's estimate, up to a tenth of a bin off, a strong mover's
+        # baseband line left residuals that pulled a weaker one's Doppler: the techniques probe's 2631)
+        if len(moving) < 2 or all(abs(r.fd_hz - d.fd_hz) < 0.02 * fs / n for r, d in zip(refined, moving)):
+            break
     out = []
-    for k, dop in enumerate(moving, start=1):
-        others = [abs(d.fd_hz) for d in moving if d is not dop]
-        dop = refine_doppler(x, frame, dop, others, spec)
+    for k, (dop, extra) in enumerate(zip(refined, extras), start=1):
+        others = [abs(d.fd_hz) for d in refined if d is not dop]
         wanted, usable, allf = _plan_with_others(frame.tones_hz, dop.fd_hz, others, fs, n)
+        allf = kept_apart(np.concatenate([allf, extra]), FIT_APART_BINS * fs / n)
         z_all = fit_lines(x, allf, fs)
         amps, vars_, line_hz = {}, {}, {}
         for i, nm in enumerate(("ref", "up", "low", "up2", "low2")):
@@ -471,7 +597,7 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
             var[~ok] = np.inf
             z[~ok] = 0.0
             amps[nm], vars_[nm] = z, var
-        a_d = float(np.abs(z_all[np.argmin(np.abs(allf - abs(dop.fd_hz)))]))
+        a_d = _amplitude_near(allf, z_all, abs(dop.fd_hz), fs / n)
         lw = settings.laser_linewidth_hz
         tau = echo_delay_bound(x, fs, allf, abs(dop.fd_hz), white_floor(spec, allf)[0], settings)
         dop = replace(dop, wander_hz=max(dop.wander_hz, shared_phase_error_hz(lw, tau, n / fs)))
@@ -480,8 +606,11 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
         at = np.clip(np.searchsorted(allf, np.round(movers, 6)), 0, allf.size - 1)
         z_movers = np.where(np.abs(allf[at] - movers) < 1e-3, z_all[at], 0.0)  # a line not fitted: none
         spill = {nm: pedestal_spill(f, amps[nm], movers, z_movers, tau, lw, n / fs) for nm, f in line_hz.items()}
-        rho = min(a_d / abs(dc), 1.0) if dc != 0 else 1.0
-        ratio = (1 - math.sqrt(1 - rho**2)) / rho if rho > 0 else 0.0
+        # the other echoes, found or not (the lines no plan models), as self-beats and second LOs
+        carriers = [(f, arm_ratio(_amplitude_near(allf, z_all, f, fs / n), dc)) for f in [*others, *extra]]
+        on_ref, on_side = other_echo_spill(dop.fd_hz, carriers, n / fs)
+        spill = {nm: v + (on_ref if nm == "ref" else on_side) for nm, v in spill.items()}
+        ratio = arm_ratio(a_d, dc)
         out.append(PeLines(k, dop, np.asarray(frame.tones_hz, float), amps["ref"], amps["up"], amps["low"],
                            amps["up2"], amps["low2"], vars_["ref"], vars_["up"], vars_["low"], vars_["up2"],
                            vars_["low2"], ratio, n / fs, (n - 1) / (2 * fs), spill))
@@ -660,6 +789,32 @@ def _velocity(lines: PeLines, frame: Frame) -> tuple[float, float, str]:
     return velocity(lines.doppler, frame, fams, False)[:3]
 
 
+#: a target's two sidebands of one tone are one size (``s_i*x``, module docstring) to within this
+#: part of each beyond their noise: what a strong echo's own products leave (10 dB of loss, arm
+#: ratio 0.32: 1.2 % apart, the techniques probe's scene 283); at 5 % a mover's 75 MHz sidebands
+#: 28 % apart under an unfound strong echo passed (scene 1980: 429 sigmas off)
+SIDEBAND_SIZE_TOLERANCE = 0.02
+
+
+def sideband_sizes_p(lines: PeLines) -> float:
+    """The odds that noise (and :data:`SIDEBAND_SIZE_TOLERANCE`) alone set each tone's two sidebands
+    ``|z(f_i + f_d)|`` and ``|z(|f_i - f_d|)|`` as far apart as they are: chi2 over the tones with both
+    usable, each difference over its radial noise (``|z|^2`` times the phase variance, spill
+    included) and the tolerance. Another echo's lines or beats on one of them part them: the
+    techniques probe's scene 144, a strong mover unfound below the guard beside one at 11.4 m/s,
+    whose 75 MHz sidebands stood 55 % apart (chi2 75 on 4) with its range 188 sigmas off, unflagged.
+    1 where no tone has both."""
+    u, lo = np.abs(lines.z_up), np.abs(lines.z_low)
+    vu = lines.var_up + lines.spill.get("up", 0.0)
+    vl = lines.var_low + lines.spill.get("low", 0.0)
+    ok = np.isfinite(vu) & np.isfinite(vl) & (u > 0) & (lo > 0)
+    if not ok.any():
+        return 1.0
+    u, lo, vu, vl = u[ok], lo[ok], vu[ok], vl[ok]
+    var = vu * u**2 + vl * lo**2 + SIDEBAND_SIZE_TOLERANCE**2 * (u**2 + lo**2)
+    return float(chi2_dist.sf(np.sum((u - lo) ** 2 / var), int(ok.sum())))
+
+
 def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
     """One target's point and the unambiguous range (m) of the observations it used.
 
@@ -672,8 +827,7 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     po = _subset(po_all, po_all.order == 1)
     obs = po.obs
     if obs.df_hz.size < 2:
-        raise NoTarget(f"pe: fewer than two tones with their f_i +- f_d and reference lines above "
-                       f"{settings.min_line_snr_db} dB")
+        raise NoTarget(f"pe: fewer than two tones with lines f_i and f_i +- f_d above {settings.min_line_snr_db} dB")
     l_ref, s_ref = reference_range(po, settings)
     l_unamb = unambiguous_range(obs.df_hz)
     lo = settings.range_min_m
@@ -739,8 +893,9 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         range_m=float(sol.range_m + l_ref), range_sigma_m=float(sigma), velocity_mps=v, velocity_sigma_mps=vs,
         direction=direction, snr_db=float(np.max(snr)), margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
         near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
-        # tones disagreeing beyond chance, as in the PB chain (the techniques probe's scene 1823: chi2 23/3)
-        blended=bool(dof > 0 and (ratio > settings.blended_chi2 or chi2_dist.sf(chi2, dof) < BLENDED_P)),
+        # tones disagreeing beyond chance, as in the PB chain (techniques probe's scene 1823: chi2 23/3), or sidebands
+        blended=bool((dof > 0 and (ratio > settings.blended_chi2 or chi2_dist.sf(chi2, dof) < BLENDED_P))
+                     or sideband_sizes_p(lines) < BLENDED_P),  # not one size (another echo's lines on one)
         doppler_hz=lines.doppler.fd_hz, chi2_per_dof=float(ratio), tone_snr_db=tone_snr,
         seed_sigma_k_m=sol.seed_sigma_k_m,
     )
