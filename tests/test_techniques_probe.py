@@ -145,3 +145,13 @@ def test_a_pe_target_whose_sidebands_are_not_one_size_is_blended():
     assert counts["cw"] == 0 and not lines, lines
     counts, lines, z = tp.judge_scene("pe", 283, 2)
     assert counts["ok"] == 2 and counts["cw"] == 0 and z and all(abs(v) < 5 for v in z), (lines, z)
+
+
+def test_a_pe_movers_carrier_the_search_did_not_find_has_its_lines_fitted():
+    """Scene 3346: a mover 30 dB over a found one, unfound 5.5 bins below it (the parabolic search's
+    guard); its sidebands lie 4 bins from the reference lines, inside their main lobe, where no peak
+    is seen apart, and the found mover's point took its phases: 1359 sigmas off, unflagged. A strong
+    line no plan models below the search's largest Doppler is taken as an unfound mover's carrier
+    and its whole line family fitted (``pe._refine_movers``)."""
+    counts, lines, z = tp.judge_scene("pe", 3346, 2)
+    assert counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines

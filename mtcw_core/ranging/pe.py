@@ -66,7 +66,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import gamma as gamma_dist
 
-from ..dsp.doppler import DopplerEstimate, estimate_doppler, l1_ball, white_floor
+from ..dsp.doppler import DopplerEstimate, estimate_doppler, fd_max, l1_ball, white_floor
 from ..dsp.extract import LineFamily
 from ..dsp.spectrum import Spectrum, local_floor, whole_record
 from ..dsp.tones import fit_lines
@@ -532,6 +532,37 @@ def other_echo_spill(fd_hz: float, carriers: list[tuple[float, float]], duration
     return ref, side
 
 
+def _refine_movers(x: np.ndarray, frame: Frame, moving: list[DopplerEstimate], spec: Spectrum,
+                   settings: ChainSettings) -> tuple[list[DopplerEstimate], np.ndarray]:
+    """Every mover refined (:func:`refine_doppler`), the found ones first, then the carriers of
+    those the search did not find, and the strong lines no plan models beyond the search's
+    largest Doppler (Hz), which every fit holds."""
+    n, fs = x.size, frame.fs_hz
+    whole = whole_record(spec, x, fs)
+    # every strong line no plan models is fitted too, in the refinement and with the lines: a mover
+    # unfound leaks through every least-squares fit (found about the search's estimate; the
+    # refinement moves the plan by under a bin, the lines stay clear of it). Below the search's
+    # largest Doppler such a line is the carrier of a mover it did not find (below its guard): its
+    # whole line family is fitted as another mover's -- its sidebands lie within a few bins of the
+    # reference lines, where no peak is seen apart (the techniques probe's scene 3346: a mover 30 dB
+    # over a found one 5.5 bins away gave the found one its phases, 1359 sigmas off)
+    extra = np.round(unmodelled_lines(whole, _plan_with_others(
+        frame.tones_hz, moving[0].fd_hz, [abs(o.fd_hz) for o in moving[1:]], fs, n)[2]), 6)
+    below = extra < fd_max(frame.tones_hz, settings)
+    every = moving + [DopplerEstimate(float(g), True, 0.0, 0.0, 0.0, refine_error_hz=0.5 * fs / n) for g in extra[below]]
+    extra = extra[~below]
+    refined = list(every)
+    for _ in range(2):
+        refined = [refine_doppler(x, frame, d, [abs(o.fd_hz) for j, o in enumerate(refined) if j != i], spec, extra)
+                   for i, d in enumerate(every)]
+        # with several movers, again with the others' lines where their refinement put them, where
+        # it moved them (held at the search's estimate, up to a tenth of a bin off, a strong mover's
+        # baseband line left residuals that pulled a weaker one's Doppler: the techniques probe's 2631)
+        if len(every) < 2 or all(abs(r.fd_hz - d.fd_hz) < 0.02 * fs / n for r, d in zip(refined, every)):
+            break
+    return refined, extra
+
+
 def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: Spectrum,
                settings: ChainSettings) -> list[PeLines]:
     """The stage ``pe_lines``: per moving target, the complex amplitude of its PE lines.
@@ -563,23 +594,9 @@ def extract_pe(x: np.ndarray, frame: Frame, dops: list[DopplerEstimate], spec: S
         raise NoTarget("pe: no Doppler line (PE ranges moving targets from f_i +- f_d; a static target is AB-MTCW's)")
     n, fs = x.size, frame.fs_hz
     dc = float(np.mean(x))
-    whole = whole_record(spec, x, fs)
-    # every strong line no plan models is fitted too, in the refinement and with the lines: a mover
-    # unfound leaks through every least-squares fit (found about the search's estimate; the
-    # refinement moves the plan by under a bin, the lines stay clear of it)
-    extras = [np.round(unmodelled_lines(whole, _plan_with_others(
-        frame.tones_hz, d.fd_hz, [abs(o.fd_hz) for o in moving if o is not d], fs, n)[2]), 6) for d in moving]
-    refined = list(moving)
-    for _ in range(2):
-        refined = [refine_doppler(x, frame, d, [abs(o.fd_hz) for j, o in enumerate(refined) if j != i], spec, extras[i])
-                   for i, d in enumerate(moving)]
-        # with several movers, again with the others' lines where their refinement put them, where
-        # it moved them (held at the search's estimate, up to a tenth of a bin off, a strong mover's
-        # baseband line left residuals that pulled a weaker one's Doppler: the techniques probe's 2631)
-        if len(moving) < 2 or all(abs(r.fd_hz - d.fd_hz) < 0.02 * fs / n for r, d in zip(refined, moving)):
-            break
+    refined, extra = _refine_movers(x, frame, moving, spec, settings)
     out = []
-    for k, (dop, extra) in enumerate(zip(refined, extras), start=1):
+    for k, dop in enumerate(refined[:len(moving)], start=1):
         others = [abs(d.fd_hz) for d in refined if d is not dop]
         wanted, usable, allf = _plan_with_others(frame.tones_hz, dop.fd_hz, others, fs, n)
         allf = kept_apart(np.concatenate([allf, extra]), FIT_APART_BINS * fs / n)
