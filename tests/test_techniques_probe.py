@@ -155,3 +155,12 @@ def test_a_pe_movers_carrier_the_search_did_not_find_has_its_lines_fitted():
     and its whole line family fitted (``pe._refine_movers``)."""
     counts, lines, z = tp.judge_scene("pe", 3346, 2)
     assert counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines
+
+
+def test_a_strong_line_beside_a_modelled_one_is_fitted_too():
+    """Scene 4010: a mover's baseband line, 30 times the other mover's lower 75 MHz sideband and 4.7
+    bins from it, stood inside the 5 bins about modelled lines where no unmodelled line was looked
+    for; it turned that tone by pi, and the range came out half the 6 m period off (4743 sigmas),
+    unflagged. A local maximum 1.5 bins out is no longer the modelled line's own peak."""
+    counts, lines, z = tp.judge_scene("pe", 4010, 2)
+    assert counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines

@@ -250,9 +250,12 @@ def _plan_with_others(tones_hz, fd_hz: float, others: list[float], fs: float, n:
 #: a line no plan models that stands this many times its local floor in the whole record's spectrum
 #: (:func:`unmodelled_lines`) is fitted with the plan's ...
 UNMODELLED_MIN_RATIO = 100.0
-#: ... where it lies this many spectrum bins clear of every modelled line (inside a Kaiser(14) main
-#: lobe, +-4.6 bins, it is not told from that line) and a bin clear of 0 Hz
-UNMODELLED_CLEAR_BINS = 5.0
+#: ... where it lies this many spectrum bins clear of every modelled line and a bin clear of 0 Hz:
+#: a local maximum further out than a line's own peak is not that line's (its Kaiser(14) main lobe
+#: falls monotonically to +-4.6 bins); at 5 bins, a mover's baseband line 4.7 bins from another's
+#: lower sideband and 30 times it went unmodelled and turned that tone by pi (the techniques
+#: probe's scene 4010: half the 6 m period off, 4743 sigmas)
+UNMODELLED_CLEAR_BINS = 1.5
 
 
 def _strong_peaks(spec: Spectrum) -> np.ndarray:
