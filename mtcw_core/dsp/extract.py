@@ -987,13 +987,18 @@ def _whitened(z: np.ndarray, s2: np.ndarray, length: int) -> np.ndarray:
     return np.concatenate([z.real / sd, z.imag / sd], axis=1)
 
 
+def _trial_envelopes(segs: int, fds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``cos`` and ``sin`` of each trial Doppler ``fds`` (F,) (record bins) at the ``segs`` segments'
+    centres (in records about the record's centre), each (F, S)."""
+    arg = 2 * np.pi * np.outer(fds, (np.arange(segs) + 0.5) / segs - 0.5)
+    return np.cos(arg), np.sin(arg)
+
+
 def _sine_energies(m: np.ndarray, fds: np.ndarray) -> tuple[np.ndarray, tuple, tuple, tuple]:
     """The best rank-1 energy of ``m`` (S, 2T, whitened) whose envelope lies in span{cos, sin} at
     each trial Doppler ``fds`` (F,) (record bins) over the segments' centres: ``lam`` (F,), with
     the basis (F, S) each, its Gram and the projections' Gram ((F,) each) for the eigenvectors."""
-    segs = m.shape[0]
-    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
-    c, s = np.cos(2 * np.pi * np.outer(fds, t)), np.sin(2 * np.pi * np.outer(fds, t))  # (F, S)
+    c, s = _trial_envelopes(m.shape[0], fds)  # (F, S)
     pc, ps = c @ m, s @ m  # (F, 2T)
     # the largest root of det(H - lam*G) = 0 (H: the projections' Gram, G: the basis'): the best
     # rank-1 energy in span{cos, sin}, every trial at once (a 2x2 generalised eigenproblem)
@@ -1022,10 +1027,8 @@ FAST_FADE_PART = 0.5
 def _slow_energies(m: np.ndarray, fds: np.ndarray) -> np.ndarray:
     """The best rank-1 energy of ``m`` (S, 2T, whitened) whose envelope lies in span{1, cos, sin}
     at each trial Doppler ``fds`` (F,) (record bins) over the segments' centres: shape (F,)."""
-    segs = m.shape[0]
-    t = (np.arange(segs) + 0.5) / segs - 0.5  # segment centres, in records about the centre
-    arg = 2 * np.pi * fds[:, None] * t[None, :]
-    basis = np.stack([np.ones_like(arg), np.cos(arg), np.sin(arg)], axis=2)  # (F, S, 3)
+    c, s = _trial_envelopes(m.shape[0], fds)
+    basis = np.stack([np.ones_like(c), c, s], axis=2)  # (F, S, 3)
     q, _ = np.linalg.qr(basis)  # an orthonormal basis of each span
     proj = np.swapaxes(q, 1, 2) @ m  # (F, 3, 2T)
     return np.linalg.eigvalsh(proj @ np.swapaxes(proj, 1, 2))[:, -1]
