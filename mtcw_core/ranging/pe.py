@@ -770,6 +770,17 @@ def runner_up_log_odds(obs: Observations, tau0_s: float, interval_m: tuple[float
     return float(loglik(best_m)[0] - second)
 
 
+def _reference_less_echo(po: PeObservations, ratio: float, tau_diff_s: float | None) -> Observations:
+    """The reference lines' observations with the echo's own self-beat removed where ``tau_diff_s``
+    (``tau - tau_r`` of the solution, s) is given (:func:`self_beat_phase`, ``ratio`` ``a_m/a_ref``)."""
+    ro = po.ref_obs
+    if tau_diff_s is None:
+        return ro
+    d = np.pi * ro.df_hz * tau_diff_s
+    echo = np.angle(1 + ratio**2 * po.ref_kappa * np.exp(-2j * d))
+    return Observations(ro.df_hz, wrap_pi(ro.phase_rad - echo), ro.weight)
+
+
 def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 0.0,
                     tau_diff_s: float | None = None) -> tuple[float, float]:
     """``L_ref`` (m) and its sigma: the setting (sigma 0) or the reference self-beat phases.
@@ -787,16 +798,32 @@ def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 
     """
     if settings.reference_range_m is not None:
         return settings.reference_range_m, 0.0
-    ro = po.ref_obs
-    if ro.df_hz.size < 2:
+    if po.ref_obs.df_hz.size < 2:
         raise NoTarget("pe: reference_range_m not set and fewer than two reference self-beat lines to measure it")
-    if tau_diff_s is not None:
-        d = np.pi * ro.df_hz * tau_diff_s
-        echo = np.angle(1 + ratio**2 * po.ref_kappa * np.exp(-2j * d))
-        ro = Observations(ro.df_hz, wrap_pi(ro.phase_rad - echo), ro.weight)
+    ro = _reference_less_echo(po, ratio, tau_diff_s)
     lu = unambiguous_range(ro.df_hz)
     sol = resolve_ml(ro, 0.0, (settings.range_min_m, settings.range_min_m + lu), settings.points_per_cycle)
     return sol.range_m, _info_sigma(ro.df_hz, po.ref_var)
+
+
+def reference_chi2(po: PeObservations, l_ref_m: float, fitted: bool, ratio: float = 0.0,
+                   tau_diff_s: float | None = None) -> tuple[float, int]:
+    """Whether the reference lines are one mirror's: chi2 of their phases (the echo's own
+    self-beat removed, :func:`_reference_less_echo`) about ``-2*pi*f_i*2*L_ref/c``, on as many
+    degrees of freedom as lines, less one where ``L_ref`` was ``fitted`` to them.
+
+    A strong still echo squares onto the same lines and beats with the reference there (its
+    intensity and the two arms' cross term): the lines no longer follow one delay, ``L_ref`` read
+    from them is neither's, and every target's range with it (the reviewer's scene, a still echo
+    at 10 dB of loss beside a mover under a 100 kHz laser at 2^20 samples: ``L_ref`` 5.79 m for a
+    mirror at 0.10 m, chi2 3.7e6 on 3 dof, the mover 2800 sigmas off and unflagged). One mirror:
+    0.02-0.6 on 3. (0, 0) with no line to read."""
+    ro = _reference_less_echo(po, ratio, tau_diff_s)
+    dof = ro.df_hz.size - (1 if fitted else 0)
+    if dof <= 0:
+        return 0.0, 0
+    res = wrap_pi(ro.phase_rad + 2 * np.pi * ro.df_hz * 2 * l_ref_m / C)
+    return float(np.sum(res**2 / po.ref_var)), dof
 
 
 def _velocity(lines: PeLines, frame: Frame) -> tuple[float, float, str]:
@@ -833,6 +860,16 @@ def sideband_sizes_p(lines: PeLines) -> float:
     u, lo, vu, vl = u[ok], lo[ok], vu[ok], vl[ok]
     var = vu * u**2 + vl * lo**2 + SIDEBAND_SIZE_TOLERANCE**2 * (u**2 + lo**2)
     return float(chi2_dist.sf(np.sum((u - lo) ** 2 / var), int(ok.sum())))
+
+
+def _scale_and_blend(chi2: float, dof: int, settings: ChainSettings) -> tuple[float, bool]:
+    """Phases against one delay, as the PB chain reads them: the sigma's scale (the Birge ratio's
+    root from p < ``BIRGE_P``, else 1) and whether they fit no one delay (chi2/dof above
+    ``settings.blended_chi2`` or p < ``BLENDED_P``: ``blended``). (1, False) with no dof."""
+    if dof <= 0:
+        return 1.0, False
+    p = chi2_dist.sf(chi2, dof)
+    return (math.sqrt(chi2 / dof) if p < BIRGE_P else 1.0), bool(chi2 / dof > settings.blended_chi2 or p < BLENDED_P)
 
 
 def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
@@ -882,7 +919,11 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         obs, var = corrected(po, sol.range_m)
         sol = solve(obs)
         obs, var = corrected(po, sol.range_m)
-    l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
+    tau_d = ref.tau0_s + 2 * sol.range_m / C
+    l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, tau_d)
+    # the reference lines one mirror's? (a strong still echo on them moves L_ref, every range with it)
+    r_scale, r_blend = _scale_and_blend(*reference_chi2(po, l_ref, settings.reference_range_m is None,
+                                                        lines.arm_ratio, tau_d), settings)
     sigma = _info_sigma(obs.df_hz, var)
     if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
         i = int(np.argmax(obs.df_hz))
@@ -892,9 +933,8 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     chi2 = float(np.sum(res**2 / var))
     dof = obs.df_hz.size - 1
     ratio = chi2 / dof if dof > 0 else 1.0
-    if dof > 0 and chi2_dist.sf(chi2, dof) < BIRGE_P:
-        sigma *= math.sqrt(ratio)
-    sigma = math.hypot(sigma, s_ref)
+    scale, blend = _scale_and_blend(chi2, dof, settings)
+    sigma = math.hypot(sigma * scale, s_ref * r_scale)
     # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range over
     # the runner-up's; below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
     ml = sol if settings.method != "seed" else resolve_ml(obs, ref.tau0_s, interval, settings.points_per_cycle)
@@ -913,9 +953,9 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         range_m=float(sol.range_m + l_ref), range_sigma_m=float(sigma), velocity_mps=v, velocity_sigma_mps=vs,
         direction=direction, snr_db=float(np.max(snr)), margin=sol.margin, residual_rms_rad=sol.residual_rms_rad,
         near_edge=sol.near_edge, cycle_ambiguous=ambiguous,
-        # tones disagreeing beyond chance, as in the PB chain (techniques probe's scene 1823: chi2 23/3), or sidebands
-        blended=bool((dof > 0 and (ratio > settings.blended_chi2 or chi2_dist.sf(chi2, dof) < BLENDED_P))
-                     or sideband_sizes_p(lines) < BLENDED_P),  # not one size (another echo's lines on one)
+        # tones disagreeing beyond chance, as in the PB chain (techniques probe's scene 1823: chi2 23/3), the
+        # reference lines not one mirror's, or sidebands not one size (another echo's lines on one)
+        blended=bool(blend or r_blend or sideband_sizes_p(lines) < BLENDED_P),
         doppler_hz=lines.doppler.fd_hz, chi2_per_dof=float(ratio), tone_snr_db=tone_snr,
         seed_sigma_k_m=sol.seed_sigma_k_m,
     )
