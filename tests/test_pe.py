@@ -295,3 +295,13 @@ def test_a_strong_still_echo_on_the_reference_lines_flags_the_mover():
                                 st.min_line_snr_db)
         chi2, dof = pe.reference_chi2(po, pe.reference_range(po, st)[0], True)
         assert dof == 3 and lo <= chi2 < hi, chi2
+
+
+def test_a_declared_reference_the_lines_contradict_is_flagged():
+    """``reference_range_m`` declared 2 cm off the mirror the reference lines show: the range moves
+    by the 2 cm (as declared) and the point says its number may be wrong; declared right, it does not."""
+    fr = simulate_frame(fast_scene(samples=2**15, noise=True))
+    right = process_frame(fr, settings(reference_range_m=0.10)).targets[0]
+    off = process_frame(fr, settings(reference_range_m=0.12)).targets[0]
+    assert not right.blended and off.blended
+    assert off.range_m - right.range_m == pytest.approx(0.02, abs=1e-9)
