@@ -96,6 +96,17 @@ def test_a_sub_guard_mover_in_fast_reads_its_floors_at_the_records_resolution():
     assert pf.velocity_sigma_mps == pytest.approx(pb.velocity_sigma_mps, rel=1e-6)
 
 
+def test_a_runner_up_cycle_the_coarse_grid_sampled_low_still_counts_in_the_odds():
+    """Scene 50844, ``fast``: one photodiode, 2^18 samples, tones 230/350/820 MHz, a mover at 5.8 m
+    receding at 15.4 m/s (28.9 MHz) beside a slow one. Its pair phases fit the cycle 1.27 m nearer
+    within 0.3 chi2, but ``fast``'s 8-point grid sampled that peak below four others, it was no
+    runner-up, and the point came out 1.27 m off at odds 8e-4, 1109 sigmas, unflagged (over 400
+    seeds of the scene: 7 such of 87 unflagged). Now the runners-up are the highest refined peaks:
+    odds 0.92, ``cycle_ambiguous``, as in ``balanced``."""
+    counts, lines = ep.judge_scene(50844, 1)
+    assert counts["frames"] == 3 and counts["cw"] == 0 and counts["cf"] == 0 and not lines, lines
+
+
 def test_the_slips_the_chain_expects_are_its_unflagged_points_cycle_slip_probabilities(capsys):
     """The summary's expected slips are the sum of ``cycle_slip_prob`` over the unflagged points,
     each under the profile's ``cycle_slip_max``: scene 2887 (two fast movers behind a 12-bit ADC,

@@ -373,6 +373,24 @@ def test_ml_range_is_the_highest_peak_not_the_grids(ppc):
     assert any(abs(a - 13.1905) < 1e-3 for a in sol.alternatives_m)
 
 
+def test_runners_up_are_the_highest_refined_peaks_not_the_grids():
+    """A mover's pair phases on 230/350/820 MHz (the envelope probe's 50844, ``fast``): the cycle
+    1.27 m away fits within 0.3 chi2 of the solution, but at 8 points per cycle the grid sampled it
+    below four other maxima, so it was no runner-up and the point's cycle odds were 8e-4 -- a wrong
+    cycle 1109 sigmas off, unflagged. The runners-up are the highest refined peaks, whatever the
+    grid: the same near-equal cycle is among them at 8 and 16 points per cycle, first."""
+    obs = Observations(np.array([1.2e8, 5.9e8, 4.7e8, 1.2e8, 5.9e8, 4.7e8]),
+                       np.array([2.22721, 0.84858, -1.37863, 2.29250, 0.90318, -1.38933]),
+                       np.array([501951.0, 1110785.0, 3745431.0, 295925.0, 875736.0, 3150642.0]))
+    for ppc in (8, 16):
+        sol = resolve_ml(obs, 0.0, (-0.05, 14.9396229), ppc)
+        assert sol.range_m == pytest.approx(4.5361, abs=1e-3)
+        assert sol.alternatives_m[0] == pytest.approx(5.8100, abs=1e-3), sol.alternatives_m
+        j = cost(obs, list(sol.alternatives_m))
+        assert np.all(np.diff(j) <= 0)  # ranked by J itself
+        assert sol.margin < 0.01
+
+
 @pytest.mark.parametrize("range_m", [-0.047, 0.01, L_UNAMB - 0.06, L_UNAMB - 0.0505])
 def test_a_peak_at_an_end_of_the_interval_is_not_its_own_runner_up(range_m):
     """A range within a grid step of the interval's ends (one period): its peak refined across an
