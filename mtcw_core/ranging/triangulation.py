@@ -208,16 +208,15 @@ def resolve_ml(
     if hi - lo <= period + step:
         dist = np.minimum(dist % period, period - dist % period)
     # -- the grid's highest, and every one it may have sampled up to its sampling loss under the top
-    # (as for the solution), refined and ranked by J itself: ``fast``'s 8 points per cycle had sampled
-    # a runner-up 0.3 chi2 from the solution below four others, and its odds were left out (the
-    # envelope probe's 50844: a mover's wrong cycle at odds 8e-4, 1109 sigmas off, unflagged)
+    # (the solution's candidates, refined already), ranked by J itself: ``fast``'s 8 points per cycle
+    # had sampled a runner-up 0.3 chi2 from the solution below four others, and its odds were left out
+    # (the envelope probe's 50844: a mover's wrong cycle at odds 8e-4, 1109 sigmas off, unflagged)
     far = np.flatnonzero(is_max & (dist > half))
     order = far[np.argsort(vals[far])[::-1]]
-    top = np.union1d(order[:ALTERNATIVES], order[vals[order] >= vals[ib] - loss][:MAX_REFINED])
-    alts: tuple[float, ...] = ()
-    if top.size:
-        cand = _peaks(obs, tau0_s, j, grid[top], step, 1e-6 * step)
-        alts = tuple(float(a) for a in cand[np.argsort(j(cand))[::-1][:ALTERNATIVES]])
+    done = np.isin(top, far)
+    more = np.setdiff1d(order[:ALTERNATIVES], top[done])
+    cand = np.concatenate([peaks[done], _peaks(obs, tau0_s, j, grid[more], step, 1e-6 * step) if more.size else []])
+    alts = tuple(float(a) for a in cand[np.argsort(j(cand))[::-1][:ALTERNATIVES]]) if cand.size else ()
     j2 = float(np.max(j(np.array(alts)))) if alts else -1.0
     margin = float(np.clip(1 - max(j2, 0.0) / jbest, 0, 1)) if jbest > 0 else 0.0
     edge = min(best - lo, hi - best) < half
