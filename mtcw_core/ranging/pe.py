@@ -872,6 +872,16 @@ def _scale_and_blend(chi2: float, dof: int, settings: ChainSettings) -> tuple[fl
     return (math.sqrt(chi2 / dof) if p < BIRGE_P else 1.0), bool(chi2 / dof > settings.blended_chi2 or p < BLENDED_P)
 
 
+def _checked_reference(po: PeObservations, settings: ChainSettings, ratio: float, tau_diff_s: float
+                       ) -> tuple[float, float, bool]:
+    """``L_ref`` (m) (:func:`reference_range`), its sigma (m), Birge-scaled where the reference lines
+    misfit one mirror (:func:`reference_chi2`), and whether they fit none (``blended``)."""
+    l_ref, s_ref = reference_range(po, settings, ratio, tau_diff_s)
+    scale, blend = _scale_and_blend(*reference_chi2(po, l_ref, settings.reference_range_m is None, ratio, tau_diff_s),
+                                    settings)
+    return l_ref, s_ref * scale, blend
+
+
 def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
     """One target's point and the unambiguous range (m) of the observations it used.
 
@@ -919,11 +929,8 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         obs, var = corrected(po, sol.range_m)
         sol = solve(obs)
         obs, var = corrected(po, sol.range_m)
-    tau_d = ref.tau0_s + 2 * sol.range_m / C
-    l_ref, s_ref = reference_range(po, settings, lines.arm_ratio, tau_d)
     # the reference lines one mirror's? (a strong still echo on them moves L_ref, every range with it)
-    r_scale, r_blend = _scale_and_blend(*reference_chi2(po, l_ref, settings.reference_range_m is None,
-                                                        lines.arm_ratio, tau_d), settings)
+    l_ref, s_ref, r_blend = _checked_reference(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
     sigma = _info_sigma(obs.df_hz, var)
     if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
         i = int(np.argmax(obs.df_hz))
@@ -934,7 +941,7 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
     dof = obs.df_hz.size - 1
     ratio = chi2 / dof if dof > 0 else 1.0
     scale, blend = _scale_and_blend(chi2, dof, settings)
-    sigma = math.hypot(sigma * scale, s_ref * r_scale)
+    sigma = math.hypot(sigma * scale, s_ref)
     # can the phases pick one cycle? The log-likelihood (von Mises, kappa = 1/var) of the best range over
     # the runner-up's; below `pe_min_log_odds` the runner-up is not excluded and the point is flagged
     ml = sol if settings.method != "seed" else resolve_ml(obs, ref.tau0_s, interval, settings.points_per_cycle)
