@@ -216,7 +216,11 @@ def resolve_ml(
     done = np.isin(top, far)
     more = np.setdiff1d(order[:ALTERNATIVES], top[done])
     cand = np.concatenate([peaks[done], _peaks(obs, tau0_s, j, grid[more], step, 1e-6 * step) if more.size else []])
-    alts = tuple(float(a) for a in cand[np.argsort(j(cand))[::-1][:ALTERNATIVES]]) if cand.size else ()
+    kept: list[float] = []
+    for a in cand[np.argsort(j(cand))[::-1]]:  # two grid maxima refined onto one peak count once
+        if len(kept) < ALTERNATIVES and all(abs(a - b) > 1e-3 * step for b in kept):
+            kept.append(float(a))
+    alts = tuple(kept)
     j2 = float(np.max(j(np.array(alts)))) if alts else -1.0
     margin = float(np.clip(1 - max(j2, 0.0) / jbest, 0, 1)) if jbest > 0 else 0.0
     edge = min(best - lo, hi - best) < half
