@@ -297,11 +297,16 @@ def test_a_strong_still_echo_on_the_reference_lines_flags_the_mover():
         assert dof == 3 and lo <= chi2 < hi, chi2
 
 
-def test_a_declared_reference_the_lines_contradict_is_flagged():
-    """``reference_range_m`` declared 2 cm off the mirror the reference lines show: the range moves
-    by the 2 cm (as declared) and the point says its number may be wrong; declared right, it does not."""
-    fr = simulate_frame(fast_scene(samples=2**15, noise=True))
-    right = process_frame(fr, settings(reference_range_m=0.10)).targets[0]
-    off = process_frame(fr, settings(reference_range_m=0.12)).targets[0]
-    assert not right.blended and off.blended
-    assert off.range_m - right.range_m == pytest.approx(0.02, abs=1e-9)
+@pytest.mark.parametrize("seed", range(3))
+def test_a_weak_still_echo_beside_the_mover_leaves_its_point_as_it_was(seed):
+    """A still echo 10 dB under the mover (50 dB of loss, 3 m): the reference lines misfit one
+    mirror far beyond their noise (chi2 150-190 per dof), but their error is under 1 % of the
+    mover's own phase noise: the point stays right and unflagged (a flag on the chi2 alone had
+    flagged every such right point: found in review)."""
+    sc = fast_scene(noise=True, targets=[{"range_m": 50.0, "velocity_mps": 30.0, "loss_db": 40.0},
+                                         {"range_m": 3.0, "velocity_mps": 0.0, "loss_db": 50.0}])
+    fr = next(iter(Simulator(sc, seed).frames(1)))
+    res = process_frame(fr, settings())
+    (p,) = [q for q in res.targets if q.velocity_mps != 0]
+    assert not p.flagged
+    assert abs(wrapped_error(p.range_m, fr.truth[0].range_m, res.unambiguous_range_m)) < 5 * p.range_sigma_m

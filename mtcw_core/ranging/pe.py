@@ -873,13 +873,35 @@ def _scale_and_blend(chi2: float, dof: int, settings: ChainSettings) -> tuple[fl
 
 
 def _checked_reference(po: PeObservations, settings: ChainSettings, ratio: float, tau_diff_s: float
-                       ) -> tuple[float, float, bool]:
-    """``L_ref`` (m) (:func:`reference_range`), its sigma (m), Birge-scaled where the reference lines
-    misfit one mirror (:func:`reference_chi2`), and whether they fit none (``blended``)."""
+                       ) -> tuple[float, float, float, bool]:
+    """``L_ref`` (m) (:func:`reference_range`), its sigma (m), the phase variance per reference line
+    (rad^2) beyond the lines' noise and whether ``L_ref``'s cycle is then in doubt.
+
+    Where ``L_ref`` is measured, the reference lines' misfit of one mirror (:func:`reference_chi2`,
+    improbable at p < ``BIRGE_P``) is read as an error ``e`` per line, the residuals' mean square
+    beyond their noise. It enters ``L_ref``'s sigma, and (twice the phase: ``conj(z_ref)^2``) every
+    target's observations in ``solve_pe``; with the lines' noise so widened, a runner-up mirror
+    delay not excluded (:func:`runner_up_log_odds` under ``settings.pe_min_log_odds``) flags the
+    point ``blended``. A strong still echo on the lines (10 dB of loss: chi2 3.7e6 on 3, ``L_ref``
+    5.79 m for a 0.10 m mirror; 20 dB: the mover 1680 sigmas off, unflagged, before) widens the
+    targets' phases by more than their own noise; a weak one (50-60 dB: chi2 10-190 per dof) by
+    under 1 % of it (a flag on the chi2 alone flagged every right point beside any still clutter:
+    found in review). A declared ``L_ref`` is not read against the lines: that needs the tones' own
+    phases, which PE does not otherwise need."""
     l_ref, s_ref = reference_range(po, settings, ratio, tau_diff_s)
-    scale, blend = _scale_and_blend(*reference_chi2(po, l_ref, settings.reference_range_m is None, ratio, tau_diff_s),
-                                    settings)
-    return l_ref, s_ref * scale, blend
+    if settings.reference_range_m is not None:
+        return l_ref, s_ref, 0.0, False
+    chi2, dof = reference_chi2(po, l_ref, True, ratio, tau_diff_s)
+    if dof <= 0 or chi2_dist.sf(chi2, dof) >= BIRGE_P:
+        return l_ref, s_ref, 0.0, False
+    ro = _reference_less_echo(po, ratio, tau_diff_s)
+    res = wrap_pi(ro.phase_rad + 2 * np.pi * ro.df_hz * 2 * l_ref / C)
+    e = max(float(np.sum(res**2) - np.sum(po.ref_var) * dof / ro.df_hz.size) / dof, 0.0)
+    widened = Observations(ro.df_hz, ro.phase_rad, 1 / (po.ref_var + e))
+    lu = unambiguous_range(ro.df_hz)
+    odds = runner_up_log_odds(widened, 0.0, (settings.range_min_m, settings.range_min_m + lu), l_ref,
+                              settings.points_per_cycle)
+    return l_ref, _info_sigma(ro.df_hz, po.ref_var + e), e, bool(odds < settings.pe_min_log_odds)
 
 
 def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Reference) -> tuple[TargetPoint, float]:
@@ -929,16 +951,16 @@ def solve_pe(lines: PeLines, frame: Frame, settings: ChainSettings, ref: Referen
         obs, var = corrected(po, sol.range_m)
         sol = solve(obs)
         obs, var = corrected(po, sol.range_m)
-    # the reference lines one mirror's? (a strong still echo on them moves L_ref, every range with it)
-    l_ref, s_ref, r_blend = _checked_reference(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
+    l_ref, s_ref, e_ref, r_blend = _checked_reference(po, settings, lines.arm_ratio, ref.tau0_s + 2 * sol.range_m / C)
+    var = var + 4 * e_ref  # the reference lines' error beyond one mirror, twice in each phase (conj(z_ref)^2)
+    obs = Observations(obs.df_hz, obs.phase_rad, 1 / var)
     sigma = _info_sigma(obs.df_hz, var)
     if settings.method == "seed":  # the candidate matrix reports its first column: the finest observation alone
         i = int(np.argmax(obs.df_hz))
         sigma = _info_sigma(obs.df_hz[i:i + 1], var[i:i + 1])
     # do the tones agree with one range within their noise? (Birge ratio from p < BIRGE_P, as the PB chain)
     res = wrap_pi(obs.phase_rad + 2 * np.pi * obs.df_hz * (ref.tau0_s + 2 * sol.range_m / C))
-    chi2 = float(np.sum(res**2 / var))
-    dof = obs.df_hz.size - 1
+    chi2, dof = float(np.sum(res**2 / var)), obs.df_hz.size - 1
     ratio = chi2 / dof if dof > 0 else 1.0
     scale, blend = _scale_and_blend(chi2, dof, settings)
     sigma = math.hypot(sigma * scale, s_ref)
