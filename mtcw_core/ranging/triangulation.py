@@ -184,13 +184,17 @@ def resolve_ml(
     is_max = np.zeros(vals.size, bool)
     is_max[1:-1] = (vals[1:-1] >= vals[:-2]) & (vals[1:-1] >= vals[2:])
     # every local maximum the grid may have sampled up to its sampling loss under the top -- J =
-    # sum w*cos(...) loses up to ~(pi/ppc)^2/2 of sum(w) half a step off a peak: ~2 % at 16 points
+    # sum w*cos(...)/sum(w) loses up to ~(pi/ppc)^2/2 half a step off a peak: ~2 % at 16 points
     # per cycle, ~8 % at ``fast``'s 8 -- refined to its own peak, and the highest is the range (the
-    # grid's order is not the cost's: the envelope probe's scene 6729, two cycles 0.9 % apart)
-    loss = 0.75 * (np.pi / points_per_cycle) ** 2 * float(np.sum(obs.weight))
+    # grid's order is not the cost's: the envelope probe's scene 6729, two cycles 0.9 % apart; the
+    # loss was scaled by sum(w) again, on a cost already divided by it, so that every maximum up to
+    # MAX_REFINED was refined: found in review)
+    loss = 0.75 * (np.pi / points_per_cycle) ** 2
     ib = int(np.argmax(vals))
     idx = np.union1d(np.flatnonzero(is_max & (vals >= vals[ib] - loss)), [ib])
-    top = idx[np.argsort(vals[idx])[::-1][:MAX_REFINED]]
+    # with the grid's next highest maxima, the runners-up's likely candidates, in the same pass
+    tops = np.union1d(np.flatnonzero(is_max), [ib])
+    top = np.union1d(idx[np.argsort(vals[idx])[::-1][:MAX_REFINED]], tops[np.argsort(vals[tops])[::-1][:ALTERNATIVES + 1]])
     peaks = _peaks(obs, tau0_s, j, grid[top], step, 1e-9)
     jp = j(peaks)
     best, jbest = float(peaks[int(np.argmax(jp))]), float(np.max(jp))
