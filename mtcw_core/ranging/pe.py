@@ -817,7 +817,7 @@ def reference_chi2(po: PeObservations, l_ref_m: float, fitted: bool, ratio: floa
     from them is neither's, and every target's range with it (the reviewer's scene, a still echo
     at 10 dB of loss beside a mover under a 100 kHz laser at 2^20 samples: ``L_ref`` 5.79 m for a
     mirror at 0.10 m, chi2 3.7e6 on 3 dof, the mover 2800 sigmas off and unflagged). One mirror:
-    0.02-0.6 on 3. (0, 0) with no line to read."""
+    0.02-5.4 on 3 (a few frames of the section 4.3 scene). (0, 0) with no line to read."""
     ro = _reference_less_echo(po, ratio, tau_diff_s)
     dof = ro.df_hz.size - (1 if fitted else 0)
     if dof <= 0:
