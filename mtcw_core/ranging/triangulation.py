@@ -194,7 +194,8 @@ def resolve_ml(
     idx = np.union1d(np.flatnonzero(is_max & (vals >= vals[ib] - loss)), [ib])
     # with the grid's next highest maxima, the runners-up's likely candidates, in the same pass
     tops = np.union1d(np.flatnonzero(is_max), [ib])
-    top = np.union1d(idx[np.argsort(vals[idx])[::-1][:MAX_REFINED]], tops[np.argsort(vals[tops])[::-1][:ALTERNATIVES + 1]])
+    top = np.union1d(idx[np.argsort(vals[idx])[::-1][:MAX_REFINED]],
+                     tops[np.argsort(vals[tops])[::-1][:ALTERNATIVES + 1]])
     peaks = _peaks(obs, tau0_s, j, grid[top], step, 1e-9)
     jp = j(peaks)
     best, jbest = float(peaks[int(np.argmax(jp))]), float(np.max(jp))
