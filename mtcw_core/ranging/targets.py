@@ -1069,11 +1069,19 @@ def resolve_targets(families: list[LineFamily], observations: dict[int, Observat
                 fam_k, obs = mended, remixed[0]
                 lu = unambiguous_range(obs.df_hz)
         point = solve_target(fam_k, obs, moving[k - 1] if k else static, frame, settings, ref, coarse, lu)
-        if k and moving[k - 1].beside and any(j and _same_range(point, q) for j, q in points):
-            continue  # beside a mover, at its range: its phase-noise pedestal (issue 12 case 5 in fast)
+        if k and moving[k - 1].beside:
+            # beside a mover, at its range: the weaker is the other's phase-noise pedestal (issue 12
+            # case 5 in fast) -- this one, or the mover the search took for a line on its pedestal's
+            # bump (the envelope probe's 55012, ``fast``: a bump at 445 kHz, 16 dB, kept, and the
+            # mover at 82 kHz, 42 dB, dropped beside it; the speed 74 sigmas off)
+            same = [i for i, (j, q) in enumerate(points) if j and _same_range(point, q)]
+            if same and point.snr_db <= max(points[i][1].snr_db for i in same):
+                continue
+            points, periods = ([v for i, v in enumerate(points) if i not in same],
+                               [v for i, v in enumerate(periods) if i not in same])
         points.append((k, point))
         periods.append(lu)
-        l_unamb = lu if l_unamb is None else max(l_unamb, lu)
+        l_unamb = max(periods)
     order = sorted(range(len(points)), key=lambda i: points[i][0])
     points, periods = [points[i] for i in order], [periods[i] for i in order]
     if coarse is None and l_unamb is not None:
