@@ -806,11 +806,11 @@ def reference_range(po: PeObservations, settings: ChainSettings, ratio: float = 
     return sol.range_m, _info_sigma(ro.df_hz, po.ref_var)
 
 
-def reference_chi2(po: PeObservations, l_ref_m: float, fitted: bool, ratio: float = 0.0,
+def reference_chi2(po: PeObservations, l_ref_m: float, ratio: float = 0.0,
                    tau_diff_s: float | None = None) -> tuple[float, int]:
     """Whether the reference lines are one mirror's: chi2 of their phases (the echo's own
     self-beat removed, :func:`_reference_less_echo`) about ``-2*pi*f_i*2*L_ref/c``, on as many
-    degrees of freedom as lines, less one where ``L_ref`` was ``fitted`` to them.
+    degrees of freedom as lines less one (``L_ref`` fitted to them).
 
     A strong still echo squares onto the same lines and beats with the reference there (its
     intensity and the two arms' cross term): the lines no longer follow one delay, ``L_ref`` read
@@ -818,12 +818,18 @@ def reference_chi2(po: PeObservations, l_ref_m: float, fitted: bool, ratio: floa
     at 10 dB of loss beside a mover under a 100 kHz laser at 2^20 samples: ``L_ref`` 5.79 m for a
     mirror at 0.10 m, chi2 3.7e6 on 3 dof, the mover 2800 sigmas off and unflagged). One mirror:
     0.02-5.4 on 3 (a few frames of the section 4.3 scene). (0, 0) with no line to read."""
+    _, res = _reference_residuals(po, l_ref_m, ratio, tau_diff_s)
+    dof = res.size - 1
+    return (float(np.sum(res**2 / po.ref_var)), dof) if dof > 0 else (0.0, 0)
+
+
+def _reference_residuals(po: PeObservations, l_ref_m: float, ratio: float, tau_diff_s: float | None
+                         ) -> tuple[Observations, np.ndarray]:
+    """The reference lines' observations (the echo's own self-beat removed,
+    :func:`_reference_less_echo`) and their phases less one mirror's at ``l_ref_m``,
+    ``-2*pi*f_i*2*L_ref/c`` (rad), shape (R,)."""
     ro = _reference_less_echo(po, ratio, tau_diff_s)
-    dof = ro.df_hz.size - (1 if fitted else 0)
-    if dof <= 0:
-        return 0.0, 0
-    res = wrap_pi(ro.phase_rad + 2 * np.pi * ro.df_hz * 2 * l_ref_m / C)
-    return float(np.sum(res**2 / po.ref_var)), dof
+    return ro, wrap_pi(ro.phase_rad + 2 * np.pi * ro.df_hz * 2 * l_ref_m / C)
 
 
 def _velocity(lines: PeLines, frame: Frame) -> tuple[float, float, str]:
@@ -877,26 +883,25 @@ def _checked_reference(po: PeObservations, settings: ChainSettings, ratio: float
     """``L_ref`` (m) (:func:`reference_range`), its sigma (m), the phase variance per reference line
     (rad^2) beyond the lines' noise and whether ``L_ref``'s cycle is then in doubt.
 
-    Where ``L_ref`` is measured, the reference lines' misfit of one mirror (:func:`reference_chi2`,
-    improbable at p < ``BIRGE_P``) is read as an error ``e`` per line, the residuals' mean square
-    beyond their noise. It enters ``L_ref``'s sigma, and (twice the phase: ``conj(z_ref)^2``) every
-    target's observations in ``solve_pe``; with the lines' noise so widened, a runner-up mirror
-    delay not excluded (:func:`runner_up_log_odds` under ``settings.pe_min_log_odds``) flags the
-    point ``blended``. A strong still echo on the lines (10 dB of loss: chi2 3.7e6 on 3, ``L_ref``
-    5.79 m for a 0.10 m mirror; 20 dB: the mover 1680 sigmas off, unflagged, before) widens the
-    targets' phases by more than their own noise; a weak one (50-60 dB: chi2 10-190 per dof) by
-    under 1 % of it (a flag on the chi2 alone flagged every right point beside any still clutter:
-    found in review). A declared ``L_ref`` is not read against the lines: that needs the tones' own
-    phases, which PE does not otherwise need."""
+    Where ``L_ref`` is measured, the reference lines' misfit of one mirror (their chi2 as
+    :func:`reference_chi2`'s, improbable at p < ``BIRGE_P``) is read as an error ``e`` per line, the
+    residuals' mean square beyond their noise. It enters ``L_ref``'s sigma, and (twice the phase:
+    ``conj(z_ref)^2``) every target's observations in ``solve_pe``; with the lines' noise so
+    widened, a runner-up mirror delay not excluded (:func:`runner_up_log_odds` under
+    ``settings.pe_min_log_odds``) flags the point ``blended``. A strong still echo on the lines (10
+    dB of loss: chi2 3.7e6 on 3, ``L_ref`` 5.79 m for a 0.10 m mirror; 20 dB: the mover 1680 sigmas
+    off, unflagged, before) widens the targets' phases by more than their own noise; a weak one
+    (50-60 dB: chi2 10-190 per dof) by under 1 % of it (a flag on the chi2 alone flagged every right
+    point beside any still clutter: found in review). A declared ``L_ref`` is not read against the
+    lines: that needs the tones' own phases, which PE does not otherwise need."""
     l_ref, s_ref = reference_range(po, settings, ratio, tau_diff_s)
     if settings.reference_range_m is not None:
         return l_ref, s_ref, 0.0, False
-    chi2, dof = reference_chi2(po, l_ref, True, ratio, tau_diff_s)
-    if dof <= 0 or chi2_dist.sf(chi2, dof) >= BIRGE_P:
+    ro, res = _reference_residuals(po, l_ref, ratio, tau_diff_s)
+    dof = res.size - 1
+    if dof <= 0 or chi2_dist.sf(float(np.sum(res**2 / po.ref_var)), dof) >= BIRGE_P:
         return l_ref, s_ref, 0.0, False
-    ro = _reference_less_echo(po, ratio, tau_diff_s)
-    res = wrap_pi(ro.phase_rad + 2 * np.pi * ro.df_hz * 2 * l_ref / C)
-    e = max(float(np.sum(res**2) - np.sum(po.ref_var) * dof / ro.df_hz.size) / dof, 0.0)
+    e = max(float(np.sum(res**2) - np.sum(po.ref_var) * dof / res.size) / dof, 0.0)
     widened = Observations(ro.df_hz, ro.phase_rad, 1 / (po.ref_var + e))
     lu = unambiguous_range(ro.df_hz)
     odds = runner_up_log_odds(widened, 0.0, (settings.range_min_m, settings.range_min_m + lu), l_ref,
